@@ -1,0 +1,33 @@
+"""One exception tree for start-up and tooling errors.
+
+In the control loop faults become state (watchdogs, safety gate); these exceptions belong to
+start-up, configuration, file parsing and command-line tools.
+"""
+
+
+class LeafgateError(Exception):
+    """Base of every error leafgate raises on purpose."""
+
+
+class ConfigError(LeafgateError):
+    """A configuration file is missing, unreadable or holds a bad key or value."""
+
+
+class TrajectoryError(LeafgateError):
+    """A trajectory file or message is malformed (the message names the row)."""
+
+
+class CanCodecError(LeafgateError):
+    """A CAN database could not be loaded or a frame could not be encoded."""
+
+
+class BusError(LeafgateError):
+    """A CAN bus could not be opened."""
+
+
+class TransportError(LeafgateError):
+    """The Zenoh session could not be opened or a payload codec is misconfigured."""
+
+
+class ReplayError(LeafgateError):
+    """A recorded log or session could not be read."""
