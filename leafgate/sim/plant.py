@@ -1,0 +1,283 @@
+"""Simulated vehicles: the plants the controller drives in simulation.
+
+All plants integrate the rear-axle kinematic (or dynamic) bicycle accurately with fixed RK4
+sub-steps, not one Euler step per control period. The longitudinal input is *gear-relative*, as on
+the wire (DBW_LONG_CMD): a positive acceleration speeds the car up in the direction of the engaged
+gear (D forward, R backward); a negative one brakes towards rest and never reverses the motion.
+In P, N or no gear the car brakes (P) or rolls (N) to rest.
+
+- :class:`KinematicPlant` — the paper's Simulink check: the kinematic bicycle with an optional
+  pure input delay on both inputs.
+- :class:`SteerLagPlant` — adds the steering actuator (dead time, first-order lag τ, rate limit)
+  and a first-order lag on acceleration, the dynamics the paper's MPC does not model.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from leafgate.config import VehicleConfig
+from leafgate.messages import Gear, Pose
+from leafgate.sim.config import PlantConfig
+
+MAX_SUBSTEP = 0.002  # s, RK4 sub-step (error far below the metrics' resolution)
+STANDSTILL_SPEED = 0.01  # m/s, below this a braked car is at rest
+ROLLING_DECEL = 0.3  # m/s², rolling resistance in neutral
+
+
+def gear_direction(gear: Gear) -> int:
+    """+1 for D, −1 for R, 0 for any gear that does not drive."""
+    return 1 if gear == Gear.D else -1 if gear == Gear.R else 0
+
+
+def signed_accel(gear: Gear, accel_cmd: float, speed: float) -> float:
+    """Turn a gear-relative acceleration command into d(signed speed)/dt.
+
+    Braking (negative command) opposes the motion, whatever the gear; driving (positive) pushes in
+    the gear's direction. The caller clamps the speed at zero when braking crosses it.
+    """
+    direction = gear_direction(gear)
+    if gear == Gear.P:
+        return -math.copysign(6.0, speed) if abs(speed) > 0.0 else 0.0  # m/s², park pawl + brake
+    if direction == 0:
+        decel = max(-accel_cmd, ROLLING_DECEL)
+        return -math.copysign(decel, speed) if abs(speed) > 0.0 else 0.0
+    if accel_cmd >= 0.0:
+        return direction * accel_cmd
+    return -math.copysign(-accel_cmd, speed) if abs(speed) > 0.0 else 0.0
+
+
+def _bicycle_rhs(x: float, y: float, theta: float, v: float, tan_delta: float, wheelbase: float):
+    """Kinematic bicycle about the rear axle (paper eq. 1–6), without the speed equation."""
+    return v * math.cos(theta), v * math.sin(theta), v * tan_delta / wheelbase
+
+
+def rk4_pose(
+    x: float,
+    y: float,
+    theta: float,
+    v0: float,
+    a: float,
+    tan_delta: float,
+    wheelbase: float,
+    h: float,
+) -> tuple[float, float, float]:
+    """Advance (x, y, θ) over h with speed v0 + a·t and constant steering, by one RK4 step."""
+    k1 = _bicycle_rhs(x, y, theta, v0, tan_delta, wheelbase)
+    vm = v0 + 0.5 * h * a
+    k2 = _bicycle_rhs(
+        x + 0.5 * h * k1[0], y + 0.5 * h * k1[1], theta + 0.5 * h * k1[2], vm, tan_delta, wheelbase
+    )
+    k3 = _bicycle_rhs(
+        x + 0.5 * h * k2[0], y + 0.5 * h * k2[1], theta + 0.5 * h * k2[2], vm, tan_delta, wheelbase
+    )
+    k4 = _bicycle_rhs(
+        x + h * k3[0], y + h * k3[1], theta + h * k3[2], v0 + h * a, tan_delta, wheelbase
+    )
+    return (
+        x + h / 6.0 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0]),
+        y + h / 6.0 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1]),
+        theta + h / 6.0 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2]),
+    )
+
+
+class _Delay:
+    """A pure time delay on a scalar signal, sampled at the plant's sub-steps."""
+
+    def __init__(self, delay: float, initial: float) -> None:
+        self.delay = max(0.0, delay)
+        self._queue: deque[tuple[float, float]] = deque()
+        self._output = initial
+
+    def push(self, t: float, value: float) -> None:
+        if self.delay <= 0.0:
+            self._output = value
+        else:
+            self._queue.append((t + self.delay, value))
+
+    def output(self, t: float) -> float:
+        while self._queue and self._queue[0][0] <= t + 1e-12:
+            self._output = self._queue.popleft()[1]
+        return self._output
+
+
+class KinematicPlant:
+    """The kinematic bicycle with an optional pure delay on both inputs.
+
+    Steering follows the (delayed) command instantly, within the road-wheel angle limit.
+    """
+
+    def __init__(self, vehicle: VehicleConfig, start: Pose, input_delay: float = 0.0) -> None:
+        self.vehicle = vehicle
+        self.t = 0.0  # s, plant time
+        self.x, self.y, self.heading, self.speed = start.x, start.y, start.heading, start.speed
+        self.steer_angle = 0.0  # rad, actual road-wheel angle
+        self.steer_rate = 0.0  # rad/s
+        self.accel = 0.0  # m/s², actual d(signed speed)/dt
+        self.yaw_rate = 0.0  # rad/s
+        self.gear = Gear.D if start.speed >= 0.0 else Gear.R
+        self._steer_delay = _Delay(input_delay, 0.0)
+        self._accel_delay = _Delay(input_delay, 0.0)
+
+    # -- actuator models (overridden by plants with dynamics) --
+    def _steer_update(self, target: float, h: float, rate_limit: float) -> None:
+        limit = self.vehicle.max_steer_angle
+        new = min(max(target, -limit), limit)
+        self.steer_rate = (new - self.steer_angle) / h
+        self.steer_angle = new
+
+    def _accel_update(self, target: float, h: float) -> float:
+        """Return the gear-relative acceleration acting over the next sub-step."""
+        return target
+
+    def set_gear(self, gear: Gear) -> bool:
+        """Change gear; refused (False) unless the car is at rest."""
+        if gear == self.gear:
+            return True
+        if abs(self.speed) > STANDSTILL_SPEED:
+            return False
+        self.gear = gear
+        return True
+
+    def step(
+        self,
+        dt: float,
+        steer_cmd: float,
+        accel_cmd: float,
+        gear: Gear | None = None,
+        steer_rate_limit: float = 0.0,
+    ) -> None:
+        """Advance the plant by ``dt`` seconds with commands held constant.
+
+        :param steer_cmd: road-wheel angle command, rad
+        :param accel_cmd: gear-relative acceleration command, m/s²
+        :param gear: change to this gear first (only honoured at rest); None keeps the gear
+        :param steer_rate_limit: actuator rate limit requested by the command, rad/s (0 = default)
+        """
+        if gear is not None and gear != Gear.NONE:
+            self.set_gear(gear)
+        n = max(1, math.ceil(dt / MAX_SUBSTEP - 1e-9))
+        h = dt / n
+        self._steer_delay.push(self.t, steer_cmd)
+        self._accel_delay.push(self.t, accel_cmd)
+        for _ in range(n):
+            self._steer_update(self._steer_delay.output(self.t), h, steer_rate_limit)
+            a_rel = self._accel_update(self._accel_delay.output(self.t), h)
+            self._advance(h, a_rel)
+            self.t += h
+
+    def _advance(self, h: float, a_rel: float) -> None:
+        v0 = self.speed
+        a = signed_accel(self.gear, a_rel, v0)
+        v1 = v0 + a * h
+        braking_through_zero = (
+            v0 != 0.0 and v1 * v0 < 0.0 and (a_rel <= 0.0 or gear_direction(self.gear) * v0 < 0)
+        )
+        if braking_through_zero or (v0 == 0.0 and a == 0.0):
+            # Stop exactly at rest within the sub-step: integrate to the zero crossing only.
+            h_move = -v0 / a if a != 0.0 else 0.0
+            a_eff, v1 = a, 0.0
+        else:
+            h_move, a_eff = h, a
+        tan_delta = math.tan(self.steer_angle)
+        if h_move > 0.0:
+            self.x, self.y, self.heading = rk4_pose(
+                self.x, self.y, self.heading, v0, a_eff, tan_delta, self.vehicle.wheelbase, h_move
+            )
+        self.accel = (v1 - v0) / h
+        self.speed = v1
+        self.yaw_rate = v1 * tan_delta / self.vehicle.wheelbase
+
+    def pose(self) -> Pose:
+        """The true rear-axle pose (localization without noise)."""
+        return Pose(self.x, self.y, self.heading, self.speed, self.yaw_rate, stamp=self.t)
+
+
+class SteerLagPlant(KinematicPlant):
+    """Kinematic bicycle with steering dead time, first-order lag and rate limit, and an
+    acceleration lag: the steering dynamics the paper blames for its LGSVL oscillation."""
+
+    def __init__(self, vehicle: VehicleConfig, start: Pose, cfg: PlantConfig) -> None:
+        super().__init__(vehicle, start, input_delay=0.0)
+        self.cfg = cfg
+        self._steer_delay = _Delay(cfg.input_delay + cfg.steer_dead_time, 0.0)
+        self._accel_delay = _Delay(cfg.input_delay, 0.0)
+        self._accel_state = 0.0  # m/s², gear-relative actual acceleration
+
+    def _steer_update(self, target: float, h: float, rate_limit: float) -> None:
+        limit = self.vehicle.max_steer_angle
+        target = min(max(target, -limit), limit)
+        alpha = 1.0 - math.exp(-h / self.cfg.steer_tau)
+        delta = alpha * (target - self.steer_angle)
+        max_rate = (
+            self.cfg.steer_rate_max
+            if rate_limit <= 0.0
+            else min(rate_limit, self.cfg.steer_rate_max)
+        )
+        delta = min(max(delta, -max_rate * h), max_rate * h)
+        self.steer_rate = delta / h
+        self.steer_angle += delta
+
+    def _accel_update(self, target: float, h: float) -> float:
+        alpha = 1.0 - math.exp(-h / self.cfg.accel_tau)
+        self._accel_state += alpha * (target - self._accel_state)
+        if abs(self.speed) <= STANDSTILL_SPEED and target <= 0.0:
+            self._accel_state = target  # brakes hold at rest: no lagged creep
+        return self._accel_state
+
+
+class SpeedController:
+    """The vehicle's own speed controller (velocity mode): target speed → acceleration.
+
+    PI on the speed magnitude in the engaged gear's direction, with anti-windup by clamping; the
+    output is gear-relative like every longitudinal command on the wire.
+    """
+
+    def __init__(
+        self, kp: float = 1.2, ki: float = 0.3, min_accel: float = -3.0, max_accel: float = 1.5
+    ) -> None:
+        self.kp, self.ki = kp, ki  # 1/s, 1/s²
+        self.min_accel, self.max_accel = min_accel, max_accel  # m/s²
+        self._integral = 0.0  # m/s
+
+    def reset(self) -> None:
+        self._integral = 0.0
+
+    def step(self, dt: float, target_speed: float, speed_along_gear: float) -> float:
+        """:param target_speed: wanted speed magnitude, m/s
+        :param speed_along_gear: current speed in the gear's direction, m/s
+        :returns: gear-relative acceleration, m/s²"""
+        error = target_speed - speed_along_gear
+        if target_speed <= 0.0 and speed_along_gear <= 0.05:
+            self._integral = 0.0
+            return self.min_accel * 0.5  # hold the brake at rest
+        integral = self._integral + error * dt
+        accel = self.kp * error + self.ki * integral
+        clamped = min(max(accel, self.min_accel), self.max_accel)
+        if clamped == accel:
+            self._integral = integral  # integrate only while not saturated (anti-windup)
+        return clamped
+
+
+@dataclass(frozen=True)
+class PlantSnapshot:
+    """What a plant looks like at one instant (for logs and plots)."""
+
+    t: float
+    x: float
+    y: float
+    heading: float
+    speed: float
+    steer_angle: float
+    accel: float
+
+
+def make_plant(cfg: PlantConfig, vehicle: VehicleConfig, start: Pose) -> KinematicPlant:
+    """Build the plant named by ``cfg.kind``."""
+    if cfg.kind == "kinematic":
+        return KinematicPlant(vehicle, start, input_delay=cfg.input_delay)
+    if cfg.kind == "steer-lag":
+        return SteerLagPlant(vehicle, start, cfg)
+    raise ValueError(f"plant kind {cfg.kind!r} is not available")

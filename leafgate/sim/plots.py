@@ -1,0 +1,97 @@
+"""PNG plots of a drive, like the paper's Figs. 2–4: path, steering, speed."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from leafgate.messages import FloatArray, Trajectory
+
+
+@dataclass(frozen=True)
+class Trace:
+    """One drive's time series for plotting (SI units; plotted in degrees where readable)."""
+
+    label: str
+    t: FloatArray
+    x: FloatArray
+    y: FloatArray
+    speed: FloatArray
+    steer_actual: FloatArray
+    steer_target: FloatArray
+    speed_ref: FloatArray
+
+
+def _pyplot():  # imported lazily: matplotlib costs ~0.3 s and the daemon never plots
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_drive(
+    out_dir: Path, traj: Trajectory | None, traces: Sequence[Trace], title: str = ""
+) -> Mapping[str, Path]:
+    """Write path.png, steering.png and speed.png into ``out_dir``; return their paths."""
+    plt = _pyplot()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files: dict[str, Path] = {}
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    if traj is not None:
+        ax.plot(traj.x, traj.y, "k--", lw=1.2, label="reference")
+        ax.plot(traj.x, traj.y, "k.", ms=3)
+    for tr in traces:
+        ax.plot(tr.x, tr.y, lw=1.5, label=f"driven ({tr.label})")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+    ax.set_title(f"Path {title}".strip())
+    files["path"] = out_dir / "path.png"
+    fig.tight_layout()
+    fig.savefig(files["path"], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for tr in traces:
+        line = ax.plot(
+            tr.t, np.degrees(tr.steer_target), lw=1.0, ls="--", label=f"target ({tr.label})"
+        )
+        ax.plot(
+            tr.t,
+            np.degrees(tr.steer_actual),
+            lw=1.5,
+            color=line[0].get_color(),
+            label=f"actual ({tr.label})",
+        )
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("road-wheel angle [deg]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+    ax.set_title(f"Steering {title}".strip())
+    files["steering"] = out_dir / "steering.png"
+    fig.tight_layout()
+    fig.savefig(files["steering"], dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for tr in traces:
+        line = ax.plot(tr.t, tr.speed_ref, lw=1.0, ls="--", label=f"reference ({tr.label})")
+        ax.plot(tr.t, tr.speed, lw=1.5, color=line[0].get_color(), label=f"actual ({tr.label})")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("speed [m/s]")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+    ax.set_title(f"Speed {title}".strip())
+    files["speed"] = out_dir / "speed.png"
+    fig.tight_layout()
+    fig.savefig(files["speed"], dpi=110)
+    plt.close(fig)
+    return files
