@@ -25,6 +25,7 @@ from leafgate.sim.config import PlantConfig
 MAX_SUBSTEP = 0.002  # s, RK4 sub-step (error far below the metrics' resolution)
 STANDSTILL_SPEED = 0.01  # m/s, below this a braked car is at rest
 ROLLING_DECEL = 0.3  # m/s², rolling resistance in neutral
+INTEGRATE_BAND = 0.2  # m/s, speed error below which the speed controller integrates
 
 
 def gear_direction(gear: Gear) -> int:
@@ -236,7 +237,7 @@ class SpeedController:
     """
 
     def __init__(
-        self, kp: float = 1.2, ki: float = 0.3, min_accel: float = -3.0, max_accel: float = 1.5
+        self, kp: float = 1.5, ki: float = 0.1, min_accel: float = -3.0, max_accel: float = 1.5
     ) -> None:
         self.kp, self.ki = kp, ki  # 1/s, 1/s²
         self.min_accel, self.max_accel = min_accel, max_accel  # m/s²
@@ -253,11 +254,13 @@ class SpeedController:
         if target_speed <= 0.0 and speed_along_gear <= 0.05:
             self._integral = 0.0
             return self.min_accel * 0.5  # hold the brake at rest
-        integral = self._integral + error * dt
+        # Conditional integration (anti-windup): only near the target and while not saturated,
+        # so a large speed step does not charge the integral and overshoot.
+        integral = self._integral + error * dt if abs(error) < INTEGRATE_BAND else self._integral
         accel = self.kp * error + self.ki * integral
         clamped = min(max(accel, self.min_accel), self.max_accel)
         if clamped == accel:
-            self._integral = integral  # integrate only while not saturated (anti-windup)
+            self._integral = integral
         return clamped
 
 

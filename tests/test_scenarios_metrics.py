@@ -1,0 +1,47 @@
+"""Built-in scenarios and the path-error metrics every controller is judged by."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from leafgate.messages import Trajectory
+from leafgate.sim.metrics import path_errors, sign_changes
+from leafgate.sim.scenarios import SCENARIOS, get_scenario
+
+
+@pytest.mark.parametrize("name", sorted(SCENARIOS))
+def test_scenario_waypoints_equidistant_and_stop_at_end(name: str) -> None:
+    sc = get_scenario(name)
+    traj = sc.trajectory
+    spacing = np.hypot(np.diff(traj.x), np.diff(traj.y))
+    assert np.all(spacing > 0.25) and np.all(spacing <= 0.75)
+    assert traj.speed[-1] == 0.0
+    assert sc.start.speed == 0.0
+    assert (sc.start.x, sc.start.y) == (traj.x[0], traj.y[0])
+
+
+def test_s_curve_is_the_papers_maneuver() -> None:
+    traj = get_scenario("s-curve").trajectory
+    assert traj.y[-1] - traj.y[0] == pytest.approx(3.5)
+    assert np.max(traj.speed) == pytest.approx(2.0)
+    assert np.median(np.hypot(np.diff(traj.x), np.diff(traj.y))) == pytest.approx(0.5, abs=0.01)
+
+
+def test_unknown_scenario_lists_known_ones() -> None:
+    with pytest.raises(KeyError, match="known: "):
+        get_scenario("hairpin")
+
+
+def test_lateral_error_is_signed_distance_to_polyline() -> None:
+    traj = Trajectory(x=[0.0, 1.0, 2.0, 3.0], y=[0.0] * 4, heading=[0.0] * 4, speed=[1.0] * 4)
+    err = path_errors(
+        traj, np.array([0.5, 2.5, 1.0]), np.array([0.2, -0.3, 0.0]), np.array([0.1, 0.0, -0.2])
+    )
+    np.testing.assert_allclose(err.lateral, [0.2, -0.3, 0.0])
+    np.testing.assert_allclose(err.heading, [0.1, 0.0, -0.2])
+
+
+def test_sign_changes_ignores_deadband() -> None:
+    rate = np.array([0.1, 0.2, -0.1, 0.005, -0.005, 0.3, 0.2])
+    assert sign_changes(rate, deadband=0.01) == 2
