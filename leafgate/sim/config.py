@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from leafgate.config import positive
+
 
 @dataclass(frozen=True)
 class PlantConfig:
@@ -14,14 +16,56 @@ class PlantConfig:
     steer_dead_time: float = 0.1  # s
     steer_rate_max: float = 0.6  # rad/s, road-wheel angle rate limit of the actuator
     accel_tau: float = 0.2  # s, first-order lag on acceleration
+    # Dynamic plant only: below blend_speed_low the lateral motion is the kinematic bicycle's,
+    # above blend_speed_high the linear-tyre model's, linearly blended between (well-posed at rest).
+    blend_speed_low: float = 0.5  # m/s
+    blend_speed_high: float = 1.0  # m/s
+
+    def __post_init__(self) -> None:
+        positive(self, "steer_tau", "steer_rate_max", "accel_tau", "blend_speed_high")
+        for name in ("input_delay", "steer_dead_time", "blend_speed_low"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be zero or positive, got {getattr(self, name)!r}")
+        if self.blend_speed_low >= self.blend_speed_high:
+            raise ValueError("blend_speed_low must be below blend_speed_high")
 
 
 @dataclass(frozen=True)
 class EcuConfig:
+    """The simulated drive-by-wire ECU (DESIGN, "ECU semantics")."""
+
     cmd_timeout: float = 0.1  # s without a valid command → CMD_TIMEOUT
     timeout_decel: float = 3.0  # m/s², braking to a stop after a timeout
     override_torque: float = 2.5  # N·m on the steering wheel
     override_time: float = 0.1  # s the torque must last
+    override_brake_pedal: float = 5.0  # % of pedal travel counted as "brake pedal pressed"
+    driver_decel: float = 2.0  # m/s², the simulated driver's braking when not engaged
+    standstill_speed: float = 0.05  # m/s, below this a gear change is allowed
+    default_steer_rate: float = 0.5  # rad/s, road-wheel rate limit when the command sends 0
+    speed_kp: float = 1.2  # 1/s, the vehicle's speed controller (speed mode)
+    speed_ki: float = 0.3  # 1/s²
+    speed_max_accel: float = 1.5  # m/s², speed-mode acceleration limit
+    speed_max_decel: float = 3.0  # m/s², speed-mode braking limit
+    tick_rate_hz: float = 1000.0  # Hz, real-time step rate of `leafgate sim-ecu`
+
+    def __post_init__(self) -> None:
+        positive(
+            self,
+            "cmd_timeout",
+            "timeout_decel",
+            "override_torque",
+            "override_time",
+            "override_brake_pedal",
+            "driver_decel",
+            "standstill_speed",
+            "default_steer_rate",
+            "speed_kp",
+            "speed_max_accel",
+            "speed_max_decel",
+            "tick_rate_hz",
+        )
+        if not self.speed_ki >= 0.0:
+            raise ValueError(f"speed_ki must be zero or positive, got {self.speed_ki!r}")
 
 
 @dataclass(frozen=True)

@@ -283,4 +283,118 @@ def make_plant(cfg: PlantConfig, vehicle: VehicleConfig, start: Pose) -> Kinemat
         return KinematicPlant(vehicle, start, input_delay=cfg.input_delay)
     if cfg.kind == "steer-lag":
         return SteerLagPlant(vehicle, start, cfg)
+    if cfg.kind == "dynamic":
+        return DynamicPlant(vehicle, start, cfg)
     raise ValueError(f"plant kind {cfg.kind!r} is not available")
+
+
+# ---------------------------------------------------------------------------------------------
+# Dynamic bicycle plant (kind "dynamic").
+# ---------------------------------------------------------------------------------------------
+
+
+class DynamicPlant(SteerLagPlant):
+    """Dynamic bicycle with linear tyres, blended to the kinematic bicycle at low speed.
+
+    Lateral dynamics about the centre of gravity (mass ``m``, yaw inertia ``Iz``, ``lf``/``lr``
+    from the cg to the axles, axle cornering stiffnesses ``Cf``/``Cr`` from
+    :class:`~leafgate.config.VehicleConfig`), with ``u`` the body-axis speed, ``vy`` the lateral
+    speed of the cg and ``r`` the yaw rate::
+
+        Fyf = -Cf (vy + lf r - u tan δ) / |u|      Fyr = -Cr (vy - lr r) / |u|
+        m (vy' + u r) = Fyf cos δ + Fyr            Iz r' = lf Fyf cos δ - lr Fyr
+
+    Dividing by ``|u|`` (not ``u``) keeps the tyre forces opposed to sliding when reversing. At
+    speed the steady state gives the understeer-gradient yaw rate ``r = u δ / (L + K u²)``,
+    ``K = m (lr Cr - lf Cf) / (L Cf Cr)``. The tyre model is singular at rest, so below
+    ``blend_speed_low`` the lateral motion is the kinematic bicycle's (``r = u tan δ / L``, no
+    rear-axle side-slip), above ``blend_speed_high`` the dynamic one, linearly blended between;
+    after each sub-step the lateral states are pulled to the same blend, so they are consistent
+    when the speed rises. The steering actuator (dead time, lag τ, rate limit) and the
+    acceleration lag are those of :class:`SteerLagPlant`; the speed along the body axis follows the
+    acceleration as in the other plants. :meth:`pose` reports the rear-axle centre.
+    """
+
+    def __init__(self, vehicle: VehicleConfig, start: Pose, cfg: PlantConfig) -> None:
+        super().__init__(vehicle, start, cfg)
+        self.lf = vehicle.cg_to_front  # m
+        self.lr = vehicle.wheelbase - vehicle.cg_to_front  # m
+        self.lateral_speed = 0.0  # m/s, side-slip speed of the rear-axle centre (body frame)
+        self._vy = self.lr * self.yaw_rate  # m/s, lateral speed of the cg, kinematic at start
+        # Floor of |u| in the tyre model: only reached where the kinematic blend weight is zero.
+        self._u_floor = max(cfg.blend_speed_low, 0.1)  # m/s
+
+    def _dynamic_weight(self, u: float) -> float:
+        """Weight of the dynamic model: 0 below blend_speed_low, 1 above blend_speed_high."""
+        lo, hi = self.cfg.blend_speed_low, self.cfg.blend_speed_high
+        return min(max((abs(u) - lo) / (hi - lo), 0.0), 1.0)
+
+    def _rhs(
+        self, state: tuple[float, ...], a: float, tan_d: float, cos_d: float
+    ) -> tuple[float, ...]:
+        """Time derivative of (x, y, ψ, u, vy, r) with constant acceleration and steering."""
+        _, _, psi, u, vy, r = state
+        v = self.vehicle
+        w = self._dynamic_weight(u)
+        r_kin = u * tan_d / v.wheelbase
+        u_abs = max(abs(u), self._u_floor)
+        f_front = -v.cornering_stiffness_front * (vy + self.lf * r - u * tan_d) / u_abs  # N
+        f_rear = -v.cornering_stiffness_rear * (vy - self.lr * r) / u_abs  # N
+        dvy = (f_front * cos_d + f_rear) / v.mass - u * r
+        dr = (self.lf * f_front * cos_d - self.lr * f_rear) / v.yaw_inertia
+        r_b = w * r + (1.0 - w) * r_kin
+        slip_rear = w * (vy - self.lr * r)  # m/s, rear-axle side-slip; zero when kinematic
+        return (
+            u * math.cos(psi) - slip_rear * math.sin(psi),
+            u * math.sin(psi) + slip_rear * math.cos(psi),
+            r_b,
+            a,
+            dvy,
+            dr,
+        )
+
+    def _rk4(
+        self, state: tuple[float, ...], a: float, tan_d: float, cos_d: float, h: float
+    ) -> tuple[float, ...]:
+        k1 = self._rhs(state, a, tan_d, cos_d)
+        k2 = self._rhs(
+            tuple(s + 0.5 * h * k for s, k in zip(state, k1, strict=True)), a, tan_d, cos_d
+        )
+        k3 = self._rhs(
+            tuple(s + 0.5 * h * k for s, k in zip(state, k2, strict=True)), a, tan_d, cos_d
+        )
+        k4 = self._rhs(tuple(s + h * k for s, k in zip(state, k3, strict=True)), a, tan_d, cos_d)
+        return tuple(
+            s + h / 6.0 * (d1 + 2.0 * d2 + 2.0 * d3 + d4)
+            for s, d1, d2, d3, d4 in zip(state, k1, k2, k3, k4, strict=True)
+        )
+
+    def _advance(self, h: float, a_rel: float) -> None:
+        v0 = self.speed
+        a = signed_accel(self.gear, a_rel, v0)
+        v1 = v0 + a * h
+        braking_through_zero = (
+            v0 != 0.0 and v1 * v0 < 0.0 and (a_rel <= 0.0 or gear_direction(self.gear) * v0 < 0)
+        )
+        if braking_through_zero or (v0 == 0.0 and a == 0.0):
+            h_move = -v0 / a if a != 0.0 else 0.0  # s, integrate up to the stop only
+            v1 = 0.0
+        else:
+            h_move = h
+        tan_d = math.tan(self.steer_angle)
+        cos_d = math.cos(self.steer_angle)
+        r, vy = self.yaw_rate, self._vy
+        if h_move > 0.0:
+            state = (self.x, self.y, self.heading, v0, vy, r)
+            self.x, self.y, self.heading, _, vy, r = self._rk4(state, a, tan_d, cos_d, h_move)
+        # Pull the lateral states to the blend at the new speed (exactly kinematic at rest).
+        w = self._dynamic_weight(v1)
+        r_kin = v1 * tan_d / self.vehicle.wheelbase
+        r = w * r + (1.0 - w) * r_kin
+        vy = w * vy + (1.0 - w) * self.lr * r_kin
+        if not (math.isfinite(r) and math.isfinite(vy)):  # cannot happen with finite inputs
+            r, vy = r_kin, self.lr * r_kin
+        self.yaw_rate, self._vy = r, vy
+        self.lateral_speed = vy - self.lr * r
+        self.accel = (v1 - v0) / h
+        self.speed = v1

@@ -2,22 +2,90 @@
 
 One thread, one simulated clock: a 30 s maneuver runs in well under a second of wall time and
 gives the same numbers every run.
+
+:func:`run` is the full loop of the real system: plant → simulated ECU → CAN report frames →
+gateway codec → ``Gateway.step`` (watchdogs, state machine, controller, safety gate) → CAN command
+frames → ECU, over a python-can ``virtual`` bus, with localization from the plant and the
+trajectory from the scenario, engaged by a scripted operator request. :func:`run_direct` is the
+paper's Simulink check: the controller drives the plant with nothing in between.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import can
 import numpy as np
 
+from leafgate.can.codec import CanCodec
 from leafgate.control import make_controller
+from leafgate.errors import ConfigError
+from leafgate.gateway.core import Gateway, GatewayInputs
+from leafgate.messages import (
+    GatewayState,
+    LongMode,
+    LongReport,
+    OperatorRequest,
+    Pose,
+    Stamped,
+    SteerReport,
+    SystemReport,
+)
 from leafgate.settings import LeafgateConfig
+from leafgate.sim.ecu import SimulatedEcu
 from leafgate.sim.metrics import path_errors, tracking_metrics
 from leafgate.sim.plant import STANDSTILL_SPEED, SpeedController, gear_direction, make_plant
 from leafgate.sim.plots import Trace
 from leafgate.sim.scenarios import Scenario
+
+ECU_TICK = 0.01  # s, simulated ECU step (its fastest report period)
+ENGAGE_AT = 0.5  # s, when the scripted operator asks to engage (reports are fresh by then)
+REST_BEFORE_END = 1.0  # s at rest, disengaged, before the run ends
+_channel_ids = itertools.count()
+
+# Injections the gateway side handles (localization faults); the rest go to the simulated ECU.
+GATEWAY_INJECTIONS = {"localization-dropout", "position-jump", "command-dropout"}
+ECU_INJECTIONS = {
+    "override": ("override-torque", {"torque": 5.0}, 0.5),  # N·m for 0.5 s: a driver grabs the wheel
+    "brake-pedal": ("brake-pedal", {}, 0.5),
+    "report-dropout": ("report-dropout", {}, None),
+    "corrupt-crc": ("corrupt-crc", {}, None),
+    "stuck-counter": ("stuck-counter", {}, None),
+    "actuator-fault": ("actuator-fault", {}, None),
+}
+INJECTION_KINDS = sorted(GATEWAY_INJECTIONS | set(ECU_INJECTIONS))
+
+
+@dataclass(frozen=True)
+class Injection:
+    """A fault or driver action at a simulated time: ``KIND@T[s][+DURATION[s]]``."""
+
+    kind: str
+    at: float  # s
+    duration: float | None = None  # s, None = until the end
+
+    def active(self, t: float) -> bool:
+        return t >= self.at and (self.duration is None or t < self.at + self.duration)
+
+    @classmethod
+    def parse(cls, text: str) -> Injection:
+        """Parse ``localization-dropout@8s`` or ``override@10+0.5``.
+
+        :raises ConfigError: naming the text and what is wrong
+        """
+        m = re.fullmatch(r"([a-z-]+)@([0-9.]+)s?(?:\+([0-9.]+)s?)?", text.strip())
+        if not m:
+            raise ConfigError(f"--inject {text!r}: expected KIND@TIME[s][+DURATION[s]], e.g. override@10s")
+        kind = m.group(1)
+        if kind not in INJECTION_KINDS:
+            raise ConfigError(f"--inject {text!r}: unknown kind {kind!r} (known: {', '.join(INJECTION_KINDS)})")
+        duration = float(m.group(3)) if m.group(3) else None
+        return cls(kind, float(m.group(2)), duration)
 
 
 @dataclass
@@ -31,7 +99,15 @@ class _Recorder:
     speed: list[float] = field(default_factory=list)
     steer_actual: list[float] = field(default_factory=list)
     steer_target: list[float] = field(default_factory=list)
-    solve_time: list[float] = field(default_factory=list)
+
+    def add(self, t: float, pose: Pose, steer_actual: float, steer_target: float) -> None:
+        self.t.append(t)
+        self.x.append(pose.x)
+        self.y.append(pose.y)
+        self.heading.append(pose.heading)
+        self.speed.append(pose.speed)
+        self.steer_actual.append(steer_actual)
+        self.steer_target.append(steer_target)
 
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: np.asarray(v, dtype=np.float64) for k, v in self.__dict__.items()}
@@ -45,71 +121,24 @@ class SimResult:
     timeline: tuple[tuple[float, str], ...]
 
 
-def run(config: LeafgateConfig, scenario: Scenario, label: str = "") -> SimResult:
-    """Drive ``scenario`` with the configured controller and plant; return metrics and traces.
-
-    The controller commands the plant directly (no CAN, no gateway): the reference loop of the
-    paper's Simulink check.
-    """
-    period = config.gateway.period
-    traj = scenario.trajectory
-    controller = make_controller(config.controller, config.vehicle, period)
-    plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
-    velocity_mode = config.controller.mpc.mode == "velocity"
-    speed_ctl = SpeedController(min_accel=-3.0, max_accel=config.vehicle.max_accel)
-    rec = _Recorder()
-    timeline: list[tuple[float, str]] = [(0.0, f"start {scenario.name}")]
-    not_converged = clips = 0
-    steps = round(scenario.duration / period)
-    wall0 = time.perf_counter()
-    t = 0.0
-    for k in range(steps):
-        t = k * period
-        pose = plant.pose()
-        out = controller.step(pose, plant.steer_angle, traj)
-        not_converged += 0 if out.converged else 1
-        clips += out.clips
-        gear = plant.gear
-        if out.gear != gear and abs(plant.speed) <= STANDSTILL_SPEED:
-            if plant.set_gear(out.gear):
-                timeline.append((t, f"gear {out.gear.name}"))
-            gear = plant.gear
-        direction = gear_direction(gear)
-        if out.gear != gear:
-            accel_rel = -3.0  # hold the brake until the gear change is done
-        elif velocity_mode:
-            accel_rel = speed_ctl.step(period, abs(out.speed), direction * plant.speed)
-        else:
-            accel_rel = direction * out.accel
-        rec.t.append(t)
-        rec.x.append(pose.x)
-        rec.y.append(pose.y)
-        rec.heading.append(pose.heading)
-        rec.speed.append(pose.speed)
-        rec.steer_actual.append(plant.steer_angle)
-        rec.steer_target.append(out.steer_angle)
-        rec.solve_time.append(out.solve_time)
-        if out.finished:
-            timeline.append((t, "trajectory end reached, at rest"))
-            break
-        plant.step(period, out.steer_angle, accel_rel, gear)
-    wall = time.perf_counter() - wall0
+def _finish(
+    config: LeafgateConfig,
+    scenario: Scenario,
+    rec: _Recorder,
+    solve_times: list[float],
+    extra: dict[str, Any],
+    timeline: list[tuple[float, str]],
+    label: str,
+) -> SimResult:
     arr = rec.arrays()
+    traj = scenario.trajectory
     metrics: dict[str, Any] = tracking_metrics(
         traj, arr["t"], arr["x"], arr["y"], arr["heading"], arr["speed"], arr["steer_actual"]
     )
-    solve = arr["solve_time"]
-    metrics.update(
-        {
-            "solve_time_median_s": float(np.median(solve)),
-            "solve_time_p99_s": float(np.percentile(solve, 99)),
-            "solver_not_converged": not_converged,
-            "input_clips": clips,
-            "duration_s": float(t),
-            "wall_time_s": wall,
-            "finished": bool(timeline[-1][1].startswith("trajectory end")),
-        }
-    )
+    solve = np.asarray(solve_times or [0.0])
+    metrics["solve_time_median_s"] = float(np.median(solve))
+    metrics["solve_time_p99_s"] = float(np.percentile(solve, 99))
+    metrics.update(extra)
     speed_ref = path_errors(traj, arr["x"], arr["y"], arr["heading"]).speed_ref
     trace = Trace(
         label=label or f"{config.controller.kind}, {config.sim.plant.kind} plant",
@@ -122,3 +151,248 @@ def run(config: LeafgateConfig, scenario: Scenario, label: str = "") -> SimResul
         speed_ref=speed_ref,
     )
     return SimResult(scenario=scenario, metrics=metrics, trace=trace, timeline=tuple(timeline))
+
+
+def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> SimResult:
+    """Drive ``scenario`` with the controller commanding the plant directly (no CAN, no gateway)."""
+    period = config.gateway.period
+    traj = scenario.trajectory
+    controller = make_controller(config.controller, config.vehicle, period)
+    plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
+    velocity_mode = config.controller.mpc.mode == "velocity"
+    speed_ctl = SpeedController(min_accel=-3.0, max_accel=config.vehicle.max_accel)
+    rec = _Recorder()
+    solve_times: list[float] = []
+    timeline: list[tuple[float, str]] = [(0.0, f"start {scenario.name} (direct: controller → plant)")]
+    not_converged = clips = 0
+    steps = round(scenario.duration / period)
+    wall0 = time.perf_counter()
+    t = 0.0
+    finished = False
+    for k in range(steps):
+        t = k * period
+        pose = plant.pose()
+        out = controller.step(pose, plant.steer_angle, traj)
+        not_converged += 0 if out.converged else 1
+        clips += out.clips
+        solve_times.append(out.solve_time)
+        gear = plant.gear
+        if out.gear != gear and abs(plant.speed) <= STANDSTILL_SPEED:
+            if plant.set_gear(out.gear):
+                timeline.append((t, f"gear {out.gear.name}"))
+            gear = plant.gear
+        direction = gear_direction(gear)
+        if out.gear != gear:
+            accel_rel = -3.0  # hold the brake until the gear change is done
+        elif velocity_mode:
+            accel_rel = speed_ctl.step(period, abs(out.speed), direction * plant.speed)
+        else:
+            accel_rel = direction * out.accel
+        rec.add(t, pose, plant.steer_angle, out.steer_angle)
+        if out.finished:
+            timeline.append((t, "trajectory end reached, at rest"))
+            finished = True
+            break
+        plant.step(period, out.steer_angle, accel_rel, gear)
+    extra = {
+        "solver_not_converged": not_converged,
+        "input_clips": clips,
+        "duration_s": float(t),
+        "wall_time_s": time.perf_counter() - wall0,
+        "finished": finished,
+    }
+    return _finish(config, scenario, rec, solve_times, extra, timeline, label)
+
+
+class _Slots:
+    """The gateway's latest-value inputs, filled from decoded CAN frames on the simulated clock."""
+
+    def __init__(self) -> None:
+        self.steer: Stamped[SteerReport] | None = None
+        self.long: Stamped[LongReport] | None = None
+        self.system: Stamped[SystemReport] | None = None
+        self.good = 0
+        self.bad = 0
+
+    def take_counts(self) -> tuple[int, int]:
+        counts = (self.good, self.bad)
+        self.good = self.bad = 0
+        return counts
+
+
+def run(
+    config: LeafgateConfig,
+    scenario: Scenario,
+    label: str = "",
+    injections: tuple[Injection, ...] = (),
+    engage_at: float = ENGAGE_AT,
+) -> SimResult:
+    """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate."""
+    period = config.gateway.period
+    ticks_per_control = max(1, round(period / ECU_TICK))
+    ecu_dt = period / ticks_per_control
+    traj = scenario.trajectory
+    mode = LongMode.SPEED if config.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
+    controller = make_controller(config.controller, config.vehicle, period)
+    gateway = Gateway(config.gateway, config.vehicle, controller, mode)
+    plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
+    ecu = SimulatedEcu(config.sim.ecu, plant, config.vehicle, CanCodec())
+    gw_codec = CanCodec()
+    report_ids = gw_codec.receive_ids("reports") | gw_codec.receive_ids("car")
+    channel = f"leafgate-sim-{next(_channel_ids)}"
+    gw_bus = can.Bus(
+        interface="virtual",
+        channel=channel,
+        preserve_timestamps=True,
+        can_filters=[{"can_id": i, "can_mask": 0x7FF} for i in sorted(report_ids)],
+    )
+    ecu_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+
+    for inj in injections:
+        if inj.kind in ECU_INJECTIONS:
+            ecu_kind, kwargs, default_duration = ECU_INJECTIONS[inj.kind]
+            ecu.inject(ecu_kind, at=inj.at, duration=inj.duration or default_duration, **kwargs)
+    gw_injections = [i for i in injections if i.kind in GATEWAY_INJECTIONS]
+
+    slots = _Slots()
+    rec = _Recorder()
+    solve_times: list[float] = []
+    timeline: list[tuple[float, str]] = [(0.0, f"start {scenario.name}: gateway {GatewayState.STANDBY.name}")]
+    transitions: list[dict[str, Any]] = []
+    frames_sent = frames_received = frames_rejected = 0
+    not_converged = clips = 0
+    clamps: dict[str, int] = {}
+    last_pose: Stamped[Pose] | None = None
+    last_state = gateway.state
+    ecu_state_seen: str | None = None
+    engaged_once = False
+    rest_since: float | None = None
+    steer_target = 0.0
+    wall0 = time.perf_counter()
+    now = 0.0
+    steps = round(scenario.duration / ecu_dt)
+    try:
+        for k in range(steps):
+            now = k * ecu_dt
+            # 1. The ECU actuates the plant for one ECU tick and sends the reports due now.
+            ecu.step(now, ecu_dt)
+            for msg in ecu.reports(now):
+                ecu_bus.send(msg)
+            # 2. The gateway's receive side decodes what arrived.
+            while (msg := gw_bus.recv(timeout=0.0)) is not None:
+                frames_received += 1
+                decoded = gw_codec.decode(msg)
+                value = decoded.value
+                if isinstance(value, (SteerReport, LongReport, SystemReport)) or decoded.error in (
+                    "bad_crc",
+                    "bad_counter",
+                    "wrong_length",
+                ):
+                    if decoded.valid:
+                        slots.good += 1
+                    else:
+                        slots.bad += 1
+                        frames_rejected += 1
+                if not decoded.valid:
+                    continue
+                if isinstance(value, SteerReport):
+                    slots.steer = Stamped(value, now)
+                elif isinstance(value, LongReport):
+                    slots.long = Stamped(value, now)
+                elif isinstance(value, SystemReport):
+                    slots.system = Stamped(value, now)
+                    if value.state.name != ecu_state_seen:
+                        ecu_state_seen = value.state.name
+                        timeline.append((now, f"ECU {ecu_state_seen}"))
+            if k % ticks_per_control:
+                continue
+            # 3. Localization from the plant (unless a fault is injected), the scripted operator.
+            pose = plant.pose()
+            pose = Pose(pose.x, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now)
+            dropout = jump = command_dropout = False
+            for inj in gw_injections:
+                if inj.active(now):
+                    dropout |= inj.kind == "localization-dropout"
+                    jump |= inj.kind == "position-jump"
+                    command_dropout |= inj.kind == "command-dropout"
+            if jump:
+                pose = Pose(pose.x + 2.0, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now)
+            if not dropout:
+                last_pose = Stamped(pose, now)
+            request = OperatorRequest.ENGAGE if abs(now - engage_at) < ecu_dt / 2 else None
+            good, bad = slots.take_counts()
+            result = gateway.step(
+                now,
+                GatewayInputs(
+                    pose=last_pose,
+                    trajectory=Stamped(traj, 0.0),
+                    steer_report=slots.steer,
+                    long_report=slots.long,
+                    system_report=slots.system,
+                    good_report_frames=good,
+                    bad_report_frames=bad,
+                    request=request,
+                ),
+            )
+            if result.reply is not None:
+                verdict = "accepted" if result.reply.accepted else "refused"
+                timeline.append((now, f"operator engage: {verdict} ({result.reply.reason})"))
+            diag = result.diagnostics
+            ctl = diag.controller
+            if ctl is not None and gateway.state == GatewayState.ENGAGED:
+                solve_times.append(ctl.solve_time)
+                not_converged += 0 if ctl.converged else 1
+                clips += ctl.clips
+            if gateway.state != last_state:
+                transitions.append(
+                    {"t": round(now, 6), "from": last_state.name, "to": gateway.state.name, "reason": diag.reason}
+                )
+                timeline.append((now, f"gateway {last_state.name} → {gateway.state.name}: {diag.reason}"))
+                last_state = gateway.state
+            engaged_once |= gateway.state == GatewayState.ENGAGED
+            # 4. Command frames out, through the codec, to the ECU.
+            cmds = result.commands
+            steer_target = cmds.steer.angle
+            for value in (cmds.steer, cmds.long, cmds.system):
+                if value is None:
+                    continue
+                frame = gw_codec.encode(value, timestamp=now)
+                frames_sent += 1
+                if not command_dropout:
+                    gw_bus.send(frame)
+            while (msg := ecu_bus.recv(timeout=0.0)) is not None:
+                ecu.receive_frame(now, msg)
+            rec.add(now, plant.pose(), plant.steer_angle, steer_target)
+            # 5. Done once the gateway has let go and the car has been at rest for a while.
+            at_rest = abs(plant.speed) <= STANDSTILL_SPEED
+            idle = gateway.state in (GatewayState.STANDBY, GatewayState.FAULT)
+            if engaged_once and idle and at_rest:
+                rest_since = now if rest_since is None else rest_since
+                if now - rest_since >= REST_BEFORE_END:
+                    break
+            else:
+                rest_since = None
+        for name, count in diag.clamps.items():
+            clamps[name] = int(count)
+    finally:
+        gw_bus.shutdown()
+        ecu_bus.shutdown()
+    extra = {
+        "solver_not_converged": not_converged,
+        "input_clips": clips,
+        "duration_s": float(now),
+        "wall_time_s": time.perf_counter() - wall0,
+        "finished": engaged_once and gateway.state == GatewayState.STANDBY and not any(
+            tr["to"] in ("FAULT", "STOPPING") for tr in transitions
+        ),
+        "final_state": gateway.state.name,
+        "transitions": transitions,
+        "safety_clamps": clamps,
+        "can_frames_sent": frames_sent,
+        "can_frames_received": frames_received,
+        "can_frames_rejected": frames_rejected,
+        "ecu_frames_rejected": ecu.rejected_frames,
+    }
+    if not math.isfinite(extra["wall_time_s"]):
+        extra["wall_time_s"] = 0.0
+    return _finish(config, scenario, rec, solve_times, extra, timeline, label)

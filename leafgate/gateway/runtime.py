@@ -1,0 +1,415 @@
+"""The daemon's real-time runtime: threads, sockets and the clock around ``Gateway.step``.
+
+Threads and what they own:
+
+- python-can's ``Notifier`` thread decodes every received frame and writes the latest report of
+  each kind into a slot (with its receive time and validity) and counts good and bad frames.
+- Zenoh's callback threads (inside :class:`~leafgate.transport.node.GatewayTransport`) write the
+  latest localization and trajectory into their slots, and queue operator requests.
+- One control thread (the caller of :meth:`Runtime.run`) ticks on absolute deadlines of
+  ``time.perf_counter``: it reads the slots without blocking, calls ``Gateway.step``, encodes and
+  sends the command frames. Nothing else runs on it.
+- A publisher thread sends vehicle status, the sent command and diagnostics over Zenoh, so a slow
+  network never delays a tick; when it falls behind, publications are dropped and counted.
+
+Faults in the loop are state, never exceptions: a bus send error is counted and reported to the
+gateway, which latches FAULT; an encode error (a value the safety gate should have clamped) drops
+that frame, is counted and likewise faults.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass, field
+from typing import Any, Generic, Protocol, TypeVar
+
+import can
+import numpy as np
+
+from leafgate.can.codec import CanCodec, Decoded
+from leafgate.gateway.core import Gateway, GatewayInputs, StepResult
+from leafgate.messages import (
+    LongReport,
+    OperatorRequest,
+    Pose,
+    Stamped,
+    SteerReport,
+    SystemReport,
+    Trajectory,
+)
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+SHUTDOWN_TICKS = 5  # ticks of ENABLE=0 frames sent before exit (100 ms at 50 Hz)
+DIAGNOSTICS_PERIOD = 0.1  # s, 10 Hz
+STATS_WINDOW = 3000  # ticks kept for the timing figures (one minute at 50 Hz)
+REQUEST_TIMEOUT = 1.0  # s an operator request waits for the control thread
+
+
+class LatestSlot(Generic[T]):
+    """The latest value of one input, written by one thread and read by another."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._value: T | None = None
+
+    def set(self, value: T) -> None:
+        with self._lock:
+            self._value = value
+
+    def get(self) -> T | None:
+        with self._lock:
+            return self._value
+
+
+class CanReceiver(can.Listener):
+    """Decodes report frames on the Notifier thread into latest-value slots."""
+
+    def __init__(self, codec: CanCodec, clock: Callable[[], float]) -> None:
+        self.codec = codec
+        self.clock = clock
+        self.steer: LatestSlot[Stamped[SteerReport]] = LatestSlot()
+        self.long: LatestSlot[Stamped[LongReport]] = LatestSlot()
+        self.system: LatestSlot[Stamped[SystemReport]] = LatestSlot()
+        self.car: dict[str, LatestSlot[Stamped[Any]]] = {}
+        self._lock = threading.Lock()
+        self._good = 0
+        self._bad = 0
+        self.on_frame: Callable[[can.Message, Decoded], None] | None = None  # recorder hook
+
+    def on_message_received(self, msg: can.Message) -> None:
+        now = self.clock()
+        decoded = self.codec.decode(msg)
+        if self.on_frame is not None:
+            self.on_frame(msg, decoded)
+        value = decoded.value
+        is_report = isinstance(value, (SteerReport, LongReport, SystemReport))
+        if is_report or decoded.error in ("bad_crc", "bad_counter", "wrong_length"):
+            with self._lock:
+                if decoded.valid:
+                    self._good += 1
+                else:
+                    self._bad += 1
+        if not decoded.valid or value is None:
+            return
+        stamped = Stamped(value, now, True)
+        if isinstance(value, SteerReport):
+            self.steer.set(stamped)
+        elif isinstance(value, LongReport):
+            self.long.set(stamped)
+        elif isinstance(value, SystemReport):
+            self.system.set(stamped)
+        else:
+            self.car.setdefault(type(value).__name__, LatestSlot()).set(stamped)
+
+    def take_counts(self) -> tuple[int, int]:
+        """Good and bad report frames since the last call."""
+        with self._lock:
+            good, bad = self._good, self._bad
+            self._good = self._bad = 0
+        return good, bad
+
+    def on_error(self, exc: Exception) -> None:
+        log.error("CAN receive error: %s", exc)
+
+
+class InputSource(Protocol):
+    """Where localization and trajectory come from (Zenoh in the daemon, the plant in tests)."""
+
+    def latest_pose(self) -> Stamped[Pose] | None: ...
+
+    def latest_trajectory(self) -> Stamped[Trajectory] | None: ...
+
+
+class Publisher(Protocol):
+    """What the runtime publishes (Zenoh in the daemon)."""
+
+    def publish_step(self, now: float, result: StepResult, reports: dict[str, Any]) -> None: ...
+
+    def publish_diagnostics(self, diagnostics: dict[str, Any]) -> None: ...
+
+
+@dataclass
+class _Request:
+    request: OperatorRequest
+    future: Future[dict[str, Any]] = field(default_factory=Future)
+
+
+class RequestBox:
+    """Operator requests from the query thread to the control thread, answered with a reply."""
+
+    def __init__(self) -> None:
+        self._queue: queue.SimpleQueue[_Request] = queue.SimpleQueue()
+
+    def submit(self, request: OperatorRequest, timeout: float = REQUEST_TIMEOUT) -> dict[str, Any]:
+        """Block (on the caller's thread) until the control thread has decided."""
+        item = _Request(request)
+        self._queue.put(item)
+        try:
+            return item.future.result(timeout=timeout)
+        except FutureTimeout:
+            return {"accepted": False, "state": "UNKNOWN", "reason": "control loop did not answer in time"}
+
+    def take(self) -> _Request | None:
+        try:
+            return self._queue.get_nowait()
+        except queue.Empty:
+            return None
+
+
+@dataclass
+class LoopStats:
+    """Timing of the control loop, measured on the control thread."""
+
+    ticks: int = 0
+    overruns: int = 0  # ticks that started more than one period late
+    skipped: int = 0  # ticks dropped to re-anchor after a long stall
+    send_errors: int = 0
+    encode_errors: int = 0
+    publish_dropped: int = 0
+    compute: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))  # s
+    lateness: deque[float] = field(default_factory=lambda: deque(maxlen=STATS_WINDOW))  # s
+
+    def summary(self) -> dict[str, float | int]:
+        def pct(values: deque[float], q: float) -> float:
+            return float(np.percentile(np.fromiter(values, float), q)) if values else float("nan")
+
+        return {
+            "ticks": self.ticks,
+            "overruns": self.overruns,
+            "skipped_ticks": self.skipped,
+            "send_errors": self.send_errors,
+            "encode_errors": self.encode_errors,
+            "publish_dropped": self.publish_dropped,
+            "compute_median_s": pct(self.compute, 50),
+            "compute_p99_s": pct(self.compute, 99),
+            "compute_max_s": max(self.compute, default=float("nan")),
+            "start_lateness_median_s": pct(self.lateness, 50),
+            "start_lateness_p99_s": pct(self.lateness, 99),
+        }
+
+
+def sd_notify(state: str) -> bool:
+    """Tell systemd (Type=notify) about our state; a no-op outside systemd."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return False
+    if address.startswith("@"):
+        address = "\0" + address[1:]  # abstract namespace
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+            sock.connect(address)
+            sock.sendall(state.encode())
+        return True
+    except OSError as exc:
+        log.warning("sd_notify failed: %s", exc)
+        return False
+
+
+class Runtime:
+    """Runs ``Gateway.step`` on a fixed-rate loop between real inputs and a real bus.
+
+    :param gateway: the pure decision core
+    :param codec: the gateway's CAN codec (encodes commands, decodes reports)
+    :param bus: where command frames are sent (the ``dbw`` channel)
+    :param receiver: the Notifier listener holding the latest reports
+    :param inputs: localization and trajectory source
+    :param publisher: Zenoh publications (optional)
+    :param period: control tick period, s
+    :param clock: monotonic clock, s — the same clock must stamp the inputs
+    """
+
+    def __init__(
+        self,
+        gateway: Gateway,
+        codec: CanCodec,
+        bus: can.BusABC,
+        receiver: CanReceiver,
+        inputs: InputSource,
+        period: float,
+        publisher: Publisher | None = None,
+        requests: RequestBox | None = None,
+        clock: Callable[[], float] = time.perf_counter,
+        on_sent: Callable[[float, Sequence[can.Message], StepResult], None] | None = None,
+        extra_diagnostics: Callable[[], dict[str, Any]] | None = None,
+    ) -> None:
+        self.gateway = gateway
+        self.codec = codec
+        self.bus = bus
+        self.receiver = receiver
+        self.inputs = inputs
+        self.period = period
+        self.publisher = publisher
+        self.requests = requests or RequestBox()
+        self.clock = clock
+        self.on_sent = on_sent
+        self.extra_diagnostics = extra_diagnostics
+        self.stats = LoopStats()
+        self.last_result: StepResult | None = None
+        self._pub_queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=64)
+        self._pub_thread: threading.Thread | None = None
+        self._last_diag = -1e9
+        self._bus_errors_pending = 0
+
+    # -- one tick ----------------------------------------------------------------------------
+
+    def tick(self, now: float, overrun: bool = False, request: OperatorRequest | None = None) -> StepResult:
+        """Read the slots, step the gateway, send the frames. Never raises for bus problems."""
+        started = self.clock()
+        pending = self.requests.take() if request is None else None
+        good, bad = self.receiver.take_counts()
+        bus_errors, self._bus_errors_pending = self._bus_errors_pending, 0
+        inputs = GatewayInputs(
+            pose=self.inputs.latest_pose(),
+            trajectory=self.inputs.latest_trajectory(),
+            steer_report=self.receiver.steer.get(),
+            long_report=self.receiver.long.get(),
+            system_report=self.receiver.system.get(),
+            good_report_frames=good,
+            bad_report_frames=bad,
+            request=request if request is not None else (pending.request if pending else None),
+            overrun=overrun,
+            bus_errors=bus_errors,
+        )
+        result = self.gateway.step(now, inputs)
+        if pending is not None:
+            reply = result.reply
+            pending.future.set_result(
+                reply.to_dict()
+                if reply is not None
+                else {"accepted": False, "state": self.gateway.state.name, "reason": "no reply"}
+            )
+        frames = self._encode(result, now)
+        for frame in frames:
+            try:
+                self.bus.send(frame)
+            except can.CanError as exc:
+                self.stats.send_errors += 1
+                self._bus_errors_pending += 1
+                log.debug("send of 0x%03X failed: %s", frame.arbitration_id, exc)
+        self.last_result = result
+        if self.on_sent is not None:
+            self.on_sent(now, frames, result)
+        self.stats.ticks += 1
+        self.stats.compute.append(self.clock() - started)
+        self._queue_publications(now, result)
+        return result
+
+    def _encode(self, result: StepResult, now: float) -> list[can.Message]:
+        cmds = result.commands
+        frames = []
+        for value in (cmds.steer, cmds.long, cmds.system):
+            if value is None:
+                continue
+            try:
+                frames.append(self.codec.encode(value, timestamp=now))
+            except Exception as exc:  # an encode error must never end the loop
+                self.stats.encode_errors += 1
+                self._bus_errors_pending += 1
+                log.error("cannot encode %s: %s", type(value).__name__, exc)
+        return frames
+
+    def _queue_publications(self, now: float, result: StepResult) -> None:
+        if self.publisher is None:
+            return
+        reports = {
+            "steer": self.receiver.steer.get(),
+            "long": self.receiver.long.get(),
+            "system": self.receiver.system.get(),
+        }
+        self._offer(("step", (now, result, reports)))
+        if now - self._last_diag >= DIAGNOSTICS_PERIOD - 1e-6:
+            self._last_diag = now
+            self._offer(("diagnostics", self.diagnostics(result)))
+
+    def _offer(self, item: tuple[str, Any]) -> None:
+        try:
+            self._pub_queue.put_nowait(item)
+        except queue.Full:
+            self.stats.publish_dropped += 1
+
+    def diagnostics(self, result: StepResult | None = None) -> dict[str, Any]:
+        result = result or self.last_result
+        diag: dict[str, Any] = result.diagnostics.to_dict() if result is not None else {}
+        diag["loop"] = self.stats.summary()
+        diag["can"] = {
+            f"0x{fid:03X}": vars(s) if not isinstance(s, dict) else s for fid, s in self.codec.stats.items()
+        }
+        if self.extra_diagnostics is not None:
+            diag.update(self.extra_diagnostics())
+        return diag
+
+    # -- the loop ----------------------------------------------------------------------------
+
+    def _publisher_loop(self, stop: threading.Event) -> None:
+        assert self.publisher is not None
+        while not (stop.is_set() and self._pub_queue.empty()):
+            try:
+                kind, payload = self._pub_queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                if kind == "step":
+                    self.publisher.publish_step(*payload)
+                else:
+                    self.publisher.publish_diagnostics(payload)
+            except Exception as exc:  # a publication problem must not stop the publisher
+                log.warning("publish failed: %s", exc)
+
+    def run(self, stop: threading.Event, on_ready: Callable[[], None] | None = None) -> None:
+        """Tick until ``stop`` is set, then send ENABLE=0 frames for a few ticks and return."""
+        pub_stop = threading.Event()
+        if self.publisher is not None:
+            self._pub_thread = threading.Thread(
+                target=self._publisher_loop, args=(pub_stop,), name="leafgate-publish", daemon=True
+            )
+            self._pub_thread.start()
+        period = self.period
+        t0 = self.clock()
+        k = 0
+        ready_sent = False
+        try:
+            while not stop.is_set():
+                deadline = t0 + k * period
+                now = self.clock()
+                if now < deadline:
+                    # Sleep to the absolute deadline; a relative sleep would accumulate drift.
+                    stop.wait(deadline - now)
+                    if stop.is_set():
+                        break
+                    now = self.clock()
+                lateness = now - deadline
+                overrun = lateness > period
+                if overrun:
+                    self.stats.overruns += 1
+                if lateness > 3 * period:
+                    # A long stall: re-anchor instead of firing a burst of catch-up ticks.
+                    missed = int(lateness // period)
+                    self.stats.skipped += missed
+                    k += missed
+                self.stats.lateness.append(max(0.0, lateness))
+                self.tick(now, overrun=overrun)
+                if not ready_sent and on_ready is not None:
+                    on_ready()
+                    ready_sent = True
+                k += 1
+            # Disengage cleanly: the ECU sees ENABLE=0 frames, not a silent bus (which it would
+            # treat as a command timeout and brake hard).
+            for _ in range(SHUTDOWN_TICKS):
+                self.tick(self.clock(), request=OperatorRequest.DISENGAGE)
+                time.sleep(period)
+        finally:
+            pub_stop.set()
+            if self._pub_thread is not None:
+                self._pub_thread.join(timeout=1.0)

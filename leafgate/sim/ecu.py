@@ -1,0 +1,681 @@
+"""The simulated drive-by-wire ECU: the vehicle side of the leafgate CAN protocol.
+
+:class:`SimulatedEcu` is the pure core. It is stepped on a simulated clock (``now`` in s): it
+receives decoded command frames, applies the ECU semantics of DESIGN.md ("ECU semantics"),
+actuates a plant from :mod:`leafgate.sim.plant`, and produces the report frames due at ``now``
+through its own :class:`~leafgate.can.codec.CanCodec`. It reads no clock and opens no socket,
+so the same object runs in the deterministic closed-loop simulation and, wrapped by
+:func:`run_ecu_realtime`, as the ``leafgate sim-ecu`` process on a real-time bus.
+
+Semantics (defaults from :class:`~leafgate.sim.config.EcuConfig`):
+
+- Engage needs a 0→1 edge of ENABLE (on both DBW_STEER_CMD and DBW_LONG_CMD, taken together)
+  while both commands are fresh and valid. ENABLE held at 1 from the first frame, or on the first
+  frames after a timeout, does not engage. ENABLE back to 0 disengages (READY).
+- A frame with a bad CRC, a counter that does not advance or a wrong length is dropped and
+  counted by kind; the kinds seen are also latched as fault bits on DBW_SYSTEM_RPT until a
+  DBW_SYSTEM_CMD with CLEAR_FAULTS.
+- No valid steer or long command for ``cmd_timeout`` → CMD_TIMEOUT, disengage, and brake at
+  ``timeout_decel`` to a stop (kept until the next engage).
+- Driver override while engaged — steering torque above ``override_torque`` for
+  ``override_time``, or the brake pedal pressed — → OVERRIDE, latched (disengaged) until a
+  command with CLEAR_OVERRIDE arrives once the driver has let go.
+- Gear changes only at standstill (``|v| < standstill_speed``) with the brake held by the ECU;
+  a request while moving is refused and counted.
+- Engaged: the steering target and its rate limit (0 → ``default_steer_rate``) go to the plant;
+  acceleration mode passes the gear-relative acceleration (within the vehicle's limits), speed
+  mode runs the vehicle's :class:`~leafgate.sim.plant.SpeedController`.
+- Not engaged, the car is in the driver's hands: the steering angle is held where it was and
+  the driver brakes to rest at ``driver_decel``.
+
+Report frames carry the plant's measured values (road-wheel angle and rate, signed speed,
+acceleration, gear, driver torque, pedals, flags, received-error count), and the Leaf CAR-CAN
+frames are emitted too so simulated and real logs look alike.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import can
+
+from leafgate.can import e2e
+from leafgate.can.codec import CanCodec, Decoded
+from leafgate.config import VehicleConfig
+from leafgate.errors import LeafgateError
+from leafgate.messages import (
+    EcuState,
+    Gear,
+    GearPosition,
+    LongCommand,
+    LongMode,
+    LongReport,
+    MotorSpeed,
+    Pose,
+    SteerCommand,
+    SteeringWheelAngle,
+    SteerReport,
+    SystemCommand,
+    SystemReport,
+    WheelSpeeds,
+)
+from leafgate.sim.config import EcuConfig
+from leafgate.sim.plant import KinematicPlant, SpeedController, gear_direction, make_plant
+
+if TYPE_CHECKING:
+    from leafgate.settings import LeafgateConfig
+
+__all__ = [
+    "INJECTION_KINDS",
+    "REPORT_FRAMES",
+    "EcuCounters",
+    "Injection",
+    "InjectionError",
+    "RealtimeStats",
+    "SimulatedEcu",
+    "run_ecu_realtime",
+]
+
+
+class InjectionError(LeafgateError, ValueError):
+    """An injected driver action or fault is unknown or has bad parameters."""
+
+
+# Report frames: the ECU's name for each and its DBC message. Their periods are the DBC's
+# GenMsgCycleTime (DBW 10/20/100 ms; CAR-CAN 0x002 10 ms, 0x284/0x285 20 ms, 0x421 100 ms,
+# 0x176 10 ms), with these fallbacks, s, for a DBC without the attribute.
+REPORT_FRAMES: Mapping[str, tuple[str, float]] = {
+    "steer": ("DBW_STEER_RPT", 0.010),
+    "long": ("DBW_LONG_RPT", 0.020),
+    "system": ("DBW_SYSTEM_RPT", 0.100),
+    "steering_wheel": ("STEER_ANGLE_SENSOR", 0.010),
+    "wheels_front": ("WHEEL_SPEEDS_FRONT", 0.020),
+    "wheels_rear": ("WHEEL_SPEEDS_REAR", 0.020),
+    "gear": ("GEAR_POSITION", 0.100),
+    "motor": ("MOTOR_SPEED", 0.010),
+}
+
+# Injectable driver actions and faults: kind → its parameters with their defaults.
+INJECTION_KINDS: Mapping[str, Mapping[str, float]] = {
+    "override-torque": {"torque": 3.0},  # N·m on the steering wheel
+    "brake-pedal": {"pedal_pct": 30.0},  # % of brake pedal travel
+    "report-dropout": {},  # no report frames at all
+    "corrupt-crc": {},  # DBW reports sent with a wrong CRC
+    "stuck-counter": {},  # DBW reports repeat the previous alive counter
+    "actuator-fault": {},  # the steering/brake actuator reports a fault → FAULT
+}
+
+# The simulated sensors saturate inside the DBC signal ranges, as real ones do: an instant
+# steering step of the kinematic plant has an unbounded rate.
+_SENSOR_STEER_RATE = 5.0  # rad/s
+_SENSOR_ACCEL = 15.0  # m/s²
+_SENSOR_SPEED = 40.0  # m/s
+_SENSOR_TORQUE = 40.0  # N·m
+_RX_ERROR_COUNT_MAX = 0xFFFF  # the DBC field is 16 bits
+_EPS = 1e-9  # s, tolerance of "due at now" against float sums
+
+
+@dataclass(frozen=True)
+class Injection:
+    """One injected driver action or fault, active for ``start <= now < end``."""
+
+    kind: str
+    start: float  # s
+    end: float  # s, math.inf when it lasts
+    params: Mapping[str, float] = field(default_factory=dict)
+
+    def active(self, now: float) -> bool:
+        """Whether the injection acts at ``now``."""
+        return self.start <= now < self.end
+
+
+@dataclass
+class EcuCounters:
+    """Event counters of the ECU (diagnostics and tests)."""
+
+    bad_crc: int = 0  # command frames dropped for their CRC
+    bad_counter: int = 0  # … for an alive counter that did not advance by one
+    wrong_length: int = 0  # … for their length
+    other_invalid: int = 0  # … for any other decode error
+    timeouts: int = 0  # CMD_TIMEOUT episodes
+    overrides: int = 0  # OVERRIDE latches
+    engagements: int = 0
+    gear_changes: int = 0
+    gear_refused: int = 0  # gear requests refused while moving (once per request)
+    encode_errors: int = 0  # report frames that could not be encoded (a bug if non-zero)
+
+    @property
+    def rx_errors(self) -> int:
+        """All dropped command frames."""
+        return self.bad_crc + self.bad_counter + self.wrong_length + self.other_invalid
+
+
+class SimulatedEcu:
+    """The drive-by-wire ECU with its vehicle, stepped on a simulated clock.
+
+    Typical use, one tick of ``dt`` seconds::
+
+        for msg in frames_received: ecu.receive_frame(now, msg)
+        bus_frames = ecu.reports(now)
+        ecu.step(now, dt)
+
+    :param config: the ECU's settings
+    :param plant: the plant to actuate (it is owned and stepped by the ECU)
+    :param vehicle: the vehicle's limits (steering angle, acceleration)
+    :param codec: the ECU's own codec (alive counters are per codec); a new one when None
+    """
+
+    def __init__(
+        self,
+        config: EcuConfig,
+        plant: KinematicPlant,
+        vehicle: VehicleConfig,
+        codec: CanCodec | None = None,
+    ) -> None:
+        self.config = config
+        self.vehicle = vehicle
+        self.plant = plant
+        self.codec = codec if codec is not None else CanCodec()
+        self.counters = EcuCounters()
+        self._command_ids = self.codec.receive_ids("commands")
+        self._report_ids = self.codec.receive_ids("reports")
+        self._speed_ctl = SpeedController(
+            kp=config.speed_kp,
+            ki=config.speed_ki,
+            min_accel=-min(config.speed_max_decel, -vehicle.min_accel),
+            max_accel=min(config.speed_max_accel, vehicle.max_accel),
+        )
+        # latest valid commands and when they arrived (s)
+        self._steer: SteerCommand | None = None
+        self._long: LongCommand | None = None
+        self._steer_rx = -math.inf
+        self._long_rx = -math.inf
+        self._first_rx: float | None = None  # s, first valid command since start
+        self._clear_override_req = False
+        self._clear_faults_req = False
+        # state
+        self._engaged = False
+        self._override = False
+        self._fault = False
+        self._cmd_timeout = False
+        self._timeout_stop = False  # braking at timeout_decel until the next engage
+        self._prev_enable: bool | None = None  # None: no fresh commands, no edge possible
+        self._torque_since: float | None = None  # s, when the torque went above the threshold
+        self._held_angle = plant.steer_angle  # rad, what the "driver" holds when not engaged
+        self._mode: LongMode | None = None
+        self._last_refused_gear: Gear | None = None
+        self._fault_bits = {"cmd_timeout": False, "bad_crc": False, "bad_counter": False}
+        # injections and report schedule
+        self._injections: list[Injection] = []
+        self._report_base: float | None = None  # s, time of the first reports() call
+        self.report_periods = _report_periods(self.codec)  # s, per report name
+        self._report_index = dict.fromkeys(self.report_periods, 0)  # next due: base + index·period
+        self._last_counter: dict[int, int] = {}  # alive counter last sent, per report ID
+
+    # -- inputs ------------------------------------------------------------------------------
+
+    def receive(self, now: float, decoded: Decoded) -> None:
+        """Take one decoded frame received at ``now`` (s).
+
+        Command frames that failed decoding (bad CRC, stale counter, wrong length) are dropped
+        and counted by kind; frames that are not commands are ignored.
+        """
+        if decoded.frame_id not in self._command_ids:
+            return
+        if not decoded.valid:
+            self._count_invalid(decoded.error)
+            return
+        value = decoded.value
+        if isinstance(value, SteerCommand):
+            self._steer, self._steer_rx = value, now
+            self._clear_override_req |= value.clear_override
+        elif isinstance(value, LongCommand):
+            self._long, self._long_rx = value, now
+            self._clear_override_req |= value.clear_override
+        elif isinstance(value, SystemCommand):
+            self._clear_faults_req |= value.clear_faults
+        else:  # a valid frame of a command ID always decodes to one of the above
+            self.counters.other_invalid += 1
+            return
+        if self._first_rx is None:
+            self._first_rx = now
+
+    def receive_frame(self, now: float, msg: can.Message) -> Decoded:
+        """Decode ``msg`` with the ECU's codec and :meth:`receive` it; returns the decode."""
+        decoded = self.codec.decode(msg)
+        self.receive(now, decoded)
+        return decoded
+
+    def _count_invalid(self, error: str | None) -> None:
+        if error == "bad_crc":
+            self.counters.bad_crc += 1
+            self._fault_bits["bad_crc"] = True
+        elif error == "bad_counter":
+            self.counters.bad_counter += 1
+            self._fault_bits["bad_counter"] = True
+        elif error == "wrong_length":
+            self.counters.wrong_length += 1
+        else:
+            self.counters.other_invalid += 1
+
+    def inject(self, kind: str, at: float, duration: float | None = None, **params: float) -> None:
+        """Schedule a driver action or a fault (see :data:`INJECTION_KINDS`).
+
+        :param kind: ``override-torque`` (``torque`` N·m), ``brake-pedal`` (``pedal_pct`` %),
+            ``report-dropout``, ``corrupt-crc``, ``stuck-counter`` or ``actuator-fault``
+        :param at: start time, s (simulated clock)
+        :param duration: how long it lasts, s; None for ever
+        :raises InjectionError: unknown kind or parameter, or a bad time or value
+        """
+        defaults = INJECTION_KINDS.get(kind)
+        if defaults is None:
+            raise InjectionError(
+                f"unknown injection {kind!r} (known: {', '.join(sorted(INJECTION_KINDS))})"
+            )
+        unknown = sorted(set(params) - set(defaults))
+        if unknown:
+            known = ", ".join(sorted(defaults)) or "none"
+            raise InjectionError(f"injection {kind!r}: unknown parameter {unknown[0]!r} ({known})")
+        if not math.isfinite(at) or (duration is not None and not duration > 0.0):
+            raise InjectionError(f"injection {kind!r}: bad time at={at!r} duration={duration!r}")
+        merged = {**defaults, **{k: float(v) for k, v in params.items()}}
+        if not all(math.isfinite(v) for v in merged.values()):
+            raise InjectionError(f"injection {kind!r}: parameters must be finite: {merged}")
+        end = math.inf if duration is None else at + duration
+        self._injections.append(Injection(kind, at, end, merged))
+
+    def _active(self, now: float, kind: str) -> Injection | None:
+        """The last-scheduled injection of ``kind`` active at ``now``."""
+        for inj in reversed(self._injections):
+            if inj.kind == kind and inj.active(now):
+                return inj
+        return None
+
+    def driver_torque(self, now: float) -> float:
+        """Steering-wheel torque applied by the (simulated) driver at ``now``, N·m."""
+        inj = self._active(now, "override-torque")
+        return inj.params["torque"] if inj is not None else 0.0
+
+    def brake_pedal(self, now: float) -> float:
+        """Brake pedal travel at ``now``, %."""
+        inj = self._active(now, "brake-pedal")
+        return min(max(inj.params["pedal_pct"], 0.0), 100.0) if inj is not None else 0.0
+
+    # -- state -------------------------------------------------------------------------------
+
+    @property
+    def state(self) -> EcuState:
+        """The ECU state as on DBW_SYSTEM_RPT."""
+        if self._fault:
+            return EcuState.FAULT
+        if self._override:
+            return EcuState.OVERRIDE
+        if self._engaged:
+            return EcuState.ENGAGED
+        if self._steer is not None and self._long is not None and not self._cmd_timeout:
+            return EcuState.READY
+        return EcuState.NOT_READY
+
+    @property
+    def engaged(self) -> bool:
+        """Whether the ECU drives the car from the commands."""
+        return self._engaged
+
+    @property
+    def override(self) -> bool:
+        """Whether a driver override is latched."""
+        return self._override
+
+    @property
+    def rejected_frames(self) -> int:
+        """Command frames dropped as invalid (bad CRC, counter, length), all kinds together."""
+        return self.counters.rx_errors
+
+    @property
+    def cmd_timeout(self) -> bool:
+        """Whether the commands are currently timed out."""
+        return self._cmd_timeout
+
+    # -- the step ----------------------------------------------------------------------------
+
+    def step(self, now: float, dt: float) -> None:
+        """Apply the ECU semantics at ``now`` and actuate the plant for ``dt`` seconds."""
+        cfg = self.config
+        speed = self.plant.speed
+
+        # Command freshness; a command kind never seen ages from the first command of any kind.
+        fresh = False
+        if self._first_rx is not None:
+            steer_age = now - (self._steer_rx if self._steer is not None else self._first_rx)
+            long_age = now - (self._long_rx if self._long is not None else self._first_rx)
+            timed_out = max(steer_age, long_age) > cfg.cmd_timeout
+            fresh = not timed_out and self._steer is not None and self._long is not None
+            if timed_out and not self._cmd_timeout:
+                self.counters.timeouts += 1
+                self._fault_bits["cmd_timeout"] = True
+                self._timeout_stop = True
+                self._disengage()
+                # The sender may restart: accept its next counter instead of dropping one frame.
+                for frame_id in self._command_ids:
+                    self.codec.reset_counters(frame_id)
+            self._cmd_timeout = timed_out
+
+        # Driver override: torque above the threshold long enough, or the brake pedal.
+        torque = self.driver_torque(now)
+        if abs(torque) > cfg.override_torque:
+            if self._torque_since is None:
+                self._torque_since = now
+        else:
+            self._torque_since = None
+        torque_override = (
+            self._torque_since is not None and now - self._torque_since >= cfg.override_time - _EPS
+        )
+        pedal_pressed = self.brake_pedal(now) > cfg.override_brake_pedal
+        if self._engaged and (torque_override or pedal_pressed):
+            self._override = True
+            self.counters.overrides += 1
+            self._disengage()
+        if self._clear_override_req and self._override:
+            driver_let_go = self._torque_since is None and not pedal_pressed
+            if driver_let_go:
+                self._override = False
+        self._clear_override_req = False
+
+        # Actuator fault: latched until CLEAR_FAULTS once the fault is gone.
+        actuator_fault = self._active(now, "actuator-fault") is not None
+        if actuator_fault:
+            self._fault = True
+            self._disengage()
+        if self._clear_faults_req:
+            self._fault = self._fault and actuator_fault
+            self._fault_bits = dict.fromkeys(self._fault_bits, False)
+        self._clear_faults_req = False
+
+        # Engagement: an edge of ENABLE while the commands are fresh.
+        steer, long = self._steer, self._long
+        enable = fresh and steer is not None and long is not None and steer.enable and long.enable
+        edge = self._prev_enable is False and enable
+        self._prev_enable = enable if fresh else None
+        if self._engaged and not enable:
+            self._disengage()
+        elif edge and not (self._override or self._fault or self._cmd_timeout):
+            self._engaged = True
+            self._timeout_stop = False
+            self._mode = None
+            self.counters.engagements += 1
+
+        if self._engaged and steer is not None and long is not None:
+            steer_target = min(
+                max(steer.angle, -self.vehicle.max_steer_angle), self.vehicle.max_steer_angle
+            )
+            rate = steer.rate_limit if steer.rate_limit > 0.0 else cfg.default_steer_rate
+            accel = self._longitudinal(long, dt, speed)
+        else:
+            steer_target, rate = self._held_angle, cfg.default_steer_rate
+            accel = -(cfg.timeout_decel if self._timeout_stop else cfg.driver_decel)
+        if dt > 0.0:  # a zero step would divide by zero in the plant's rate estimate
+            self.plant.step(dt, steer_target, accel, None, rate)
+
+    def _disengage(self) -> None:
+        if self._engaged:
+            self._engaged = False
+            self._held_angle = self.plant.steer_angle
+
+    def _longitudinal(self, long: LongCommand, dt: float, speed: float) -> float:
+        """Gear-relative acceleration for the plant while engaged, m/s²."""
+        cfg = self.config
+        if long.gear != Gear.NONE and long.gear != self.plant.gear:
+            if abs(speed) < cfg.standstill_speed:
+                # Shift with the brake held; the plant takes the gear once fully at rest.
+                if self.plant.set_gear(long.gear):
+                    self.counters.gear_changes += 1
+                    self._speed_ctl.reset()
+                self._last_refused_gear = None
+                return -cfg.driver_decel
+            if self._last_refused_gear != long.gear:
+                self.counters.gear_refused += 1
+                self._last_refused_gear = long.gear
+        else:
+            self._last_refused_gear = None
+        if long.mode != self._mode:
+            self._speed_ctl.reset()
+            self._mode = long.mode
+        if long.mode == LongMode.SPEED:
+            along_gear = gear_direction(self.plant.gear) * speed  # m/s
+            return self._speed_ctl.step(dt, abs(long.speed), along_gear)
+        return min(max(long.accel, self.vehicle.min_accel), self.vehicle.max_accel)
+
+    # -- reports -----------------------------------------------------------------------------
+
+    def report_values(self, now: float) -> dict[str, Any]:
+        """The values of every report frame at ``now`` (measured plant values and flags)."""
+        plant = self.plant
+        state = self.state
+        enabled = state == EcuState.ENGAGED
+        fault = state == EcuState.FAULT
+        speed = plant.speed
+        abs_speed = min(abs(speed), _SENSOR_SPEED)
+        front_speed = min(abs(speed) / max(math.cos(plant.steer_angle), 0.1), _SENSOR_SPEED)
+        return {
+            "steer": SteerReport(
+                angle=plant.steer_angle,
+                rate=_clip(plant.steer_rate, _SENSOR_STEER_RATE),
+                driver_torque=_clip(self.driver_torque(now), _SENSOR_TORQUE),
+                enabled=enabled,
+                override=self._override,
+                fault=fault,
+                cmd_timeout=self._cmd_timeout,
+            ),
+            "long": LongReport(
+                speed=_clip(speed, _SENSOR_SPEED),
+                accel=_clip(plant.accel, _SENSOR_ACCEL),
+                gear=plant.gear,
+                brake_pedal_pct=self.brake_pedal(now),
+                accel_pedal_pct=0.0,
+                enabled=enabled,
+                override=self._override,
+                fault=fault,
+                cmd_timeout=self._cmd_timeout,
+            ),
+            "system": SystemReport(
+                state=state,
+                fault_cmd_timeout=self._fault_bits["cmd_timeout"],
+                fault_bad_crc=self._fault_bits["bad_crc"],
+                fault_bad_counter=self._fault_bits["bad_counter"],
+                fault_actuator=self._fault,
+                rx_error_count=min(self.counters.rx_errors, _RX_ERROR_COUNT_MAX),
+            ),
+            "steering_wheel": SteeringWheelAngle(
+                angle=plant.steer_angle * self.vehicle.steering_ratio
+            ),
+            # Rear-axle centre speed; the front axle centre moves faster by 1/cos δ in a turn.
+            "wheels_front": WheelSpeeds(left=front_speed, right=front_speed, axle="front"),
+            "wheels_rear": WheelSpeeds(left=abs_speed, right=abs_speed, axle="rear"),
+            "gear": GearPosition(gear=plant.gear),
+            "motor": MotorSpeed(speed=abs_speed),
+        }
+
+    def reports(self, now: float) -> list[can.Message]:
+        """The report frames due at ``now``, encoded with the ECU's codec.
+
+        Each frame is due every period from the first call; missed periods (a late caller) are
+        skipped rather than sent in a burst. Active ``report-dropout``, ``corrupt-crc`` and
+        ``stuck-counter`` injections act here.
+        """
+        if self._report_base is None:
+            self._report_base = now
+        base = self._report_base
+        due = []
+        for name, period in self.report_periods.items():
+            index = self._report_index[name]
+            if base + index * period > now + _EPS:
+                continue
+            due.append(name)
+            # Next due time strictly after now: skip missed periods.
+            self._report_index[name] = max(index + 1, math.floor((now - base) / period + _EPS) + 1)
+        # A silent ECU: nothing encoded, so the alive counters resume in sequence afterwards.
+        if not due or self._active(now, "report-dropout") is not None:
+            return []
+        values = self.report_values(now)
+        corrupt = self._active(now, "corrupt-crc") is not None
+        stuck = self._active(now, "stuck-counter") is not None
+        frames = []
+        for name in due:
+            try:
+                msg = self.codec.encode(values[name], timestamp=now)
+            except LeafgateError:  # out-of-range values: count, never raise in the loop
+                self.counters.encode_errors += 1
+                continue
+            if msg.arbitration_id in self._report_ids:
+                msg = self._e2e_faults(msg, corrupt, stuck)
+            frames.append(msg)
+        return frames
+
+    def _e2e_faults(self, msg: can.Message, corrupt: bool, stuck: bool) -> can.Message:
+        """Apply the injected E2E faults to one DBW report frame."""
+        frame_id = msg.arbitration_id
+        data = bytes(msg.data)
+        if stuck and frame_id in self._last_counter:
+            data = e2e.apply(frame_id, data, self._last_counter[frame_id])
+        self._last_counter[frame_id] = e2e.counter_of(data)
+        if corrupt:
+            broken = bytearray(data)
+            broken[e2e.CRC_BYTE] ^= 0xFF  # any change of the CRC byte breaks the check
+            data = bytes(broken)
+        msg.data = bytearray(data)
+        return msg
+
+
+def _report_periods(codec: CanCodec) -> dict[str, float]:
+    """Period of each report frame, s, from the DBCs' GenMsgCycleTime (ms)."""
+    messages = {m.name: m for db in codec.databases for m in db.messages}
+    periods = {}
+    for name, (dbc_name, fallback) in REPORT_FRAMES.items():
+        message = messages.get(dbc_name)
+        cycle_ms = message.cycle_time if message is not None else None
+        periods[name] = cycle_ms / 1000.0 if cycle_ms else fallback
+    return periods
+
+
+def _clip(value: float, limit: float) -> float:
+    return min(max(value, -limit), limit)
+
+
+# --- the real-time process body ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RealtimeStats:
+    """What a real-time run did, for logs and benchmarks."""
+
+    ticks: int
+    duration: float  # s, wall time of the loop
+    frames_received: int
+    frames_sent: int
+    send_errors: int
+    overruns: int  # ticks that started more than one period late (skipped ahead)
+    max_lateness: float  # s, worst wake-up after a tick's deadline
+    mean_lateness: float  # s
+    counters: EcuCounters
+
+
+def run_ecu_realtime(
+    config: LeafgateConfig,
+    stop: threading.Event | None = None,
+    *,
+    start: Pose | None = None,
+    duration: float | None = None,
+    on_tick: Callable[[float, SimulatedEcu], None] | None = None,
+) -> RealtimeStats:
+    """Run the simulated ECU and its plant in real time on the configured CAN bus(es).
+
+    Ticks at ``config.sim.ecu.tick_rate_hz`` on absolute :func:`time.perf_counter` deadlines
+    (sleeping between ticks, no drift); each tick drains the received command frames without
+    blocking, sends the reports due and steps the ECU and plant. The ECU's clock is the
+    nominal tick time, so the plant advances exactly as the deadlines do; after an overrun the
+    missed ticks are skipped and the plant is stepped over the gap at once.
+
+    :param config: the deployment config (``can``, ``sim.plant``, ``sim.ecu``, ``vehicle``)
+    :param stop: set it to end the loop; the buses are shut down on the way out
+    :param start: the plant's initial pose (the origin at rest when None)
+    :param duration: stop after this many seconds (run until ``stop`` when None)
+    :param on_tick: called after each step with ``(now, ecu)``, e.g. to publish the pose
+    :raises BusError: when a bus cannot be opened
+    """
+    from leafgate.can.bus import open_bus  # the runtime edge only: the core needs no bus
+
+    stop = stop if stop is not None else threading.Event()
+    ecu_cfg = config.sim.ecu
+    plant = make_plant(config.sim.plant, config.vehicle, start or Pose(0.0, 0.0, 0.0, 0.0))
+    codec = CanCodec()
+    ecu = SimulatedEcu(ecu_cfg, plant, config.vehicle, codec)
+    car_ids = codec.receive_ids("car")
+    dbw_bus = open_bus(config.can.dbw, codec.receive_ids("commands"))
+    car_bus = dbw_bus
+    try:
+        if config.can.car is not None:
+            car_bus = open_bus(config.can.car, frozenset())
+    except BaseException:
+        dbw_bus.shutdown()
+        raise
+
+    period = 1.0 / ecu_cfg.tick_rate_hz  # s
+    received = sent = send_errors = overruns = ticks = 0
+    max_late = total_late = 0.0
+    t0 = time.perf_counter()
+    tick = 0
+    last_now = 0.0
+    try:
+        while not stop.is_set():
+            deadline = t0 + tick * period
+            remaining = deadline - time.perf_counter()
+            if remaining > 0.0:
+                time.sleep(remaining)
+            late = time.perf_counter() - deadline
+            max_late = max(max_late, late)
+            total_late += late
+            now = tick * period  # s, nominal time since start
+            if duration is not None and now >= duration:
+                break
+            while (msg := dbw_bus.recv(timeout=0.0)) is not None:
+                received += 1
+                ecu.receive_frame(now, msg)
+            for msg in ecu.reports(now):
+                bus = car_bus if msg.arbitration_id in car_ids else dbw_bus
+                try:
+                    bus.send(msg)
+                    sent += 1
+                except can.CanError:
+                    send_errors += 1
+            # The previous step covered [last_now, last_now + period]; after skipped ticks this
+            # one also covers the gap.
+            ecu.step(now, now - last_now if ticks else period)
+            last_now = now
+            if on_tick is not None:
+                on_tick(now, ecu)
+            ticks += 1
+            tick += 1
+            behind = time.perf_counter() - (t0 + tick * period)
+            if behind > period:  # more than one tick late: skip ahead, do not burst
+                overruns += 1
+                tick += int(behind / period)
+    finally:
+        if car_bus is not dbw_bus:
+            car_bus.shutdown()
+        dbw_bus.shutdown()
+    return RealtimeStats(
+        ticks=ticks,
+        duration=time.perf_counter() - t0,
+        frames_received=received,
+        frames_sent=sent,
+        send_errors=send_errors,
+        overruns=overruns,
+        max_lateness=max_late,
+        mean_lateness=total_late / ticks if ticks else 0.0,
+        counters=ecu.counters,
+    )
