@@ -18,6 +18,7 @@ from typing import Any
 from leafgate import __version__
 from leafgate.errors import ConfigError, LeafgateError
 from leafgate.settings import LeafgateConfig, load_config
+from leafgate.sim.scenarios import Scenario
 
 log = logging.getLogger("leafgate")
 
@@ -128,6 +129,148 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- the daemon and its tools ------------------------------------------------------------------
+
+
+def _scenario(name: str) -> Scenario:
+    from leafgate.sim.scenarios import get_scenario
+
+    try:
+        return get_scenario(name)
+    except KeyError as exc:
+        raise ConfigError(str(exc.args[0])) from None
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from leafgate.gateway.daemon import run_daemon
+
+    return run_daemon(load_config(args.config))
+
+
+def cmd_sim_ecu(args: argparse.Namespace) -> int:
+    import threading
+
+    from leafgate.sim.realtime import run_sim_ecu
+
+    cfg = load_config(args.config)
+    cfg = _with_overrides(cfg, {"sim.plant.kind": args.plant})
+    return run_sim_ecu(cfg, _scenario(args.scenario or cfg.sim.scenario), threading.Event())
+
+
+def cmd_request(args: argparse.Namespace) -> int:
+    from leafgate.gateway.daemon import tool_view
+    from leafgate.transport.client import request
+
+    cfg = load_config(args.config)
+    reply = request(tool_view(cfg.zenoh), args.command, timeout=args.timeout)
+    print(json.dumps(reply))
+    return 0 if reply.get("accepted") else EXIT_ERROR
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from leafgate.gateway.daemon import tool_view
+    from leafgate.transport.client import watch_diagnostics
+
+    cfg = load_config(args.config)
+    seen: list[dict[str, Any]] = []
+
+    def show(diag: dict[str, Any]) -> None:
+        seen.append(diag)
+        if args.json:
+            print(json.dumps(diag), flush=True)
+            return
+        loop = diag.get("loop", {})
+        ages = diag.get("watchdogs", diag.get("ages", {}))
+        age_text = (
+            ", ".join(
+                f"{k} {v * 1e3:.0f} ms" if isinstance(v, (int, float)) else f"{k} {v}"
+                for k, v in ages.items()
+            )
+            if isinstance(ages, dict)
+            else str(ages)
+        )
+        print(
+            f"{diag.get('state', '?'):<9} {diag.get('reason', '')!s:<40} "
+            f"loop {loop.get('compute_median_s', float('nan')) * 1e6:.0f} µs median, "
+            f"{loop.get('overruns', 0)} overruns | {age_text}",
+            flush=True,
+        )
+
+    watch_diagnostics(tool_view(cfg.zenoh), show, args.duration)
+    if not seen:
+        print(
+            f"leafgate: error: no diagnostics from a gateway within {args.duration:g} s",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
+    return 0
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    from leafgate.can.codec import CanCodec
+    from leafgate.control import make_controller
+
+    cfg = load_config(args.file)
+    CanCodec()  # the DBCs load
+    make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
+    _scenario(cfg.sim.scenario)
+    print(
+        f"{args.file}: ok — controller {cfg.controller.kind} at {cfg.gateway.rate_hz:g} Hz, "
+        f"dbw bus {cfg.can.dbw.interface}:{cfg.can.dbw.channel}, "
+        f"car bus {'shared' if cfg.can.car is None else cfg.can.car.interface + ':' + cfg.can.car.channel}, "
+        f"zenoh {cfg.zenoh.mode} prefix {cfg.zenoh.prefix!r}"
+    )
+    return 0
+
+
+def cmd_publish_trajectory(args: argparse.Namespace) -> int:
+    import time
+
+    from leafgate.gateway.daemon import tool_view
+    from leafgate.transport.client import TrajectoryPublisher
+    from leafgate.transport.session import open_session
+
+    cfg = load_config(args.config)
+    if (args.file is None) == (args.scenario is None):
+        raise ConfigError("publish-trajectory: give a FILE or --scenario NAME (one of them)")
+    if args.file is not None:
+        from leafgate.control.reference import load_trajectory, validate
+
+        trajectory = load_trajectory(args.file)
+        spacing = validate(trajectory, args.file)
+        print(f"{args.file}: {len(trajectory)} waypoints, spacing {spacing}")
+    else:
+        trajectory = _scenario(args.scenario).trajectory
+    zcfg = tool_view(cfg.zenoh)
+    session = open_session(zcfg)
+    sent = 0
+    try:
+        with TrajectoryPublisher(session, zcfg) as publisher:
+            if not publisher.wait_for_subscriber(args.wait):
+                print(
+                    f"leafgate: warning: no subscriber on {publisher.key} yet; publishing anyway",
+                    file=sys.stderr,
+                )
+            next_t = time.monotonic()
+            while args.count == 0 or sent < args.count:
+                publisher.publish(trajectory)
+                sent += 1
+                next_t += args.period
+                time.sleep(max(0.0, next_t - time.monotonic()))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()
+    print(f"published the trajectory {sent} times")
+    return 0
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    from leafgate.can.decode import decode_log
+
+    return decode_log(args.log, summary=not args.no_summary)
+
+
 # --- the command line -------------------------------------------------------------------------
 
 
@@ -157,6 +300,61 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.set_defaults(func=cmd_sim)
+
+    p = sub.add_parser("run", help="the gateway daemon (vehicle or simulated ECU)")
+    p.add_argument("--config", required=True, help="deployment YAML, e.g. config/leafgate.yaml")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "sim-ecu", help="simulated drive-by-wire ECU and plant on a real bus, localization on Zenoh"
+    )
+    p.add_argument("--config", required=True, help="YAML config, e.g. config/sim.yaml")
+    p.add_argument(
+        "--scenario",
+        help="start the plant on this scenario's first waypoint (default: sim.scenario)",
+    )
+    p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
+    p.set_defaults(func=cmd_sim_ecu)
+
+    for name, text in (
+        ("engage", "ask the gateway to engage"),
+        ("disengage", "ask the gateway to disengage"),
+        ("reset", "ask the gateway to clear a latched fault"),
+    ):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("--config", required=True, help="YAML config naming the Zenoh endpoints")
+        p.add_argument("--timeout", type=float, default=None, help="s to wait for the gateway")
+        p.set_defaults(func=cmd_request)
+
+    p = sub.add_parser("status", help="live diagnostics of a running gateway")
+    p.add_argument("--config", required=True)
+    p.add_argument("--duration", type=float, default=1.0, help="s to watch (default 1)")
+    p.add_argument("--json", action="store_true", help="print the raw JSON records")
+    p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("check-config", help="load and check a config file")
+    p.add_argument("file")
+    p.set_defaults(func=cmd_check_config)
+
+    p = sub.add_parser(
+        "publish-trajectory", help="publish a trajectory (re-published, as a planner does)"
+    )
+    p.add_argument("file", nargs="?", help="CSV or YAML trajectory")
+    p.add_argument("--scenario", help="a built-in scenario's trajectory instead of a file")
+    p.add_argument("--config", required=True)
+    p.add_argument("--period", type=float, default=0.5, help="s between publications (default 0.5)")
+    p.add_argument(
+        "--count", type=int, default=0, help="publications before exiting (0: until Ctrl-C)"
+    )
+    p.add_argument("--wait", type=float, default=5.0, help="s to wait for the gateway's subscriber")
+    p.set_defaults(func=cmd_publish_trajectory)
+
+    p = sub.add_parser(
+        "decode", help="decode a CAN log (.log/.asc/.blf/.trc/.csv) with the leafgate DBCs"
+    )
+    p.add_argument("log")
+    p.add_argument("--no-summary", action="store_true")
+    p.set_defaults(func=cmd_decode)
     return parser
 
 

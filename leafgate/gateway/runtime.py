@@ -103,15 +103,14 @@ class CanReceiver(can.Listener):
                     self._bad += 1
         if not decoded.valid or value is None:
             return
-        stamped = Stamped(value, now, True)
         if isinstance(value, SteerReport):
-            self.steer.set(stamped)
+            self.steer.set(Stamped(value, now))
         elif isinstance(value, LongReport):
-            self.long.set(stamped)
+            self.long.set(Stamped(value, now))
         elif isinstance(value, SystemReport):
-            self.system.set(stamped)
+            self.system.set(Stamped(value, now))
         else:
-            self.car.setdefault(type(value).__name__, LatestSlot()).set(stamped)
+            self.car.setdefault(type(value).__name__, LatestSlot()).set(Stamped(value, now))
 
     def take_counts(self) -> tuple[int, int]:
         """Good and bad report frames since the last call."""
@@ -159,7 +158,11 @@ class RequestBox:
         try:
             return item.future.result(timeout=timeout)
         except FutureTimeout:
-            return {"accepted": False, "state": "UNKNOWN", "reason": "control loop did not answer in time"}
+            return {
+                "accepted": False,
+                "state": "UNKNOWN",
+                "reason": "control loop did not answer in time",
+            }
 
     def take(self) -> _Request | None:
         try:
@@ -241,7 +244,8 @@ class Runtime:
         publisher: Publisher | None = None,
         requests: RequestBox | None = None,
         clock: Callable[[], float] = time.perf_counter,
-        on_sent: Callable[[float, Sequence[can.Message], StepResult], None] | None = None,
+        on_tick: Callable[[float, GatewayInputs, StepResult, Sequence[can.Message]], None]
+        | None = None,
         extra_diagnostics: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
         self.gateway = gateway
@@ -253,7 +257,7 @@ class Runtime:
         self.publisher = publisher
         self.requests = requests or RequestBox()
         self.clock = clock
-        self.on_sent = on_sent
+        self.on_tick = on_tick
         self.extra_diagnostics = extra_diagnostics
         self.stats = LoopStats()
         self.last_result: StepResult | None = None
@@ -264,7 +268,9 @@ class Runtime:
 
     # -- one tick ----------------------------------------------------------------------------
 
-    def tick(self, now: float, overrun: bool = False, request: OperatorRequest | None = None) -> StepResult:
+    def tick(
+        self, now: float, overrun: bool = False, request: OperatorRequest | None = None
+    ) -> StepResult:
         """Read the slots, step the gateway, send the frames. Never raises for bus problems."""
         started = self.clock()
         pending = self.requests.take() if request is None else None
@@ -299,8 +305,8 @@ class Runtime:
                 self._bus_errors_pending += 1
                 log.debug("send of 0x%03X failed: %s", frame.arbitration_id, exc)
         self.last_result = result
-        if self.on_sent is not None:
-            self.on_sent(now, frames, result)
+        if self.on_tick is not None:
+            self.on_tick(now, inputs, result, frames)
         self.stats.ticks += 1
         self.stats.compute.append(self.clock() - started)
         self._queue_publications(now, result)
@@ -344,7 +350,8 @@ class Runtime:
         diag: dict[str, Any] = result.diagnostics.to_dict() if result is not None else {}
         diag["loop"] = self.stats.summary()
         diag["can"] = {
-            f"0x{fid:03X}": vars(s) if not isinstance(s, dict) else s for fid, s in self.codec.stats.items()
+            f"0x{fid:03X}": vars(s) if not isinstance(s, dict) else s
+            for fid, s in self.codec.stats.items()
         }
         if self.extra_diagnostics is not None:
             diag.update(self.extra_diagnostics())

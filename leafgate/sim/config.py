@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -69,7 +70,27 @@ class EcuConfig:
 
 
 @dataclass(frozen=True)
+class LocalizationConfig:
+    """The simulated localization that ``leafgate sim-ecu`` publishes over Zenoh."""
+
+    rate_hz: float = 50.0  # Hz, Odometry publication rate
+    position_noise: float = 0.0  # m, standard deviation of the x and y noise
+    heading_noise: float = 0.0  # rad, standard deviation of the heading noise
+    latency: float = 0.0  # s, age of the pose when it is published
+    seed: int = 1  # noise generator seed, so a run can be repeated
+
+    def __post_init__(self) -> None:
+        if not (self.rate_hz > 0 and math.isfinite(self.rate_hz)):
+            raise ValueError(f"rate_hz must be a positive number, got {self.rate_hz!r}")
+        for name in ("position_noise", "heading_noise", "latency"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
 class SimConfig:
     scenario: str = "s-curve"
     plant: PlantConfig = field(default_factory=PlantConfig)
     ecu: EcuConfig = field(default_factory=EcuConfig)
+    localization: LocalizationConfig = field(default_factory=LocalizationConfig)

@@ -13,7 +13,6 @@ paper's Simulink check: the controller drives the plant with nothing in between.
 from __future__ import annotations
 
 import itertools
-import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -51,7 +50,11 @@ _channel_ids = itertools.count()
 # Injections the gateway side handles (localization faults); the rest go to the simulated ECU.
 GATEWAY_INJECTIONS = {"localization-dropout", "position-jump", "command-dropout"}
 ECU_INJECTIONS = {
-    "override": ("override-torque", {"torque": 5.0}, 0.5),  # N·m for 0.5 s: a driver grabs the wheel
+    "override": (
+        "override-torque",
+        {"torque": 5.0},
+        0.5,
+    ),  # N·m for 0.5 s: a driver grabs the wheel
     "brake-pedal": ("brake-pedal", {}, 0.5),
     "report-dropout": ("report-dropout", {}, None),
     "corrupt-crc": ("corrupt-crc", {}, None),
@@ -80,10 +83,14 @@ class Injection:
         """
         m = re.fullmatch(r"([a-z-]+)@([0-9.]+)s?(?:\+([0-9.]+)s?)?", text.strip())
         if not m:
-            raise ConfigError(f"--inject {text!r}: expected KIND@TIME[s][+DURATION[s]], e.g. override@10s")
+            raise ConfigError(
+                f"--inject {text!r}: expected KIND@TIME[s][+DURATION[s]], e.g. override@10s"
+            )
         kind = m.group(1)
         if kind not in INJECTION_KINDS:
-            raise ConfigError(f"--inject {text!r}: unknown kind {kind!r} (known: {', '.join(INJECTION_KINDS)})")
+            raise ConfigError(
+                f"--inject {text!r}: unknown kind {kind!r} (known: {', '.join(INJECTION_KINDS)})"
+            )
         duration = float(m.group(3)) if m.group(3) else None
         return cls(kind, float(m.group(2)), duration)
 
@@ -163,7 +170,9 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
     speed_ctl = SpeedController(min_accel=-3.0, max_accel=config.vehicle.max_accel)
     rec = _Recorder()
     solve_times: list[float] = []
-    timeline: list[tuple[float, str]] = [(0.0, f"start {scenario.name} (direct: controller → plant)")]
+    timeline: list[tuple[float, str]] = [
+        (0.0, f"start {scenario.name} (direct: controller → plant)")
+    ]
     not_converged = clips = 0
     steps = round(scenario.duration / period)
     wall0 = time.perf_counter()
@@ -257,7 +266,9 @@ def run(
     slots = _Slots()
     rec = _Recorder()
     solve_times: list[float] = []
-    timeline: list[tuple[float, str]] = [(0.0, f"start {scenario.name}: gateway {GatewayState.STANDBY.name}")]
+    timeline: list[tuple[float, str]] = [
+        (0.0, f"start {scenario.name}: gateway {GatewayState.STANDBY.name}")
+    ]
     transitions: list[dict[str, Any]] = []
     frames_sent = frames_received = frames_rejected = 0
     not_converged = clips = 0
@@ -279,9 +290,9 @@ def run(
             for msg in ecu.reports(now):
                 ecu_bus.send(msg)
             # 2. The gateway's receive side decodes what arrived.
-            while (msg := gw_bus.recv(timeout=0.0)) is not None:
+            while (rx := gw_bus.recv(timeout=0.0)) is not None:
                 frames_received += 1
-                decoded = gw_codec.decode(msg)
+                decoded = gw_codec.decode(rx)
                 value = decoded.value
                 if isinstance(value, (SteerReport, LongReport, SystemReport)) or decoded.error in (
                     "bad_crc",
@@ -316,7 +327,9 @@ def run(
                     jump |= inj.kind == "position-jump"
                     command_dropout |= inj.kind == "command-dropout"
             if jump:
-                pose = Pose(pose.x + 2.0, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now)
+                pose = Pose(
+                    pose.x + 2.0, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now
+                )
             if not dropout:
                 last_pose = Stamped(pose, now)
             request = OperatorRequest.ENGAGE if abs(now - engage_at) < ecu_dt / 2 else None
@@ -345,9 +358,16 @@ def run(
                 clips += ctl.clips
             if gateway.state != last_state:
                 transitions.append(
-                    {"t": round(now, 6), "from": last_state.name, "to": gateway.state.name, "reason": diag.reason}
+                    {
+                        "t": round(now, 6),
+                        "from": last_state.name,
+                        "to": gateway.state.name,
+                        "reason": diag.reason,
+                    }
                 )
-                timeline.append((now, f"gateway {last_state.name} → {gateway.state.name}: {diag.reason}"))
+                timeline.append(
+                    (now, f"gateway {last_state.name} → {gateway.state.name}: {diag.reason}")
+                )
                 last_state = gateway.state
             engaged_once |= gateway.state == GatewayState.ENGAGED
             # 4. Command frames out, through the codec, to the ECU.
@@ -360,8 +380,8 @@ def run(
                 frames_sent += 1
                 if not command_dropout:
                     gw_bus.send(frame)
-            while (msg := ecu_bus.recv(timeout=0.0)) is not None:
-                ecu.receive_frame(now, msg)
+            while (cmd_frame := ecu_bus.recv(timeout=0.0)) is not None:
+                ecu.receive_frame(now, cmd_frame)
             rec.add(now, plant.pose(), plant.steer_angle, steer_target)
             # 5. Done once the gateway has let go and the car has been at rest for a while.
             at_rest = abs(plant.speed) <= STANDSTILL_SPEED
@@ -382,9 +402,9 @@ def run(
         "input_clips": clips,
         "duration_s": float(now),
         "wall_time_s": time.perf_counter() - wall0,
-        "finished": engaged_once and gateway.state == GatewayState.STANDBY and not any(
-            tr["to"] in ("FAULT", "STOPPING") for tr in transitions
-        ),
+        "finished": engaged_once
+        and gateway.state == GatewayState.STANDBY
+        and not any(tr["to"] in ("FAULT", "STOPPING") for tr in transitions),
         "final_state": gateway.state.name,
         "transitions": transitions,
         "safety_clamps": clamps,
@@ -393,6 +413,4 @@ def run(
         "can_frames_rejected": frames_rejected,
         "ecu_frames_rejected": ecu.rejected_frames,
     }
-    if not math.isfinite(extra["wall_time_s"]):
-        extra["wall_time_s"] = 0.0
     return _finish(config, scenario, rec, solve_times, extra, timeline, label)

@@ -1,0 +1,12 @@
+"""Zenoh transport: ROS 2 CDR / JSON payload codecs, sessions from config, the gateway's node
+and the operator client.
+
+- :mod:`~leafgate.transport.cdr` — rosbags type store with the Autoware ``.msg`` definitions
+- :mod:`~leafgate.transport.payloads` — leafgate messages ⇄ ROS messages / JSON
+- :mod:`~leafgate.transport.session` — :func:`open_session` from :class:`ZenohConfig`
+- :mod:`~leafgate.transport.node` — :class:`GatewayTransport` (slots, publishers, engage, alive)
+- :mod:`~leafgate.transport.client` — engage requests, diagnostics watch, input publishers
+- :mod:`~leafgate.transport.keys` — the key expressions after the prefix
+
+Nothing is imported here, so loading the configuration does not load Zenoh.
+"""

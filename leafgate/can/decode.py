@@ -1,0 +1,165 @@
+"""``leafgate decode LOG``: print a recorded CAN log decoded with the leafgate DBCs.
+
+Reads any format python-can's :class:`can.LogReader` reads (``.log`` candump, ``.asc``,
+``.blf``, ``.trc``, ``.csv``, ``.mf4`` with asammdf, and the same gzip-compressed), prints one
+line per frame and, at the end, how many frames of each ID were received and how many failed
+each check. The E2E checks are those of the gateway (:class:`~leafgate.can.codec.CanCodec`),
+run with one codec per recorded channel, so a dropped frame in the log shows up as a
+``bad_counter`` on the frame after it.
+
+A line reads::
+
+    12.345678  can0  0A0  [8]  DBW_STEER_CMD(STEER_ANGLE_CMD: 0.1 rad, ...)  ok
+
+i.e. timestamp (s), channel, ID, length, then the signals in the style of ``cantools decode
+--single-line`` (value-table names for enums), then ``ok`` or the error.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TextIO
+
+import can
+
+from leafgate.can.codec import CanCodec, Decoded, FrameStats
+from leafgate.errors import ReplayError
+
+__all__ = ["decode_log", "format_frame", "format_summary"]
+
+
+def _read(path: Path) -> Iterator[can.Message]:
+    """Frames of a log, with every reader error turned into a one-line ReplayError."""
+    if not path.is_file():
+        raise ReplayError(f"{path}: no such file")
+    count = 0
+    try:
+        for msg in can.LogReader(path):
+            count += 1
+            yield msg
+    except ReplayError:
+        raise
+    except Exception as exc:  # each reader has its own errors (ValueError, BLFParseError, …)
+        reason = " ".join((str(exc) or type(exc).__name__).split())
+        if count == 0 and isinstance(exc, ValueError) and "unknown log format" in reason:
+            raise ReplayError(
+                f"{path}: {reason} (python-can reads .log, .asc, .blf, .trc, .csv, .mf4)"
+            ) from None
+        raise ReplayError(f"{path}: unreadable after {count} frames: {reason}") from None
+
+
+def _value_text(value: object, unit: str | None) -> str:
+    text = f"{value:.6g}" if isinstance(value, float) else str(value)
+    return f"{text} {unit}" if unit else text
+
+
+def format_frame(codec: CanCodec, msg: can.Message, decoded: Decoded) -> str:
+    """One log line for a frame and its decode result (see the module docstring)."""
+    channel = "-" if msg.channel is None else str(msg.channel)
+    width = 8 if msg.is_extended_id else 3
+    data = bytes(msg.data)
+    head = f"{msg.timestamp:.6f}  {channel}  {msg.arbitration_id:0{width}X}  [{len(data)}]"
+    message = (
+        None
+        if decoded.error in ("unknown_id", "wrong_length")
+        else codec.message(msg.arbitration_id)
+    )
+    body = None
+    if message is not None:
+        try:
+            signals = message.decode(data, decode_choices=True, scaling=True)
+        except Exception:  # shown raw below; the codec already classified the frame
+            signals = None
+        if isinstance(signals, dict):
+            parts = []
+            for sig in message.signals:
+                if sig.name in signals:
+                    parts.append(f"{sig.name}: {_value_text(signals[sig.name], sig.unit)}")
+            body = f"{message.name}({', '.join(parts)})"
+    if body is None:
+        name = decoded.name or "unknown"
+        body = f"{name} {data.hex(' ').upper()}".rstrip()
+    return f"{head}  {body}  {decoded.error or 'ok'}"
+
+
+def format_summary(stats: dict[int, FrameStats], names: dict[int, str | None]) -> list[str]:
+    """The summary table: one row per ID, then the totals."""
+    header = (
+        f"{'ID':>8}  {'name':<20} {'frames':>8} {'bad_crc':>8} {'bad_cnt':>8} "
+        f"{'bad_len':>8} {'unknown':>8} {'decode':>8}"
+    )
+    lines = [header]
+    total = FrameStats()
+    for frame_id in sorted(stats):
+        s = stats[frame_id]
+        name = names.get(frame_id) or "?"
+        label = f"{frame_id:03X}"
+        lines.append(
+            f"{label:>8}  {name:<20} {s.frames:>8} {s.bad_crc:>8} {s.bad_counter:>8} "
+            f"{s.wrong_length:>8} {s.unknown_id:>8} {s.decode_error:>8}"
+        )
+        total = _add(total, s)
+    lines.append(
+        f"{'total':>8}  {'':<20} {total.frames:>8} {total.bad_crc:>8} {total.bad_counter:>8} "
+        f"{total.wrong_length:>8} {total.unknown_id:>8} {total.decode_error:>8}"
+    )
+    return lines
+
+
+def _add(a: FrameStats, b: FrameStats) -> FrameStats:
+    return FrameStats(
+        frames=a.frames + b.frames,
+        bad_crc=a.bad_crc + b.bad_crc,
+        bad_counter=a.bad_counter + b.bad_counter,
+        wrong_length=a.wrong_length + b.wrong_length,
+        unknown_id=a.unknown_id + b.unknown_id,
+        decode_error=a.decode_error + b.decode_error,
+    )
+
+
+def decode_log(
+    path: str | Path,
+    out: TextIO = sys.stdout,
+    *,
+    summary: bool = True,
+    dbw_dbc: str | Path | None = None,
+    car_dbc: str | Path | None = None,
+) -> int:
+    """Decode a CAN log, one line per frame, then a per-ID summary.
+
+    :param path: the log file; its suffix selects the reader
+    :param out: where the lines go
+    :param summary: print the per-ID counts at the end
+    :param dbw_dbc: another drive-by-wire DBC than the packaged one
+    :param car_dbc: another CAR-CAN DBC than the packaged one
+    :return: the exit status, 0 (bad frames are reported, not failures)
+    :raises ReplayError: the file is missing, of an unknown format or unreadable
+    :raises CanCodecError: a given DBC is unreadable or invalid
+    """
+    path = Path(path)
+    template = CanCodec(dbw_dbc, car_dbc)  # fails early on a bad DBC
+    codecs: dict[object, CanCodec] = {}  # one per recorded channel: separate counter state
+
+    def codec_for(channel: object) -> CanCodec:
+        codec = codecs.get(channel)
+        if codec is None:
+            codec = codecs[channel] = CanCodec(dbw_dbc, car_dbc) if codecs else template
+        return codec
+
+    for msg in _read(path):
+        codec = codec_for(msg.channel)
+        out.write(format_frame(codec, msg, codec.decode(msg)) + "\n")
+    if summary:
+        merged: dict[int, FrameStats] = {}
+        names: dict[int, str | None] = {}
+        for codec in codecs.values():
+            for frame_id, s in codec.stats.items():
+                if s.frames:
+                    merged[frame_id] = _add(merged.get(frame_id, FrameStats()), s)
+                    names[frame_id] = codec.name_of(frame_id)
+        out.write(f"# {path.name}: {sum(s.frames for s in merged.values())} frames\n")
+        for line in format_summary(merged, names):
+            out.write("# " + line + "\n")
+    return 0

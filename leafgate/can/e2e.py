@@ -1,0 +1,170 @@
+"""End-to-end protection of the leafgate drive-by-wire frames (DESIGN.md, "CAN").
+
+Every DBW frame is 8 bytes. The low nibble of byte 6 is a 4-bit alive counter that advances
+by 1 (mod 16) with every frame of an ID; byte 7 is a CRC-8 SAE J1850 (polynomial 0x1D,
+init 0xFF, xor-out 0xFF, not reflected) computed over a *data ID* — the low byte of the CAN
+ID — followed by bytes 0–6. Mixing the ID into the CRC catches a frame delivered under the
+wrong ID, which a CRC over the payload alone would not.
+
+Pure functions and a small per-ID state machine; no clock, no bus.
+
+>>> hex(crc8_j1850(b"123456789"))
+'0x4b'
+>>> frame = apply(0x0A0, bytes(8), counter=3)
+>>> frame[6] & 0x0F, verify(0x0A0, frame), verify(0x0A1, frame)
+(3, True, False)
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterable
+
+__all__ = [
+    "COUNTER_BYTE",
+    "COUNTER_MODULO",
+    "CRC_BYTE",
+    "FRAME_LENGTH",
+    "CounterChecker",
+    "CounterStatus",
+    "apply",
+    "counter_of",
+    "crc8_j1850",
+    "e2e_crc",
+    "verify",
+]
+
+FRAME_LENGTH = 8  # bytes, every leafgate DBW frame
+COUNTER_BYTE = 6  # alive counter in the low nibble of this byte
+CRC_BYTE = 7  # CRC-8 in this byte
+COUNTER_MODULO = 16  # 4-bit counter
+
+_POLY = 0x1D  # SAE J1850: x^8 + x^4 + x^3 + x^2 + 1
+_INIT = 0xFF
+_XOR_OUT = 0xFF
+
+
+def _make_table() -> tuple[int, ...]:
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ _POLY) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+        table.append(crc)
+    return tuple(table)
+
+
+_TABLE: tuple[int, ...] = _make_table()
+
+
+def crc8_j1850(data: Iterable[int], *, init: int = _INIT) -> int:
+    """CRC-8 SAE J1850 of ``data`` (table-driven).
+
+    :param data: bytes (or any iterable of ints 0–255)
+    :param init: the register before the first byte; the default is the standard's 0xFF,
+        pass a precomputed register to continue a CRC (see :func:`e2e_crc`)
+    :return: the CRC, already xor-ed with 0xFF
+    """
+    crc = init
+    table = _TABLE
+    for byte in data:
+        crc = table[crc ^ byte]
+    return crc ^ _XOR_OUT
+
+
+def _register_after_data_id(frame_id: int) -> int:
+    """The CRC register after the data ID byte: constant per ID, so callers can cache it."""
+    return _TABLE[_INIT ^ (frame_id & 0xFF)]
+
+
+def e2e_crc(frame_id: int, data: bytes | bytearray) -> int:
+    """The E2E CRC of a frame: CRC-8 over the data ID (low byte of ``frame_id``), then bytes 0–6.
+
+    :param frame_id: the CAN ID of the frame
+    :param data: the frame's payload, at least 7 bytes (byte 7 is ignored)
+    """
+    return crc8_j1850(data[:CRC_BYTE], init=_register_after_data_id(frame_id))
+
+
+def apply(frame_id: int, data: bytes | bytearray, counter: int) -> bytes:
+    """Return ``data`` with the alive counter and CRC set.
+
+    The high nibble of byte 6 is kept (it may carry signals).
+
+    :param frame_id: the CAN ID the frame is sent under
+    :param data: an 8-byte payload
+    :param counter: the alive counter, taken mod 16
+    :raises ValueError: if ``data`` is not 8 bytes long
+    """
+    if len(data) != FRAME_LENGTH:
+        raise ValueError(f"E2E frames are {FRAME_LENGTH} bytes, got {len(data)}")
+    out = bytearray(data)
+    out[COUNTER_BYTE] = (out[COUNTER_BYTE] & 0xF0) | (counter % COUNTER_MODULO)
+    out[CRC_BYTE] = e2e_crc(frame_id, out)
+    return bytes(out)
+
+
+def verify(frame_id: int, data: bytes | bytearray) -> bool:
+    """True when ``data`` is 8 bytes long and its byte 7 is the E2E CRC for ``frame_id``."""
+    return len(data) == FRAME_LENGTH and data[CRC_BYTE] == e2e_crc(frame_id, data)
+
+
+def counter_of(data: bytes | bytearray) -> int:
+    """The alive counter of a frame (low nibble of byte 6)."""
+    return data[COUNTER_BYTE] & 0x0F
+
+
+class CounterStatus(enum.Enum):
+    """Outcome of checking one received alive counter."""
+
+    OK = "ok"  # advanced by exactly 1 mod 16
+    FIRST = "first"  # first frame of this ID since start or reset: accepted
+    REPEATED = "repeated"  # same counter as the previous frame: a stuck sender or a replay
+    SKIPPED = "skipped"  # advanced by 2..15: frames were lost
+
+    @property
+    def ok(self) -> bool:
+        """True for the statuses that accept the frame."""
+        return self in (CounterStatus.OK, CounterStatus.FIRST)
+
+
+class CounterChecker:
+    """Receive-side alive-counter check, one state per CAN ID.
+
+    The counter must advance by exactly 1 mod 16 from the last *accepted or counter-faulty*
+    frame; a repeated or skipped counter is an error, and the checker then resynchronises on
+    the received value so that one lost frame costs one error, not sixteen. Frames with a bad
+    CRC must not be passed in (their counter cannot be trusted).
+
+    >>> c = CounterChecker()
+    >>> [c.check(0xB0, n).value for n in (5, 6, 6, 8, 9)]
+    ['first', 'ok', 'repeated', 'skipped', 'ok']
+    """
+
+    __slots__ = ("_last",)
+
+    def __init__(self) -> None:
+        self._last: dict[int, int] = {}
+
+    def check(self, frame_id: int, counter: int) -> CounterStatus:
+        """Check ``counter`` of a frame of ``frame_id`` and remember it."""
+        last = self._last.get(frame_id)
+        self._last[frame_id] = counter
+        if last is None:
+            return CounterStatus.FIRST
+        step = (counter - last) % COUNTER_MODULO
+        if step == 1:
+            return CounterStatus.OK
+        if step == 0:
+            return CounterStatus.REPEATED
+        return CounterStatus.SKIPPED
+
+    def reset(self, frame_id: int | None = None) -> None:
+        """Forget the last counter of ``frame_id`` (all IDs when None): the next is FIRST.
+
+        Call it after a receive timeout, when the sender may have restarted.
+        """
+        if frame_id is None:
+            self._last.clear()
+        else:
+            self._last.pop(frame_id, None)

@@ -1,0 +1,182 @@
+"""``leafgate run``: the daemon on the in-vehicle computer.
+
+Assembles the parts from one config: the CAN codec (DBCs), the buses, the controller, the
+gateway core, the Zenoh transport and the runtime; installs SIGINT/SIGTERM handlers that
+disengage cleanly; tells systemd when the loop runs. Every start-up problem (bad config, bus
+unavailable, DBC missing, Zenoh endpoint refused) raises a :class:`~leafgate.errors.LeafgateError`
+with one line naming it, before anything is sent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from typing import Any
+
+import can
+import numpy as np
+
+from leafgate.can.bus import open_buses
+from leafgate.can.codec import CanCodec
+from leafgate.control import make_controller
+from leafgate.gateway.core import Gateway
+from leafgate.gateway.runtime import CanReceiver, InputSource, RequestBox, Runtime, sd_notify
+from leafgate.messages import LongMode, OperatorRequest, Pose, Stamped, Trajectory
+from leafgate.settings import LeafgateConfig
+from leafgate.transport.config import ZenohConfig
+
+log = logging.getLogger(__name__)
+
+
+def tool_view(cfg: ZenohConfig) -> ZenohConfig:
+    """The Zenoh settings a tool (engage, status, sim-ecu …) uses to reach the daemon.
+
+    The daemon listens on ``listen``; a tool started with the same config must not try to bind
+    the same port, so it listens nowhere and connects to the daemon's endpoints instead.
+    """
+    if cfg.config_file is not None:
+        return cfg
+    return dataclasses.replace(cfg, listen=(), connect=tuple(cfg.listen) + tuple(cfg.connect))
+
+
+def same_plan(a: Trajectory, b: Trajectory) -> bool:
+    """Whether two trajectories hold the same waypoints (a planner re-publishing its plan)."""
+    return len(a) == len(b) and all(
+        np.array_equal(getattr(a, f), getattr(b, f)) for f in ("x", "y", "heading", "speed")
+    )
+
+
+class StablePlan:
+    """Passes inputs through, but keeps one Trajectory object while the plan is unchanged.
+
+    Planners re-publish their plan (the gateway refuses a stale one); every decoded copy is a
+    new object, and a new object tells the controller to restart its search. Identical
+    waypoints therefore keep the first object, with the new receive time.
+    """
+
+    def __init__(self, source: InputSource) -> None:
+        self._source = source
+        self._plan: Trajectory | None = None
+
+    def latest_pose(self) -> Stamped[Pose] | None:
+        return self._source.latest_pose()
+
+    def latest_trajectory(self) -> Stamped[Trajectory] | None:
+        stamped = self._source.latest_trajectory()
+        if stamped is None:
+            return None
+        plan = self._plan
+        if plan is not None and stamped.value is not plan and same_plan(stamped.value, plan):
+            return Stamped(plan, stamped.received, stamped.valid)
+        self._plan = stamped.value
+        return stamped
+
+
+def build_gateway(cfg: LeafgateConfig) -> Gateway:
+    """The pure core with its controller, as the config says."""
+    mode = LongMode.SPEED if cfg.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
+    controller = make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
+    return Gateway(cfg.gateway, cfg.vehicle, controller, mode)
+
+
+@contextmanager
+def signals_set(stop: threading.Event) -> Iterator[None]:
+    """SIGINT and SIGTERM set ``stop`` (main thread only; elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, _frame: Any) -> None:
+        log.info("%s received: disengaging and shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def run_daemon(
+    cfg: LeafgateConfig,
+    stop: threading.Event | None = None,
+    *,
+    on_runtime: Callable[[Runtime], None] | None = None,
+    session: Any = None,
+) -> int:
+    """Run the gateway until ``stop`` is set or a signal arrives; return the exit status.
+
+    :param on_runtime: called with the runtime once it exists (tests, recording)
+    :param session: an open Zenoh session to declare the gateway on (the in-process
+        simulation shares one); None opens one from ``cfg.zenoh``
+    :raises LeafgateError: on any start-up problem (one line, nothing sent yet)
+    """
+    stop = stop or threading.Event()
+    clock = time.perf_counter
+    codec = CanCodec()  # CanCodecError when a DBC is missing or invalid
+    gateway = build_gateway(cfg)
+    requests = RequestBox()
+    from leafgate.transport.node import GatewayTransport  # zenoh loads only where it is used
+
+    with ExitStack() as stack:
+        buses = stack.enter_context(
+            open_buses(cfg.can, codec.receive_ids("reports"), codec.receive_ids("car"))
+        )
+
+        def answer(request: OperatorRequest) -> dict[str, Any]:
+            return requests.submit(request)
+
+        if session is None:
+            transport = GatewayTransport.open(cfg.zenoh, answer, clock=clock)
+        else:
+            transport = GatewayTransport(session, cfg.zenoh, answer, clock=clock)
+        stack.enter_context(transport)
+        receiver = CanReceiver(codec, clock)
+        notifier = can.Notifier(
+            [buses.dbw] if buses.shared else [buses.dbw, buses.car], [receiver], timeout=0.1
+        )
+        stack.callback(notifier.stop)
+        runtime = Runtime(
+            gateway,
+            codec,
+            buses.dbw,
+            receiver,
+            StablePlan(transport),
+            cfg.gateway.period,
+            publisher=transport,
+            requests=requests,
+            clock=clock,
+            extra_diagnostics=lambda: {"zenoh_decode_errors": transport.decode_errors},
+        )
+        if on_runtime is not None:
+            on_runtime(runtime)
+        log.info(
+            "leafgate running at %.0f Hz: dbw %s:%s, zenoh prefix %r",
+            cfg.gateway.rate_hz,
+            cfg.can.dbw.interface,
+            cfg.can.dbw.channel,
+            cfg.zenoh.prefix,
+        )
+
+        def ready() -> None:
+            sd_notify("READY=1")
+            log.info("control loop running")
+
+        with signals_set(stop):
+            runtime.run(stop, on_ready=ready)
+        sd_notify("STOPPING=1")
+        summary = runtime.stats.summary()
+        log.info(
+            "stopped after %d ticks: %d overruns, compute median %.0f µs p99 %.0f µs",
+            summary["ticks"],
+            summary["overruns"],
+            summary["compute_median_s"] * 1e6,
+            summary["compute_p99_s"] * 1e6,
+        )
+    return 0

@@ -1,0 +1,238 @@
+"""Operator and test tools' side of Zenoh: engage requests, diagnostics, input publishers.
+
+These are tooling, not control path: failures raise
+:class:`~leafgate.errors.TransportError` with a one-line message.
+
+Example, with a gateway running on the configured endpoints::
+
+    request(cfg, "engage", timeout=2.0)
+    # {'accepted': True, 'state': 'ENGAGED', 'reason': ''}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any, Generic, Self, TypeVar
+
+import zenoh
+
+from leafgate.errors import TransportError
+from leafgate.messages import OperatorRequest, Pose, Trajectory
+from leafgate.transport import keys
+from leafgate.transport.config import ZenohConfig
+from leafgate.transport.payloads import Codec, codecs
+from leafgate.transport.session import open_session, zenoh_message
+
+T = TypeVar("T")
+
+_POLL = 0.01  # s, how often a wait for a matching peer looks again
+
+
+@contextmanager
+def _session_for(cfg: ZenohConfig, session: zenoh.Session | None) -> Iterator[zenoh.Session]:
+    """Use the caller's session, or open one for the duration of the call."""
+    if session is not None:
+        yield session
+        return
+    own = open_session(cfg)
+    try:
+        yield own
+    finally:
+        own.close()
+
+
+def _matching(entity: zenoh.Publisher | zenoh.Querier) -> bool:
+    """Whether Zenoh knows a subscriber/queryable for the entity's key."""
+    status: Any = entity.matching_status  # a MatchingStatus at run time (the stub says bool)
+    return bool(getattr(status, "matching", status))
+
+
+def _wait_matching(entity: zenoh.Publisher | zenoh.Querier, deadline: float) -> bool:
+    """Wait until Zenoh knows a subscriber/queryable for the entity's key, or the deadline."""
+    while True:
+        if _matching(entity):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(_POLL)
+
+
+def request(
+    cfg: ZenohConfig,
+    what: str | OperatorRequest,
+    timeout: float | None = None,
+    *,
+    session: zenoh.Session | None = None,
+) -> dict[str, Any]:
+    """Ask the gateway to ``engage``, ``disengage`` or ``reset``; return its JSON reply.
+
+    :param cfg: the Zenoh section (endpoints, prefix)
+    :param what: the request; sent as given, so the gateway's refusal of an unknown word
+        comes back as a reply with ``accepted`` false
+    :param timeout: s to wait for the gateway (``cfg.query_timeout`` if None)
+    :param session: an open session to use (else one is opened and closed)
+    :returns: ``{"accepted": bool, "state": str | None, "reason": str}``
+    :raises TransportError: if no gateway answers in time, or it answers with an error
+    """
+    text = what.value if isinstance(what, OperatorRequest) else str(what)
+    wait = cfg.query_timeout if timeout is None else timeout
+    key = cfg.key(keys.ENGAGE)
+    deadline = time.monotonic() + wait
+    with _session_for(cfg, session) as s:
+        # No consolidation: take the first reply as soon as it arrives.
+        querier = s.declare_querier(key, timeout=wait, consolidation=zenoh.ConsolidationMode.NONE)
+        try:
+            # A query sent before the gateway's queryable is known goes nowhere: wait for it.
+            if not _wait_matching(querier, deadline):
+                raise TransportError(f"no gateway answered on {key} within {wait:g} s")
+            for reply in querier.get(payload=text.encode()):
+                if reply.ok is not None:
+                    try:
+                        answer = json.loads(reply.ok.payload.to_bytes())
+                    except ValueError:
+                        raise TransportError(f"{key}: the gateway's reply is not JSON") from None
+                    if not isinstance(answer, dict):
+                        raise TransportError(f"{key}: the gateway's reply is not a JSON object")
+                    return answer
+                if reply.err is not None:
+                    detail = reply.err.payload.to_string()
+                    raise TransportError(f"{key}: query failed: {detail or 'no detail'}")
+        except zenoh.ZError as exc:
+            raise TransportError(f"{key}: query failed: {zenoh_message(exc)}") from None
+        finally:
+            querier.undeclare()
+    raise TransportError(f"no gateway answered on {key} within {wait:g} s")
+
+
+def watch_diagnostics(
+    cfg: ZenohConfig,
+    callback: Callable[[dict[str, Any]], None],
+    duration: float,
+    *,
+    session: zenoh.Session | None = None,
+) -> int:
+    """Call ``callback`` with each ``gateway/diagnostics`` object for ``duration`` seconds.
+
+    Payloads that are not JSON objects are skipped. The callback runs on a Zenoh thread.
+
+    :returns: the number of diagnostics objects delivered
+    """
+    count = 0
+    lock = threading.Lock()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        nonlocal count
+        try:
+            data = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        if isinstance(data, dict):
+            with lock:
+                count += 1
+            callback(data)
+
+    with _session_for(cfg, session) as s:
+        subscriber = s.declare_subscriber(cfg.key(keys.DIAGNOSTICS), on_sample)
+        try:
+            time.sleep(max(0.0, duration))
+        finally:
+            subscriber.undeclare()
+    with lock:
+        return count
+
+
+class _InputPublisher(Generic[T]):
+    """A publisher of one gateway input key in the configured encoding."""
+
+    def __init__(self, session: zenoh.Session, cfg: ZenohConfig, suffix: str, codec: Codec[T]):
+        self.key = cfg.key(suffix)
+        self._codec = codec
+        self._publisher = session.declare_publisher(
+            self.key, encoding=zenoh.Encoding(codec.mime), express=cfg.express
+        )
+
+    @property
+    def matched(self) -> bool:
+        """Whether a subscriber for the key is known (the gateway is listening)."""
+        return _matching(self._publisher)
+
+    def wait_for_subscriber(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for a subscriber; True if one is known."""
+        return _wait_matching(self._publisher, time.monotonic() + timeout)
+
+    def _put(self, value: T) -> None:
+        self._publisher.put(self._codec.encode(value))
+
+    def close(self) -> None:
+        """Undeclare the publisher (the session stays the caller's)."""
+        self._publisher.undeclare()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class OdometryPublisher(_InputPublisher[Pose]):
+    """Publishes ``{prefix}/localization/kinematic_state`` (nav_msgs/msg/Odometry).
+
+    :param session: an open session (the caller closes it)
+    :param cfg: the Zenoh section (prefix, encoding)
+    """
+
+    def __init__(self, session: zenoh.Session, cfg: ZenohConfig) -> None:
+        super().__init__(session, cfg, keys.KINEMATIC_STATE, codecs(cfg.encoding).pose)
+
+    def publish(self, pose: Pose, stamp: float | None = None) -> None:
+        """Publish ``pose``; ``stamp`` (s) replaces the pose's own stamp when given.
+
+        :raises TransportError: if the pose cannot be encoded
+        """
+        if stamp is not None:
+            pose = dataclasses.replace(pose, stamp=stamp)
+        self._put(pose)
+
+
+class TrajectoryPublisher(_InputPublisher[Trajectory]):
+    """Publishes ``{prefix}/planning/trajectory`` (autoware_planning_msgs/msg/Trajectory).
+
+    :param session: an open session (the caller closes it)
+    :param cfg: the Zenoh section (prefix, encoding)
+    """
+
+    def __init__(self, session: zenoh.Session, cfg: ZenohConfig) -> None:
+        super().__init__(session, cfg, keys.TRAJECTORY, codecs(cfg.encoding).trajectory)
+
+    def publish(self, trajectory: Trajectory) -> None:
+        """Publish ``trajectory``.
+
+        :raises TransportError: if it cannot be encoded
+        """
+        self._put(trajectory)
+
+
+def publish_trajectory(
+    cfg: ZenohConfig,
+    trajectory: Trajectory,
+    timeout: float | None = None,
+    *,
+    session: zenoh.Session | None = None,
+) -> None:
+    """Publish one trajectory once the gateway's subscriber is known.
+
+    A one-shot publication before the subscriber is known would be lost, so this waits for
+    it first (up to ``timeout`` s, ``cfg.query_timeout`` if None).
+
+    :raises TransportError: if no subscriber appears in time or the trajectory cannot be encoded
+    """
+    wait = cfg.query_timeout if timeout is None else timeout
+    with _session_for(cfg, session) as s, TrajectoryPublisher(s, cfg) as publisher:
+        if not publisher.wait_for_subscriber(wait):
+            raise TransportError(f"nobody subscribes to {publisher.key} (waited {wait:g} s)")
+        publisher.publish(trajectory)

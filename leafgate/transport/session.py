@@ -1,0 +1,104 @@
+"""Opening a Zenoh session from :class:`~leafgate.transport.config.ZenohConfig`.
+
+Every failure (unreadable or invalid JSON5 file, a malformed endpoint, a port in use, an
+unknown setting) becomes one :class:`~leafgate.errors.TransportError` whose one-line message
+names the file or endpoint at fault.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import zenoh
+
+from leafgate.errors import TransportError
+from leafgate.transport.config import ZenohConfig
+
+# Zenoh's messages end with " at /path/to/file.rs:123." and may span lines; keep the gist.
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+_JSON5_MSG = re.compile(r'msg: "((?:[^"\\]|\\.)*)"')
+_PARSE_ERROR = re.compile(r"-->\s*(\d+):(\d+).*?=\s*([^\n]+)", re.DOTALL)
+
+
+def zenoh_message(exc: BaseException) -> str:
+    """One line of a Zenoh error, without Rust source locations or debug wrappers."""
+    text = _RUST_LOCATION.sub("", str(exc))
+    inner = _JSON5_MSG.search(text)
+    if inner:  # Json5Err(Message { msg: "…", location: … })
+        return inner.group(1)
+    parse = _PARSE_ERROR.search(text)
+    if parse:  # pest parser output: " --> 1:63 | <source line> | ^--- = expected …"
+        return f"line {parse.group(1)}, column {parse.group(2)}: {parse.group(3).strip()}"
+    return " ".join(text.split()) or type(exc).__name__
+
+
+def build_config(cfg: ZenohConfig) -> zenoh.Config:
+    """The Zenoh configuration for ``cfg``, without opening anything.
+
+    :raises TransportError: naming the file, endpoint or setting that Zenoh rejected
+    """
+    if cfg.config_file is not None:
+        path = Path(cfg.config_file)
+        if not path.is_file():
+            raise TransportError(f"{path}: Zenoh config file not found")
+        try:
+            config = zenoh.Config.from_file(str(path))
+        except zenoh.ZError as exc:
+            raise TransportError(f"{path}: invalid Zenoh config: {zenoh_message(exc)}") from None
+    else:
+        config = zenoh.Config()
+        _insert(config, "mode", json.dumps(cfg.mode), f"zenoh.mode {cfg.mode!r}")
+        _insert(
+            config,
+            "scouting/multicast/enabled",
+            json.dumps(cfg.multicast_scouting),
+            "zenoh.multicast_scouting",
+        )
+        if not cfg.multicast_scouting:
+            # Zenoh waits scouting/delay (500 ms) at open for peers to be discovered; with
+            # explicit endpoints there is nothing to discover, and the tools wait for a
+            # matching subscriber or queryable instead. ``extra`` may set it back.
+            _insert(config, "scouting/delay", "0", "zenoh.multicast_scouting")
+    for name in ("listen", "connect"):
+        endpoints: tuple[str, ...] = getattr(cfg, name)
+        if cfg.config_file is None or endpoints:
+            for endpoint in endpoints:  # one at a time, so the error names the culprit
+                _insert(
+                    config,
+                    f"{name}/endpoints",
+                    json.dumps([endpoint]),
+                    f"zenoh.{name}: bad endpoint {endpoint!r}",
+                )
+            _insert(config, f"{name}/endpoints", json.dumps(list(endpoints)), f"zenoh.{name}")
+    for key, value in cfg.extra.items():
+        _insert(config, key, value, f"zenoh.extra.{key}: bad value {value!r}")
+    return config
+
+
+def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    """Open a Zenoh session as ``cfg`` says.
+
+    Peer mode with explicit endpoints and multicast scouting off unless a JSON5 file is given
+    (see :mod:`leafgate.transport.config`). The caller owns the session and closes it.
+
+    :raises TransportError: one line naming the file or endpoint at fault
+    """
+    config = build_config(cfg)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        where = cfg.config_file or (
+            f"listen {list(cfg.listen)}, connect {list(cfg.connect)}"
+            if cfg.listen or cfg.connect
+            else "no endpoints"
+        )
+        raise TransportError(f"cannot open Zenoh session ({where}): {zenoh_message(exc)}") from None
+
+
+def _insert(config: zenoh.Config, key: str, value: str, what: str) -> None:
+    try:
+        config.insert_json5(key, value)
+    except zenoh.ZError as exc:
+        raise TransportError(f"{what}: {zenoh_message(exc)}") from None

@@ -1,0 +1,123 @@
+"""decode_log: any python-can log format, one line per frame, E2E status, per-ID summary."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import can
+import pytest
+
+from leafgate.can.codec import CanCodec
+from leafgate.can.decode import decode_log
+from leafgate.errors import ReplayError
+from leafgate.messages import Gear, GearPosition, LongCommand, LongMode, SteerCommand, WheelSpeeds
+
+
+def recording() -> list[can.Message]:
+    """Five good steering commands with one lost, a bad CRC, a short frame, others."""
+    codec = CanCodec()
+    steer = [codec.encode(SteerCommand(0.01 * i, enable=True)) for i in range(6)]
+    corrupt = bytearray(codec.encode(SteerCommand(0.3)).data)
+    corrupt[2] ^= 0x40
+    frames = [
+        steer[0],
+        steer[1],
+        steer[3],  # steer[2] lost → bad counter
+        steer[4],
+        can.Message(arbitration_id=0x0A0, data=corrupt, is_extended_id=False),  # bad CRC
+        can.Message(arbitration_id=0x0A0, data=bytes(6), is_extended_id=False),  # short
+        codec.encode(LongCommand(mode=LongMode.SPEED, speed=1.25, gear=Gear.D)),
+        codec.encode(WheelSpeeds(1.0, 1.0, "front")),
+        codec.encode(GearPosition(Gear.R)),
+        can.Message(arbitration_id=0x3AB, data=b"\x01\x02\x03", is_extended_id=False),
+    ]
+    for i, msg in enumerate(frames):
+        msg.timestamp = 1000.0 + 0.01 * i
+        msg.channel = 0
+    return frames
+
+
+def write_log(path: Path, frames: list[can.Message]) -> Path:
+    with can.Logger(path) as logger:
+        for msg in frames:
+            logger.on_message_received(msg)
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf", ".trc", ".csv"])
+def test_every_frame_gets_a_line_with_its_e2e_status(tmp_path: Path, suffix: str) -> None:
+    path = write_log(tmp_path / f"drive{suffix}", recording())
+    out = io.StringIO()
+    assert decode_log(path, out, summary=False) == 0
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 10
+    statuses = [line.rsplit("  ", 1)[1] for line in lines]
+    assert statuses == [
+        "ok",
+        "ok",
+        "bad_counter",
+        "ok",
+        "bad_crc",
+        "wrong_length",
+        "ok",
+        "ok",
+        "ok",
+        "unknown_id",
+    ]
+    assert "DBW_STEER_CMD(STEER_ANGLE_CMD: 0.03 rad" in lines[2]
+    assert "MODE: SPEED" in lines[6] and "SPEED_CMD: 1.25 m/s" in lines[6]
+    assert "GEAR_POSITION(GEAR_SHIFTER: R)" in lines[8]
+    assert " 3AB " in lines[9] and "01 02 03" in lines[9]
+
+
+def test_summary_counts_frames_and_faults_per_id(tmp_path: Path) -> None:
+    path = write_log(tmp_path / "drive.log", recording())
+    out = io.StringIO()
+    decode_log(path, out)
+    summary = [line for line in out.getvalue().splitlines() if line.startswith("#")]
+    rows = {line.split()[1]: line.split()[2:] for line in summary[2:]}
+    # columns: name frames bad_crc bad_cnt bad_len unknown decode
+    assert rows["0A0"] == ["DBW_STEER_CMD", "6", "1", "1", "1", "0", "0"]
+    assert rows["3AB"] == ["?", "1", "0", "0", "0", "1", "0"]
+    assert rows["total"] == ["10", "1", "1", "1", "1", "0"]
+    assert "drive.log: 10 frames" in summary[0]
+
+
+def test_frames_of_two_channels_have_separate_counter_state(tmp_path: Path) -> None:
+    codec_a, codec_b = CanCodec(), CanCodec()
+    frames = []
+    for i in range(3):  # both channels carry 0x0A0 with their own counters
+        for channel, codec in (("can0", codec_a), ("can1", codec_b)):
+            msg = codec.encode(SteerCommand(0.0), timestamp=float(i))
+            msg.channel = channel
+            frames.append(msg)
+    path = write_log(tmp_path / "two.log", frames)
+    out = io.StringIO()
+    decode_log(path, out, summary=False)
+    assert all(line.endswith("  ok") for line in out.getvalue().splitlines())
+
+
+def test_missing_file_is_a_replay_error(tmp_path: Path) -> None:
+    with pytest.raises(ReplayError, match=r"nothing\.log: no such file"):
+        decode_log(tmp_path / "nothing.log", io.StringIO())
+
+
+def test_unknown_format_is_a_one_line_replay_error(tmp_path: Path) -> None:
+    path = tmp_path / "drive.xyz"
+    path.write_text("hello\n", encoding="utf-8")
+    with pytest.raises(ReplayError, match=r"drive\.xyz: .*unknown log format") as info:
+        decode_log(path, io.StringIO())
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("name", "content"),
+    [("garbage.blf", b"not a blf file" * 20), ("garbage.log", b"this is no candump line\n")],
+)
+def test_corrupt_log_is_a_one_line_replay_error(tmp_path: Path, name: str, content: bytes) -> None:
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(ReplayError, match=f"{name}: unreadable") as info:
+        decode_log(path, io.StringIO())
+    assert "\n" not in str(info.value)
