@@ -1,0 +1,56 @@
+"""Path- and speed-tracking controllers: the paper's MPC (and later the baselines).
+
+>>> from leafgate.config import VehicleConfig
+>>> from leafgate.control.config import ControllerConfig
+>>> ctrl = make_controller(ControllerConfig(), VehicleConfig(), period=0.02)
+>>> ctrl.period
+0.02
+"""
+
+from __future__ import annotations
+
+import math
+
+from leafgate.config import VehicleConfig
+from leafgate.control.base import Controller
+from leafgate.control.config import ControllerConfig, MpcConfig
+from leafgate.errors import ConfigError
+
+__all__ = ["Controller", "make_controller"]
+
+
+def _check_inside_vehicle(mpc: MpcConfig, vehicle: VehicleConfig) -> None:
+    """The controller's limits must lie inside the vehicle's: the gate is the last word."""
+    if mpc.steer_max > vehicle.max_steer_angle:
+        raise ConfigError(
+            f"controller.mpc.steer_max ({math.degrees(mpc.steer_max):.1f}°) exceeds "
+            f"vehicle.max_steer_angle ({math.degrees(vehicle.max_steer_angle):.1f}°)"
+        )
+    if mpc.accel_max > vehicle.max_accel:
+        raise ConfigError(
+            f"controller.mpc.accel_max ({mpc.accel_max} m/s²) exceeds vehicle.max_accel "
+            f"({vehicle.max_accel} m/s²)"
+        )
+    if mpc.accel_min < vehicle.min_accel:
+        raise ConfigError(
+            f"controller.mpc.accel_min ({mpc.accel_min} m/s²) is below vehicle.min_accel "
+            f"({vehicle.min_accel} m/s²)"
+        )
+
+
+def make_controller(cfg: ControllerConfig, vehicle: VehicleConfig, period: float) -> Controller:
+    """Build the configured controller.
+
+    :param cfg: the ``controller:`` section
+    :param vehicle: the vehicle section (wheelbase, limits)
+    :param period: s, the control tick
+    :raises ConfigError: for a kind not built yet, limits outside the vehicle's, or a bad period
+    """
+    if not (math.isfinite(period) and period > 0.0):
+        raise ConfigError(f"control period must be a positive number of seconds, got {period!r}")
+    if cfg.kind == "mpc":
+        from leafgate.control.mpc import MpcController  # numpy/osqp only when needed
+
+        _check_inside_vehicle(cfg.mpc, vehicle)
+        return MpcController(cfg.mpc, vehicle, period)
+    raise ConfigError(f"controller.kind: {cfg.kind!r} is not implemented yet (use 'mpc')")

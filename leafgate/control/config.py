@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -10,20 +11,101 @@ from leafgate.config import positive
 
 @dataclass(frozen=True)
 class MpcConfig:
-    """The paper's MPC (kinematic bicycle, augmented model, Hildreth's QP)."""
+    """The paper's MPC (kinematic bicycle, augmented model, Hildreth's QP).
+
+    Weights are per output / per input change and dimensionless once multiplied by the squared
+    unit (a lateral weight of 20 costs 20 per m² of lateral error at each horizon step). Limits
+    are the controller's own, chosen *inside* the vehicle's and the safety gate's limits so the
+    gate never has to clamp a healthy MPC command.
+    """
 
     sample_time: float = 0.1  # s, discretisation step of the prediction model
-    prediction_horizon: int = 30  # Np
+    prediction_horizon: int = 30  # Np: 3 s preview at 0.1 s, ≈ 6 m at parking speed
     control_horizon: int = 10  # Nc
     solver: Literal["hildreth", "osqp"] = "hildreth"
     max_iterations: int = 38  # Hildreth sweeps (the paper's cap)
     mode: Literal["acceleration", "velocity"] = "acceleration"
     model: Literal["kinematic", "kinematic_steer_lag"] = "kinematic"
 
+    # output weights Q (diagonal), path-aligned frame
+    weight_along: float = 0.5  # 1/m², along-track position: stops the car on the goal point
+    weight_lateral: float = 40.0  # 1/m², cross-track error: the quantity the tests bound
+    weight_speed: float = 2.0  # s²/m², speed error
+    weight_heading: float = 4.0  # 1/rad², heading error: damps the lateral response
+    # input-increment weights R̄ (diagonal), per model step
+    weight_accel_change: float = 1.0  # s⁴/m², Δa: longitudinal smoothness
+    weight_steer_change: float = 20.0  # 1/Δ(tan δ)²: steering smoothness
+
+    # input limits (hard: the applied first move is clipped to them)
+    accel_min: float = -3.0  # m/s², comfort braking; the Leaf can do −6
+    accel_max: float = 1.5  # m/s², comfort drive-off; the Leaf can do +3
+    jerk_max: float = 2.0  # m/s³, |da/dt|: comfortable for parking manoeuvres
+    steer_max: float = math.radians(30.0)  # rad, road-wheel; 1° inside the Leaf's 31°
+    steer_rate_max: float = 0.5  # rad/s, road-wheel; below the gate's 0.6 rad/s at low speed
+
+    # solvers
+    hildreth_relaxation: float = 1.5  # ω of projected SOR; 1 = Wang's QPhild. 1.5 converges
+    # within the 38-sweep cap on the QPs of a standing start where ω = 1 needs hundreds
+    hildreth_tolerance: float = 1e-10  # ‖Δλ‖² between sweeps, relative to ‖λ‖² (≥ 1)
+    osqp_tolerance: float = 1e-7  # OSQP eps_abs = eps_rel
+
+    # reference and progress
+    min_model_speed: float = 0.5  # m/s, the model is linearised at no less than this speed
+    # in the driving direction, so steering stays effective in a prediction from rest
+    creep_speed: float = 0.3  # m/s, slowest speed assumed when placing the horizon's points
+    search_window: int = 20  # waypoints examined by the forward nearest-point search
+    goal_tolerance: float = 0.15  # m, a segment's end counts as reached within this distance
+    stop_speed: float = 0.02  # m/s, "at rest" below this; under the gateway's standstill speed
+    # (0.05 m/s) so that when the MPC reports finished the gateway sees a car at rest too
+    hold_decel: float = 1.0  # m/s², braking request that holds the car once finished
+    speed_lead_time: float = 0.8  # s, velocity mode: how far ahead the planned speed is sent
+    # (≈ the time constant of the vehicle's speed loop, 1/kp with kp ≈ 1.2–1.5 1/s)
+    delay_compensation: float = 0.0  # s, predict the pose this far over the last command
+
+    # steering actuator (model "kinematic_steer_lag")
+    steer_tau: float = 0.3  # s, first-order lag of the road-wheel angle
+    steer_dead_time: float = 0.1  # s, pure delay of the steering actuator
+
     def __post_init__(self) -> None:
-        positive(self, "sample_time", "prediction_horizon", "control_horizon", "max_iterations")
+        positive(
+            self,
+            "sample_time",
+            "prediction_horizon",
+            "control_horizon",
+            "max_iterations",
+            "weight_speed",
+            "weight_accel_change",
+            "weight_steer_change",
+            "accel_max",
+            "jerk_max",
+            "steer_max",
+            "steer_rate_max",
+            "hildreth_tolerance",
+            "osqp_tolerance",
+            "creep_speed",
+            "min_model_speed",
+            "search_window",
+            "goal_tolerance",
+            "stop_speed",
+            "speed_lead_time",
+            "steer_tau",
+        )
         if self.control_horizon > self.prediction_horizon:
             raise ValueError("control_horizon must not exceed prediction_horizon")
+        for name in ("weight_along", "weight_lateral", "weight_heading", "hold_decel"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        for name in ("delay_compensation", "steer_dead_time"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise ValueError(f"{name} must lie in [0, 1] s, got {value!r}")
+        if not 0.0 < self.hildreth_relaxation < 2.0:
+            raise ValueError("hildreth_relaxation must lie in (0, 2)")
+        if not self.accel_min < 0.0:
+            raise ValueError("accel_min must be negative")
+        if not self.steer_max < math.pi / 2:
+            raise ValueError("steer_max must be below 90°")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,214 @@
+"""Quadratic programme solvers for the MPC: ``min ½ xᵀE x + xᵀf  s.t.  M x ≤ γ`` (eq. 30–31).
+
+Two backends return the same :class:`QpResult`:
+
+- :func:`hildreth` — Hildreth's dual coordinate-ascent procedure as in Wang's ``QPhild``: the
+  unconstrained optimum is returned when it is feasible; otherwise the dual
+  ``min ½ λᵀPλ + λᵀd, λ ≥ 0`` with ``P = M E⁻¹ Mᵀ`` and ``d = γ + M E⁻¹ f`` is solved by
+  sweeps over the multipliers. It may stop at the sweep cap with a slightly infeasible primal;
+  the caller must clip what it applies.
+- :class:`OsqpBackend` — OSQP set up once with a fixed sparsity pattern, then updated in place
+  and warm-started every cycle.
+
+Neither raises on a hard problem: non-convergence is reported in :attr:`QpResult.converged`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import osqp
+import scipy.sparse as sp
+
+from leafgate.messages import FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class QpResult:
+    """Solution of one QP.
+
+    ``iterations`` counts Hildreth sweeps (0 when the unconstrained optimum was feasible) or
+    OSQP ADMM iterations; ``lam`` holds the multipliers of ``M x ≤ γ`` (≥ 0).
+    """
+
+    x: FloatArray
+    converged: bool
+    iterations: int
+    lam: FloatArray
+
+
+def hildreth(
+    E: FloatArray,
+    f: FloatArray,
+    M: FloatArray,
+    gamma: FloatArray,
+    max_iter: int = 38,
+    tol: float = 1e-12,
+    lam0: FloatArray | None = None,
+    E_inv: FloatArray | None = None,
+    relaxation: float = 1.0,
+    feas_tol: float = 1e-6,
+) -> QpResult:
+    """Hildreth's quadratic programming procedure (Wang, ``QPhild``).
+
+    :param E: Hessian, symmetric positive definite (n×n)
+    :param f: linear term (n)
+    :param M: constraint matrix (m×n)
+    :param gamma: constraint bounds (m)
+    :param max_iter: sweep cap (the paper uses 38)
+    :param tol: convergence threshold on ``‖λₖ − λₖ₋₁‖²`` between two sweeps, relative to
+        ``max(1, ‖λₖ‖²)`` (Wang uses 1e-7 absolute; the default is tighter so that the first move
+        agrees with OSQP to 1e-4)
+    :param lam0: multipliers to start from (warm start), e.g. the previous cycle's
+    :param E_inv: ``E⁻¹`` if the caller has it already
+    :param relaxation: ω of projected successive over-relaxation; 1 is Hildreth's procedure,
+        values in (1, 2) often need fewer sweeps
+    :param feas_tol: a small λ change only counts as converged when the primal solution also
+        violates no constraint by more than this (in the units of ``γ``)
+    :returns: the primal solution, whether the sweeps converged, the number of sweeps and the
+        multipliers
+    """
+    Ei = np.linalg.inv(E).astype(np.float64, copy=False) if E_inv is None else E_inv
+    x_unc = -(Ei @ f)
+    m = M.shape[0]
+    excess = M @ x_unc - gamma
+    if np.all(excess <= 0.0):
+        return QpResult(x_unc, True, 0, np.zeros(m))
+
+    # Working set: sweeps skip the constraints that are satisfied with a zero multiplier — a
+    # full sweep would leave them at zero — and take them in as soon as the primal violates
+    # them. The fixed point is Hildreth's; the cost follows the few active constraints, not
+    # the 4·Nc·m rows of M.
+    lam_full = np.zeros(m)
+    working = excess > 0.0
+    if lam0 is not None and lam0.shape == (m,) and np.all(np.isfinite(lam0)):
+        warm = lam0 > 0.0
+        working |= warm
+        lam_full[warm] = lam0[warm]
+    x = x_unc
+    sweeps = 0
+    converged = False
+    while sweeps < max_iter:
+        idx = np.flatnonzero(working)
+        Mw = M[idx]
+        EiMt = Ei @ Mw.T  # n×|W|
+        P = Mw @ EiMt
+        d = gamma[idx] - Mw @ x_unc  # = γ + M E⁻¹ f on the working set
+        # the sweep is sequential by nature: over Python floats it costs far less per element
+        # than numpy calls on short vectors; w = P λ is kept up to date incrementally
+        P_rows: list[list[float]] = P.tolist()
+        k = len(P_rows)
+        scale = [relaxation / P_rows[i][i] if P_rows[i][i] > 0.0 else 0.0 for i in range(k)]
+        d_list: list[float] = d.tolist()
+        lam_w = lam_full[idx]
+        lam: list[float] = lam_w.tolist()
+        w: list[float] = (P @ lam_w).tolist()
+        rows = range(k)
+        while sweeps < max_iter:
+            sweeps += 1
+            change = 0.0
+            for i in rows:
+                li = lam[i]
+                new = li - (d_list[i] + w[i]) * scale[i]  # a zero row has scale 0: λ stays
+                if new < 0.0:
+                    new = 0.0
+                step = new - li
+                if step != 0.0:
+                    lam[i] = new
+                    row = P_rows[i]  # P is symmetric: column i equals row i
+                    for j in rows:
+                        w[j] += step * row[j]
+                    change += step * step
+            lam_w = np.asarray(lam)
+            x = x_unc - EiMt @ lam_w
+            excess = M @ x - gamma
+            if np.any((excess > feas_tol) & ~working):
+                break  # a new constraint is violated: take it into the working set
+            if (change < tol or change < tol * sum(v * v for v in lam)) and np.all(
+                excess <= feas_tol
+            ):
+                converged = True
+                break
+        lam_full[idx] = lam_w
+        if converged:
+            break
+        working |= excess > feas_tol
+    return QpResult(x, converged, sweeps, lam_full)
+
+
+def _csc_full(
+    pattern: FloatArray, upper: bool
+) -> tuple[sp.csc_matrix, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """CSC matrix keeping every structural non-zero of ``pattern`` (explicit zeros included).
+
+    :returns: the matrix and the (row, col) index arrays of its data in CSC order
+    """
+    mask = pattern != 0
+    if upper:
+        mask = np.triu(np.ones_like(mask, dtype=bool))
+    cols, rows = np.nonzero(mask.T)  # column-major order = CSC data order
+    indptr = np.concatenate(([0], np.cumsum(mask.sum(axis=0))))
+    mat = sp.csc_matrix((pattern[rows, cols].astype(np.float64), rows, indptr), shape=pattern.shape)
+    return mat, rows, cols
+
+
+class OsqpBackend:
+    """OSQP for the MPC's QP, set up once and updated in place every cycle.
+
+    The Hessian is treated as dense (its full upper triangle is the pattern) and the constraint
+    matrix keeps the pattern of the ``M`` given at construction; later ``M`` must have its
+    non-zeros inside that pattern. One-sided rows ``M x ≤ γ`` become ``−∞ ≤ M x ≤ γ``.
+
+    :param E: a Hessian of the right size (values are only a starting point)
+    :param M: the constraint matrix; its non-zero pattern is fixed from here on
+    :param eps: absolute and relative tolerance of OSQP
+    :param max_iter: ADMM iteration cap
+    """
+
+    def __init__(
+        self, E: FloatArray, M: FloatArray, eps: float = 1e-7, max_iter: int = 4000
+    ) -> None:
+        self.n = E.shape[0]
+        self.m = M.shape[0]
+        P, self._p_rows, self._p_cols = _csc_full(np.asarray(E, dtype=np.float64), upper=True)
+        A, self._a_rows, self._a_cols = _csc_full(np.asarray(M, dtype=np.float64), upper=False)
+        self._solver = osqp.OSQP()
+        settings: dict[str, Any] = {
+            "verbose": False,
+            "eps_abs": eps,
+            "eps_rel": eps,
+            "max_iter": max_iter,
+            "polishing": True,  # active-set polish: exact first moves when it succeeds
+            "warm_starting": True,
+        }
+        self._lower = np.full(self.m, -np.inf)
+        self._solver.setup(P, np.zeros(self.n), A, self._lower, np.zeros(self.m), **settings)
+        self._solved_code = int(osqp.SolverStatus.OSQP_SOLVED)
+
+    def solve(
+        self, E: FloatArray, f: FloatArray, gamma: FloatArray, M: FloatArray | None = None
+    ) -> QpResult:
+        """Update the QP in place (warm start from the last solution) and solve it.
+
+        :param M: a new constraint matrix with the construction pattern, or None to keep it
+        """
+        kwargs: dict[str, Any] = {
+            "Px": np.ascontiguousarray(E[self._p_rows, self._p_cols]),
+            "q": np.asarray(f, dtype=np.float64),
+            "u": np.asarray(gamma, dtype=np.float64),
+        }
+        if M is not None:
+            kwargs["Ax"] = np.ascontiguousarray(M[self._a_rows, self._a_cols])
+        self._solver.update(**kwargs)
+        res = self._solver.solve(raise_error=False)
+        x = np.asarray(res.x, dtype=np.float64)
+        lam = np.maximum(np.asarray(res.y, dtype=np.float64), 0.0)
+        converged = int(res.info.status_val) == self._solved_code and bool(np.all(np.isfinite(x)))
+        return QpResult(x, converged, int(res.info.iter), lam)
+
+    def reset(self) -> None:
+        """Drop the warm start (next solve starts from zero)."""
+        self._solver.warm_start(x=np.zeros(self.n), y=np.zeros(self.m))

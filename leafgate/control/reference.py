@@ -1,0 +1,376 @@
+"""The reference: loading and checking trajectories, nearest waypoint, resampling to the horizon.
+
+A trajectory is a list of rear-axle waypoints ``(x, y, heading, speed)`` 0.5–1.0 m apart
+(paper §II.B). Speeds are signed; where the sign changes (a cusp) the trajectory is split into
+*direction segments* and the controller tracks one segment to its end, stops there, and moves
+on to the next (:class:`ReferencePath`).
+
+Resampling (paper §I.B): the horizon's reference points are placed along the path by the
+planned speed profile — the time to travel each waypoint interval is precomputed once per
+trajectory, so the ``Np`` points of a cycle are found with one vectorised interpolation
+starting at the vehicle's projection on the path. Positions and headings are then evaluated
+with third-order (cubic Lagrange) interpolation on four waypoints, one behind and three ahead,
+parametrised by arc length; the speed is interpolated linearly (no overshoot). A segment's last
+point always has zero reference speed, so the reference stops on it.
+
+Rows in error messages are waypoint numbers counted from 1 (in a CSV file, row 1 is the line
+after the header).
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from leafgate.errors import TrajectoryError
+from leafgate.messages import FloatArray, Trajectory
+
+FIELDS = ("x", "y", "heading", "speed")
+MIN_POINTS = 4  # the cubic resampling needs four waypoints
+REPEAT_DISTANCE = 1e-3  # m: consecutive waypoints closer than this are the same point
+
+
+@dataclass(frozen=True, slots=True)
+class Spacing:
+    """Distances between consecutive waypoints, m."""
+
+    min: float
+    median: float
+    max: float
+
+
+# --- loading and validation -------------------------------------------------------------------
+
+
+def load_trajectory(path: str | Path) -> Trajectory:
+    """Read a trajectory from CSV (header ``x,y,heading,speed``) or YAML, and validate it.
+
+    YAML holds either a list of mappings with the four keys or a mapping of the four keys to
+    lists of equal length. Units are SI (m, rad, m/s).
+
+    :raises TrajectoryError: naming the file, the row and the problem
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise TrajectoryError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrajectoryError(f"{path}: cannot read: {exc}") from None
+    suffix = path.suffix.lower()
+    if suffix == ".csv":
+        columns = _parse_csv(text, str(path))
+    elif suffix in (".yaml", ".yml"):
+        columns = _parse_yaml(text, str(path))
+    else:
+        raise TrajectoryError(f"{path}: unknown trajectory format {suffix!r} (use .csv or .yaml)")
+    traj = Trajectory(
+        x=np.asarray(columns["x"], dtype=np.float64),
+        y=np.asarray(columns["y"], dtype=np.float64),
+        heading=np.asarray(columns["heading"], dtype=np.float64),
+        speed=np.asarray(columns["speed"], dtype=np.float64),
+    )
+    validate(traj, str(path))
+    return traj
+
+
+def _number(text: object, source: str, row: int, name: str) -> float:
+    if isinstance(text, bool):
+        raise TrajectoryError(f"{source}: row {row}: {name} is not a number: {text!r}")
+    if isinstance(text, (int, float)):
+        return float(text)
+    if isinstance(text, str):
+        try:
+            return float(text.strip())
+        except ValueError:
+            pass
+    raise TrajectoryError(f"{source}: row {row}: {name} is not a number: {text!r}")
+
+
+def _check_header(names: list[str], source: str) -> None:
+    missing = [f for f in FIELDS if f not in names]
+    extra = [n for n in names if n not in FIELDS]
+    if extra:
+        raise TrajectoryError(
+            f"{source}: unknown column(s) {', '.join(map(repr, extra))} "
+            f"(expected exactly {', '.join(FIELDS)})"
+        )
+    if missing:
+        raise TrajectoryError(f"{source}: missing column(s) {', '.join(missing)}")
+    if len(set(names)) != len(names):
+        raise TrajectoryError(f"{source}: a column is given twice in the header")
+
+
+def _parse_csv(text: str, source: str) -> dict[str, list[float]]:
+    reader = csv.reader(text.splitlines())
+    try:
+        header = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise TrajectoryError(
+            f"{source}: empty file (a header x,y,heading,speed is required)"
+        ) from None
+    if all(_is_number(h) for h in header if h):
+        raise TrajectoryError(f"{source}: no header (the first line must be x,y,heading,speed)")
+    _check_header(header, source)
+    columns: dict[str, list[float]] = {name: [] for name in FIELDS}
+    for row, cells in enumerate(reader, start=1):
+        if not cells or all(not c.strip() for c in cells):
+            continue  # blank line
+        if len(cells) != len(header):
+            raise TrajectoryError(
+                f"{source}: row {row}: {len(cells)} values, the header has {len(header)}"
+            )
+        for name, cell in zip(header, cells, strict=True):
+            columns[name].append(_number(cell, source, row, name))
+    return columns
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _parse_yaml(text: str, source: str) -> dict[str, list[float]]:
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f" at line {mark.line + 1}" if mark is not None else ""
+        raise TrajectoryError(f"{source}: invalid YAML{at}") from None
+    columns: dict[str, list[float]] = {name: [] for name in FIELDS}
+    if isinstance(data, list):
+        for row, item in enumerate(data, start=1):
+            if not isinstance(item, dict):
+                raise TrajectoryError(f"{source}: row {row}: expected a mapping of {FIELDS}")
+            _check_header([str(k) for k in item], f"{source}: row {row}")
+            for name in FIELDS:
+                columns[name].append(_number(item[name], source, row, name))
+    elif isinstance(data, dict):
+        _check_header([str(k) for k in data], source)
+        lengths = set()
+        for name in FIELDS:
+            values = data[name]
+            if not isinstance(values, list):
+                raise TrajectoryError(f"{source}: {name}: expected a list of numbers")
+            lengths.add(len(values))
+            columns[name] = [_number(v, source, row, name) for row, v in enumerate(values, 1)]
+        if len(lengths) != 1:
+            sizes = ", ".join(f"{n}: {len(columns[n])}" for n in FIELDS)
+            raise TrajectoryError(f"{source}: the lists differ in length ({sizes})")
+    else:
+        raise TrajectoryError(
+            f"{source}: expected a list of waypoints or a mapping of x, y, heading, speed lists"
+        )
+    return columns
+
+
+def validate(traj: Trajectory, source: str) -> Spacing:
+    """Check a trajectory and report its waypoint spacing.
+
+    Checks: at least four waypoints, every value finite, no waypoint repeating the previous
+    one (closer than 1 mm).
+
+    :param source: the file or topic the trajectory came from, for messages
+    :returns: min / median / max spacing, m
+    :raises TrajectoryError: ``"<source>: row <n>: <problem>"``
+    """
+    n = len(traj)
+    if n < MIN_POINTS:
+        raise TrajectoryError(f"{source}: {n} waypoint(s), at least {MIN_POINTS} are needed")
+    for name in FIELDS:
+        bad = np.flatnonzero(~np.isfinite(getattr(traj, name)))
+        if bad.size:
+            raise TrajectoryError(f"{source}: row {bad[0] + 1}: {name} is not finite")
+    gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
+    repeats = np.flatnonzero(gaps < REPEAT_DISTANCE)
+    if repeats.size:
+        row = repeats[0] + 2
+        raise TrajectoryError(
+            f"{source}: row {row}: repeats row {row - 1} (waypoints {gaps[repeats[0]]:.4f} m apart)"
+        )
+    return Spacing(float(gaps.min()), float(np.median(gaps)), float(gaps.max()))
+
+
+# --- direction segments and the path ----------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Segment:
+    """Waypoints ``start … end`` (inclusive) driven in one direction (+1 forward, −1 reverse)."""
+
+    start: int
+    end: int
+    direction: int
+
+
+def directions(speed: FloatArray) -> FloatArray:
+    """Driving direction of each waypoint: the sign of its speed.
+
+    A zero speed belongs to the motion it ends (the previous non-zero speed); leading zeros take
+    the first non-zero speed; an all-zero profile is forward.
+    """
+    sign = np.sign(speed)
+    nonzero = np.flatnonzero(sign)
+    if nonzero.size == 0:
+        return np.ones_like(speed)
+    # index of the last non-zero at or before each point (or the first non-zero)
+    last = np.maximum.accumulate(np.where(sign != 0, np.arange(len(speed)), -1))
+    last[last < 0] = nonzero[0]
+    return sign[last]
+
+
+def split_segments(speed: FloatArray) -> list[Segment]:
+    """Split at cusps. Consecutive segments share the cusp waypoint (end of one, start of next)."""
+    dirs = directions(speed)
+    changes = np.flatnonzero(dirs[1:] != dirs[:-1])  # direction changes after these points
+    bounds = [0, *[int(c) for c in changes], len(speed) - 1]
+    return [
+        Segment(a, b, int(dirs[a + 1]))  # the shared start point carries the old direction
+        for a, b in itertools.pairwise(bounds)
+        if b > a  # a direction held for one point only is no segment
+    ]
+
+
+class ReferencePath:
+    """A validated trajectory prepared for fast per-cycle queries.
+
+    Built once per trajectory object: arc length, unwrapped heading, direction segments, the
+    cubic interpolation denominators and the planned time to reach each waypoint.
+
+    :param traj: the trajectory (validated by the caller)
+    :param creep_speed: m/s, the slowest speed assumed when placing horizon points, so that a
+        profile starting at rest still reaches ahead
+    """
+
+    def __init__(self, traj: Trajectory, creep_speed: float = 0.3) -> None:
+        self.traj = traj
+        n = len(traj)
+        self.n = n
+        gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
+        self.s = np.concatenate(([0.0], np.cumsum(gaps)))  # m, arc length of each waypoint
+        self.segments = split_segments(traj.speed)
+        heading = np.unwrap(traj.heading)
+        # signed speed clipped to each segment's direction, zero at each segment's end
+        speed = np.zeros(n)
+        time = np.zeros(n)  # s, planned time from the segment's start
+        for seg in self.segments:
+            sl = slice(seg.start, seg.end + 1)
+            mag = np.maximum(seg.direction * traj.speed[sl], 0.0)
+            mag[-1] = 0.0
+            speed[sl] = seg.direction * mag
+            mean = np.maximum(0.5 * (mag[1:] + mag[:-1]), creep_speed)
+            time[seg.start + 1 : seg.end + 1] = np.cumsum(np.diff(self.s[sl]) / mean)
+            time[seg.start] = 0.0
+        self.speed = speed
+        self.time = time
+        self.values = np.column_stack((traj.x, traj.y, heading))  # (n, 3)
+        self._coefs: dict[tuple[int, int], FloatArray] = {}
+
+    # --- queries ---
+
+    def segment_of(self, index: int) -> int:
+        """Index of the first segment containing waypoint ``index``."""
+        for k, seg in enumerate(self.segments):
+            if seg.start <= index <= seg.end:
+                return k
+        return len(self.segments) - 1
+
+    def project(self, seg: Segment, index: int, x: float, y: float) -> float:
+        """Arc length of the point's projection on the chords around waypoint ``index``."""
+        s = self.s
+        tx, ty = self.traj.x, self.traj.y
+        i = min(max(index, seg.start), seg.end - 1)
+        dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
+        t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
+        if t < 0.0 and i > seg.start:
+            i -= 1
+            dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
+            t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
+        t = min(max(t, 0.0), 1.0)
+        return float(s[i] + t * (s[i + 1] - s[i]))
+
+    def _cubic_coefficients(self, seg: Segment) -> FloatArray:
+        """Per waypoint interval of ``seg``: the cubic through four waypoints, one behind and
+        three ahead (fewer in a short segment), as coefficients in ``s − s_i``.
+
+        :returns: (intervals, 4, 3) — powers 0…3 for x, y and heading
+        """
+        k = min(4, seg.end - seg.start + 1)
+        i = np.arange(seg.start, seg.end)  # interval i runs from waypoint i to i + 1
+        w = np.clip(i - 1, seg.start, seg.end - k + 1)  # window kept inside the segment
+        idx = w[:, None] + np.arange(k)[None, :]
+        rel = self.s[idx] - self.s[i][:, None]  # knots relative to the interval start
+        vander = rel[:, :, None] ** np.arange(k)[None, None, :]  # (intervals, k, k)
+        coefs = np.zeros((len(i), 4, 3))
+        coefs[:, :k, :] = np.linalg.solve(vander, self.values[idx])
+        return coefs
+
+    def sample(self, seg: Segment, s_query: FloatArray) -> FloatArray:
+        """Cubic (four-waypoint) interpolation of ``[x, y, heading]`` at arc lengths ``s_query``.
+
+        Within the segment only (never across a cusp); shorter segments use fewer waypoints.
+
+        :returns: array of shape (len(s_query), 3)
+        """
+        coefs = self._coefs.get((seg.start, seg.end))
+        if coefs is None:
+            coefs = self._coefs[(seg.start, seg.end)] = self._cubic_coefficients(seg)
+        s = self.s
+        sq = np.minimum(np.maximum(s_query, s[seg.start]), s[seg.end])
+        i = np.minimum(np.maximum(np.searchsorted(s, sq, side="right") - 1, seg.start), seg.end - 1)
+        ds = (sq - s[i])[:, None]
+        c = coefs[i - seg.start]  # (q, 4, 3)
+        return ((c[:, 3] * ds + c[:, 2]) * ds + c[:, 1]) * ds + c[:, 0]  # Horner
+
+    def reference_speed(self, s_query: FloatArray) -> FloatArray:
+        """Signed reference speed at arc lengths ``s_query`` (linear in s)."""
+        return np.interp(s_query, self.s, self.speed)
+
+    def horizon_arclength(self, seg: Segment, s0: float, steps: FloatArray) -> FloatArray:
+        """Arc lengths reached at times ``steps`` (s) after ``s0`` along the planned profile.
+
+        Clamped to the segment's end: beyond it the reference waits on the stop point.
+        """
+        sl = slice(seg.start, seg.end + 1)
+        s_seg = self.s[sl]
+        t_seg = self.time[sl]
+        t0 = float(np.interp(s0, s_seg, t_seg))
+        return np.interp(t0 + steps, t_seg, s_seg)
+
+
+def nearest_index(
+    traj: Trajectory,
+    x: float,
+    y: float,
+    start: int,
+    window: int = 20,
+    stop: int | None = None,
+) -> int:
+    """Index of the waypoint nearest ``(x, y)``, searched forward from ``start``.
+
+    Only ``window`` waypoints from one before ``start`` are examined — the car cannot pass more
+    in one control tick — so the cost does not grow with the path and a path that comes back
+    on itself is not confused with its earlier part.
+
+    :param stop: last index that may be returned (a segment's end), default the last waypoint
+    """
+    last = len(traj) - 1 if stop is None else min(stop, len(traj) - 1)
+    lo = min(max(start - 1, 0), last)
+    hi = min(lo + window, last + 1)
+    dx = traj.x[lo:hi] - x
+    dy = traj.y[lo:hi] - y
+    return lo + int(np.argmin(dx * dx + dy * dy))
+
+
+def wrap_angle(angle: float) -> float:
+    """Wrap to [−π, π)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi

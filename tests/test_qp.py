@@ -1,0 +1,114 @@
+"""Hildreth's procedure and the OSQP backend on the MPC's QP form."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from leafgate.control.qp import OsqpBackend, hildreth
+
+
+def _random_qp(seed: int, n: int = 8, m: int = 12) -> tuple[np.ndarray, ...]:
+    """A strictly convex QP with a feasible set containing x = 0 (γ > 0)."""
+    rng = np.random.default_rng(seed)
+    G = rng.normal(size=(n, n))
+    E = G @ G.T + 0.5 * np.eye(n)
+    f = rng.normal(size=n) * 10.0
+    M = rng.normal(size=(m, n))
+    gamma = rng.uniform(0.05, 1.0, size=m)
+    return E, f, M, gamma
+
+
+def _box_qp(seed: int, Nc: int = 6) -> tuple[np.ndarray, ...]:
+    """The MPC's structure: amplitude (cumulative) and rate bounds on two inputs."""
+    rng = np.random.default_rng(seed)
+    n = 2 * Nc
+    G = rng.normal(size=(3 * n, n))
+    E = 2.0 * (G.T @ G + 0.1 * np.eye(n))
+    f = rng.normal(size=n) * 20.0
+    cum = np.kron(np.tril(np.ones((Nc, Nc))), np.eye(2))
+    eye = np.eye(n)
+    M = np.vstack((cum, -cum, eye, -eye))
+    u_prev = rng.uniform(-0.5, 0.5, size=2)
+    amp = np.array([1.0, 1.0])
+    rate = rng.uniform(0.02, 0.3, size=2)
+    gamma = np.concatenate(
+        (np.tile(amp - u_prev, Nc), np.tile(amp + u_prev, Nc), np.tile(rate, 2 * Nc))
+    )
+    return E, f, M, gamma
+
+
+def test_unconstrained_optimum_when_no_constraint_is_active() -> None:
+    E, f, M, _ = _random_qp(3)
+    gamma = np.full(M.shape[0], 1e6)  # far away
+    x_star = -np.linalg.solve(E, f)
+    h = hildreth(E, f, M, gamma)
+    assert h.converged and h.iterations == 0
+    np.testing.assert_allclose(h.x, x_star, atol=1e-12)
+    o = OsqpBackend(E, M).solve(E, f, gamma)
+    assert o.converged
+    np.testing.assert_allclose(o.x, x_star, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(12))
+@pytest.mark.parametrize("kind", ["random", "box"])
+def test_hildreth_and_osqp_agree_on_the_first_move(seed: int, kind: str) -> None:
+    E, f, M, gamma = _random_qp(seed) if kind == "random" else _box_qp(seed)
+    h = hildreth(E, f, M, gamma, max_iter=2000)
+    o = OsqpBackend(E, M).solve(E, f, gamma)
+    assert o.converged
+    if h.converged:
+        np.testing.assert_allclose(h.x[:2], o.x[:2], atol=1e-4)
+        assert np.all(M @ h.x <= gamma + 1e-6)
+    np.testing.assert_array_less(-1e-12, h.lam)  # multipliers are never negative
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.floats(1.0, 1.8))
+def test_relaxed_hildreth_reaches_the_same_solution(seed: int, omega: float) -> None:
+    E, f, M, gamma = _box_qp(seed)
+    plain = hildreth(E, f, M, gamma, max_iter=5000, tol=1e-16)
+    relaxed = hildreth(E, f, M, gamma, max_iter=5000, tol=1e-16, relaxation=omega)
+    if plain.converged and relaxed.converged:
+        np.testing.assert_allclose(relaxed.x, plain.x, atol=1e-5)
+
+
+def test_warm_start_reaches_the_solution_in_fewer_sweeps() -> None:
+    E, f, M, gamma = _box_qp(5)
+    cold = hildreth(E, f, M, gamma, max_iter=5000, tol=1e-14)
+    assert cold.converged and cold.iterations > 1
+    warm = hildreth(E, f, M, gamma, max_iter=5000, tol=1e-14, lam0=cold.lam)
+    assert warm.converged and warm.iterations < cold.iterations
+    np.testing.assert_allclose(warm.x, cold.x, atol=1e-6)
+
+
+def test_sweep_cap_is_reported_as_not_converged() -> None:
+    E, f, M, gamma = _box_qp(7)
+    capped = hildreth(E, f, M, gamma, max_iter=1)
+    full = hildreth(E, f, M, gamma, max_iter=5000)
+    assert full.iterations > 1  # the cap really cuts the sweeps short
+    assert not capped.converged and capped.iterations == 1
+
+
+def test_conflicting_constraints_never_converge() -> None:
+    """x ≤ −1 and −x ≤ −1 (x ≥ 1): infeasible, Hildreth must say so, not raise."""
+    E = np.eye(1)
+    f = np.zeros(1)
+    M = np.array([[1.0], [-1.0]])
+    gamma = np.array([-1.0, -1.0])
+    result = hildreth(E, f, M, gamma, max_iter=38)
+    assert not result.converged
+    assert result.iterations == 38
+
+
+def test_osqp_is_updated_in_place_and_tracks_new_data() -> None:
+    E, f, M, gamma = _box_qp(11)
+    backend = OsqpBackend(E, M)
+    first = backend.solve(E, f, gamma)
+    E2 = E + np.eye(E.shape[0])
+    second = backend.solve(E2, -f, gamma * 0.5)
+    ref = hildreth(E2, -f, M, gamma * 0.5, max_iter=5000, tol=1e-16)
+    assert first.converged and second.converged and ref.converged
+    np.testing.assert_allclose(second.x, ref.x, atol=1e-4)

@@ -1,0 +1,216 @@
+"""Trajectory files, validation, the nearest-point search, segments and cubic resampling."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from leafgate.control.reference import (
+    ReferencePath,
+    load_trajectory,
+    nearest_index,
+    split_segments,
+    validate,
+)
+from leafgate.errors import TrajectoryError
+from leafgate.messages import Trajectory
+
+GOOD_ROWS = [(0.5 * i, 0.0, 0.0, 1.0) for i in range(8)]
+
+
+def _write_csv(path: Path, rows: list[tuple], header: str = "x,y,heading,speed") -> Path:
+    lines = [header] + [",".join(str(v) for v in row) for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _line(n: int = 20, spacing: float = 0.5, speed: float = 1.0) -> Trajectory:
+    s = spacing * np.arange(n)
+    return Trajectory(x=s, y=np.zeros(n), heading=np.zeros(n), speed=np.full(n, speed))
+
+
+# --- loading ---
+
+
+def test_csv_loads_in_any_column_order(tmp_path: Path) -> None:
+    rows = [(r[3], r[2], r[1], r[0]) for r in GOOD_ROWS]
+    traj = load_trajectory(_write_csv(tmp_path / "t.csv", rows, "speed,heading,y,x"))
+    np.testing.assert_allclose(traj.x, [r[0] for r in GOOD_ROWS])
+    np.testing.assert_allclose(traj.speed, 1.0)
+
+
+def test_yaml_list_and_yaml_columns_load_the_same(tmp_path: Path) -> None:
+    as_list = [dict(zip(("x", "y", "heading", "speed"), r, strict=True)) for r in GOOD_ROWS]
+    as_columns = {
+        k: [r[i] for r in GOOD_ROWS] for i, k in enumerate(("x", "y", "heading", "speed"))
+    }
+    (tmp_path / "a.yaml").write_text(yaml.safe_dump(as_list))
+    (tmp_path / "b.yml").write_text(yaml.safe_dump(as_columns))
+    a = load_trajectory(tmp_path / "a.yaml")
+    b = load_trajectory(tmp_path / "b.yml")
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.heading, b.heading)
+
+
+@pytest.mark.parametrize(
+    ("header", "rows", "message"),
+    [
+        (
+            "x,y,heading,speed,curvature",
+            [(*r, 0.0) for r in GOOD_ROWS],
+            "unknown column(s) 'curvature'",
+        ),
+        ("x,y,heading", [r[:3] for r in GOOD_ROWS], "missing column(s) speed"),
+        ("0,0,0,1", GOOD_ROWS, "no header"),
+    ],
+)
+def test_csv_header_problems_are_named(
+    tmp_path: Path, header: str, rows: list[tuple], message: str
+) -> None:
+    path = _write_csv(tmp_path / "traj.csv", rows, header)
+    with pytest.raises(TrajectoryError, match=r"traj\.csv") as info:
+        load_trajectory(path)
+    assert message in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("row", "bad", "message"),
+    [
+        (7, (3.0, 0.0, "nan", 1.0), "row 7: heading is not finite"),
+        (3, (1.0, "inf", 0.0, 1.0), "row 3: y is not finite"),
+        (5, (2.0, 0.0, 0.0, "fast"), "row 5: speed is not a number"),
+        (4, (1.0, 0.0, 0.0, 1.0), "row 4: repeats row 3"),
+        (2, (0.5, 0.0, 0.0), "row 2: 3 values"),
+    ],
+)
+def test_bad_rows_are_named(tmp_path: Path, row: int, bad: tuple, message: str) -> None:
+    rows: list[tuple] = list(GOOD_ROWS)
+    rows[row - 1] = bad
+    path = _write_csv(tmp_path / "traj.csv", rows)
+    with pytest.raises(TrajectoryError) as info:
+        load_trajectory(path)
+    assert str(info.value).startswith("traj.csv") or "traj.csv: " in str(info.value)
+    assert message in str(info.value)
+
+
+def test_too_few_waypoints(tmp_path: Path) -> None:
+    path = _write_csv(tmp_path / "short.csv", GOOD_ROWS[:3])
+    with pytest.raises(TrajectoryError, match=r"short.csv: 3 waypoint\(s\), at least 4"):
+        load_trajectory(path)
+
+
+def test_yaml_problems_are_named(tmp_path: Path) -> None:
+    (tmp_path / "ragged.yaml").write_text(
+        yaml.safe_dump({"x": [0, 1, 2, 3], "y": [0, 0, 0], "heading": [0] * 4, "speed": [1] * 4})
+    )
+    with pytest.raises(TrajectoryError, match=r"ragged\.yaml: the lists differ in length"):
+        load_trajectory(tmp_path / "ragged.yaml")
+    (tmp_path / "extra.yaml").write_text(
+        yaml.safe_dump([{"x": 0, "y": 0, "heading": 0, "speed": 1, "t": 0}] * 4)
+    )
+    with pytest.raises(TrajectoryError, match=r"extra.yaml: row 1: unknown column\(s\) 't'"):
+        load_trajectory(tmp_path / "extra.yaml")
+
+
+def test_unknown_format_and_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(TrajectoryError, match="no such file"):
+        load_trajectory(tmp_path / "nope.csv")
+    (tmp_path / "t.json").write_text("[]")
+    with pytest.raises(TrajectoryError, match="unknown trajectory format"):
+        load_trajectory(tmp_path / "t.json")
+
+
+def test_spacing_is_reported() -> None:
+    x = np.array([0.0, 0.5, 1.5, 2.0, 2.7])
+    traj = Trajectory(x=x, y=np.zeros(5), heading=np.zeros(5), speed=np.ones(5))
+    spacing = validate(traj, "t")
+    assert (spacing.min, spacing.median, spacing.max) == pytest.approx((0.5, 0.6, 1.0))
+
+
+# --- nearest point ---
+
+
+def test_nearest_index_searches_forward_within_a_window() -> None:
+    traj = _line(100)
+    assert nearest_index(traj, 10.1, 0.3, start=15, window=20) == 20
+    # the point at x = 40 m is out of the window from 15: the search stops at the window's end
+    assert nearest_index(traj, 40.0, 0.0, start=15, window=20) == 33
+
+
+def test_nearest_index_ignores_an_earlier_pass_over_the_same_place() -> None:
+    """A loop: waypoints 0 and 40 are at the same place; from index 35 it must find 40."""
+    angle = np.linspace(0.0, 2 * math.pi, 41)
+    traj = Trajectory(
+        x=10 * np.cos(angle), y=10 * np.sin(angle), heading=angle + math.pi / 2, speed=np.ones(41)
+    )
+    assert nearest_index(traj, 10.0, 0.0, start=35, window=10) == 40
+    assert nearest_index(traj, 10.0, 0.0, start=0, window=10) == 0
+
+
+# --- segments and resampling ---
+
+
+def test_cusps_split_into_direction_segments() -> None:
+    segs = split_segments(np.array([0.0, 1.0, 1.0, 0.0, -1.0, -1.0, 0.0]))
+    assert [(s.start, s.end, s.direction) for s in segs] == [(0, 3, 1), (3, 6, -1)]
+    segs = split_segments(np.array([1.0, 1.0, -1.0, -1.0, 2.0, 2.0]))
+    assert [(s.start, s.end, s.direction) for s in segs] == [(0, 1, 1), (1, 3, -1), (3, 5, 1)]
+
+
+def test_cubic_resampling_reproduces_a_cubic_path() -> None:
+    """Four-point cubic interpolation is exact for a cubic y(x) parametrised by arc length."""
+    s = np.linspace(0.0, 6.0, 13)  # pretend arc length (x) with y, heading as cubics of it
+    traj = Trajectory(x=s, y=0.01 * s**3 - 0.05 * s, heading=0.02 * s**2, speed=np.ones_like(s))
+    path = ReferencePath(traj)
+    path.s = s.copy()  # use x as the parameter so the cubic is exact
+    path._coefs.clear()
+    seg = path.segments[0]
+    q = np.linspace(0.0, 6.0, 37)
+    out = path.sample(seg, q)
+    np.testing.assert_allclose(out[:, 0], q, atol=1e-12)
+    np.testing.assert_allclose(out[:, 1], 0.01 * q**3 - 0.05 * q, atol=1e-12)
+    np.testing.assert_allclose(out[:, 2], 0.02 * q**2, atol=1e-12)
+
+
+def test_resampling_passes_through_the_waypoints() -> None:
+    angle = np.linspace(0.0, math.pi, 15)
+    traj = Trajectory(
+        x=5 * np.sin(angle), y=5 * (1 - np.cos(angle)), heading=angle, speed=np.ones(15)
+    )
+    path = ReferencePath(traj)
+    out = path.sample(path.segments[0], path.s)
+    np.testing.assert_allclose(out[:, 0], traj.x, atol=1e-12)
+    np.testing.assert_allclose(out[:, 1], traj.y, atol=1e-12)
+
+
+def test_horizon_reaches_ahead_from_rest_and_stops_on_the_last_point() -> None:
+    traj = Trajectory(
+        x=0.5 * np.arange(10),
+        y=np.zeros(10),
+        heading=np.zeros(10),
+        speed=np.array([0.0, 0.5, 1, 1, 1, 1, 1, 1, 0.5, 0.0]),
+    )
+    path = ReferencePath(traj, creep_speed=0.3)
+    seg = path.segments[0]
+    s = path.horizon_arclength(seg, 0.0, 0.1 * np.arange(1, 101))
+    assert s[0] > 0.0  # a standing start still looks ahead
+    assert np.all(np.diff(s) >= 0.0)
+    assert s[-1] == pytest.approx(4.5)  # the reference waits on the final waypoint
+    assert path.reference_speed(np.array([4.5]))[0] == 0.0
+
+
+def test_reverse_segment_speeds_are_negative_and_end_at_zero() -> None:
+    traj = Trajectory(
+        x=np.array([0.0, 0.5, 1.0, 1.5, 1.0, 0.5, 0.0]),
+        y=np.array([0.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3]),
+        heading=np.zeros(7),
+        speed=np.array([0.5, 1.0, 0.5, 0.0, -0.5, -1.0, -0.5]),
+    )
+    path = ReferencePath(traj)
+    assert [s.direction for s in path.segments] == [1, -1]
+    assert path.speed[3] == 0.0 and path.speed[-1] == 0.0
+    assert np.all(path.speed[4:6] < 0.0)

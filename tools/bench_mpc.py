@@ -1,0 +1,201 @@
+"""Benchmark of the MPC step (reference + linearisation + matrices + solve) and its QP solvers.
+
+Drives the kinematic plant along the S-curve twice per backend — once from the path (the
+constraints stay inactive almost throughout) and once from a start at rest 0.8 m beside it
+(steering-rate and jerk limits active for the first seconds) — and times every
+``controller.step``. The QPs of constrained steps are recorded and re-solved by: Hildreth, OSQP
+updated in place and warm-started (the controller's way), OSQP set up anew each step, and the
+same QP written naively with cvxpy (``pip install cvxpy``; the row is skipped when it is
+missing). Prints one JSON document; times in microseconds.
+
+    .venv/bin/python tools/bench_mpc.py [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import time
+from typing import Any
+
+import numpy as np
+import osqp
+import scipy.sparse as sp
+
+from leafgate.config import VehicleConfig
+from leafgate.control.config import MpcConfig
+from leafgate.control.mpc import MpcController
+from leafgate.control.qp import OsqpBackend, QpResult, hildreth
+from leafgate.messages import Pose
+from leafgate.sim.config import PlantConfig
+from leafgate.sim.plant import gear_direction, make_plant
+from leafgate.sim.scenarios import get_scenario
+
+PERIOD = 0.02  # s, control tick
+GOAL_MEDIAN_US = 150.0
+GOAL_P99_US = 500.0
+
+
+class _RecordingController(MpcController):
+    """Keeps the QPs that reached a solver (constraints active) for the solver rows."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.qps: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.record = False
+
+    def _solve(self, E: np.ndarray, f: np.ndarray, gamma: np.ndarray) -> QpResult:
+        result = super()._solve(E, f, gamma)
+        if self.record and result.iterations > 0:
+            self.qps.append((E.copy(), f.copy(), gamma.copy()))
+        return result
+
+
+def _drive(solver: str, offset: float, dpsi: float, record: bool) -> tuple[list, list, Any]:
+    """One closed-loop run; returns (step times of unconstrained steps, of constrained, ctrl).
+
+    The second list holds the steps whose QP reached a solver (some constraint active)."""
+    scenario = get_scenario("s-curve")
+    traj = scenario.trajectory
+    cfg = MpcConfig(solver=solver, prediction_horizon=30, control_horizon=10)  # type: ignore[arg-type]
+    vehicle = VehicleConfig()
+    ctrl = _RecordingController(cfg, vehicle, PERIOD)
+    ctrl.record = record
+    s = scenario.start
+    start = Pose(
+        s.x - offset * math.sin(s.heading),
+        s.y + offset * math.cos(s.heading),
+        s.heading + dpsi,
+        0.0,
+    )
+    plant = make_plant(PlantConfig(), vehicle, start)
+    inactive: list[float] = []
+    active: list[float] = []
+    for _ in range(round(scenario.duration / PERIOD)):
+        pose = plant.pose()
+        t0 = time.perf_counter()
+        out = ctrl.step(pose, plant.steer_angle, traj)
+        elapsed = time.perf_counter() - t0
+        (active if out.iterations > 0 else inactive).append(elapsed)
+        if out.finished:
+            break
+        direction = gear_direction(plant.gear)
+        plant.step(PERIOD, out.steer_angle, direction * out.accel, plant.gear)
+    return inactive, active, ctrl
+
+
+def _stats(samples: list[float]) -> dict[str, float | int]:
+    if not samples:
+        return {"n": 0}
+    arr = np.asarray(samples) * 1e6
+    return {
+        "n": int(arr.size),
+        "median_us": round(float(np.median(arr)), 1),
+        "p99_us": round(float(np.percentile(arr, 99)), 1),
+    }
+
+
+def _time_solver(qps: list, solve: Any) -> list[float]:
+    times = []
+    for E, f, gamma in qps:
+        t0 = time.perf_counter()
+        solve(E, f, gamma)
+        times.append(time.perf_counter() - t0)
+    return times
+
+
+def _solver_rows(ctrl: MpcController, qps: list) -> dict[str, Any]:
+    M = ctrl.M
+    rows: dict[str, Any] = {}
+    rows["hildreth"] = _stats(
+        _time_solver(qps, lambda E, f, g: hildreth(E, f, M, g, relaxation=1.5))
+    )
+    backend = OsqpBackend(qps[0][0], M)
+    rows["osqp_in_place_warm"] = _stats(_time_solver(qps, backend.solve))
+
+    A = sp.csc_matrix(M)
+    lower = np.full(M.shape[0], -np.inf)
+
+    def cold(E: np.ndarray, f: np.ndarray, g: np.ndarray) -> None:
+        solver = osqp.OSQP()
+        solver.setup(
+            sp.csc_matrix(np.triu(E)),
+            f,
+            A,
+            lower,
+            g,
+            verbose=False,
+            polishing=True,
+            eps_abs=1e-7,
+            eps_rel=1e-7,
+        )
+        solver.solve(raise_error=False)
+
+    rows["osqp_cold_setup"] = _stats(_time_solver(qps, cold))
+    try:
+        import cvxpy as cp
+    except ImportError:
+        rows["cvxpy_naive"] = {"skipped": "cvxpy not installed (pip install cvxpy)"}
+        return rows
+
+    def naive(E: np.ndarray, f: np.ndarray, g: np.ndarray) -> None:
+        x = cp.Variable(E.shape[0])
+        problem = cp.Problem(
+            cp.Minimize(0.5 * cp.quad_form(x, cp.psd_wrap(E)) + f @ x), [M @ x <= g]
+        )
+        problem.solve(solver=cp.OSQP)
+
+    rows["cvxpy_naive"] = _stats(_time_solver(qps[:50], naive))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=2, help="runs per case (default 2)")
+    args = parser.parse_args()
+
+    report: dict[str, Any] = {
+        "machine": {"python": platform.python_version(), "cpu": platform.processor() or "?"},
+        "config": {"Np": 30, "Nc": 10, "sample_time_s": 0.1, "period_s": PERIOD},
+        "goal": {"step_median_us": GOAL_MEDIAN_US, "step_p99_us": GOAL_P99_US},
+        "step": {},
+    }
+    qps: list = []
+    ctrl: MpcController | None = None
+    for solver in ("hildreth", "osqp"):
+        inactive: list[float] = []
+        active: list[float] = []
+        for _ in range(args.repeat):
+            for offset, dpsi in ((0.0, 0.0), (0.8, 0.0)):
+                a, b, c = _drive(solver, offset, dpsi, record=solver == "hildreth")
+                inactive += a
+                active += b
+                if solver == "hildreth":
+                    qps += c.qps
+                    ctrl = c
+        report["step"][solver] = {
+            "constraints_inactive": _stats(inactive),
+            "constraints_active": _stats(active),
+            "all": _stats(inactive + active),
+        }
+    assert ctrl is not None
+    rows = _solver_rows(ctrl, qps) if qps else {}
+    report["qp_solve_constrained"] = rows
+    ratios: dict[str, float] = {}
+    base = rows.get("osqp_in_place_warm", {}).get("median_us")
+    for name, row in rows.items():
+        if base and "median_us" in row:
+            ratios[f"{name}_vs_osqp_in_place"] = round(row["median_us"] / base, 2)
+    report["ratios"] = ratios
+    steps = report["step"]["hildreth"]["all"]
+    report["goal_met"] = {
+        "median": steps.get("median_us", math.inf) <= GOAL_MEDIAN_US,
+        "p99": steps.get("p99_us", math.inf) <= GOAL_P99_US,
+    }
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
