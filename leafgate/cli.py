@@ -79,8 +79,7 @@ def format_metrics(metrics: dict[str, Any]) -> str:
 
 def cmd_sim(args: argparse.Namespace) -> int:
     from leafgate.sim.plots import plot_drive
-    from leafgate.sim.runner import run
-    from leafgate.sim.scenarios import get_scenario
+    from leafgate.sim.runner import Injection, run, run_direct
 
     cfg = load_config(args.config)
     cfg = _with_overrides(
@@ -92,23 +91,36 @@ def cmd_sim(args: argparse.Namespace) -> int:
             "sim.plant.kind": args.plant,
         },
     )
-    scenario_name = args.scenario or cfg.sim.scenario
-    try:
-        scenario = get_scenario(scenario_name)
-    except KeyError as exc:
-        raise ConfigError(str(exc.args[0])) from None
-    result = run(cfg, scenario)
+    scenario = _scenario(args.scenario or cfg.sim.scenario)
+    injections = tuple(Injection.parse(text) for text in args.inject)
+    if injections and (args.direct or args.realtime):
+        raise ConfigError("--inject needs the full simulated loop (not --direct or --realtime)")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for t, event in result.timeline:
+    if args.realtime:
+        from leafgate.sim.realtime import run_realtime
+
+        outcome = run_realtime(cfg, scenario)
+        metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
+        loop = "real time (daemon runtime, in-process Zenoh, virtual CAN)"
+    else:
+        result = (
+            run_direct(cfg, scenario) if args.direct else run(cfg, scenario, injections=injections)
+        )
+        metrics, trace, timeline = dict(result.metrics), result.trace, list(result.timeline)
+        loop = (
+            "direct (controller → plant)"
+            if args.direct
+            else "simulated clock through CAN, ECU and gateway"
+        )
+    for t, event in timeline:
         print(f"  t={t:7.2f} s  {event}")
     print(
         f"scenario {scenario.name}: controller {cfg.controller.kind}, "
         f"solver {cfg.controller.mpc.solver}, mode {cfg.controller.mpc.mode}, "
-        f"plant {cfg.sim.plant.kind}"
+        f"plant {cfg.sim.plant.kind}; {loop}"
     )
-    print(format_metrics(result.metrics))
-    metrics = dict(result.metrics)
+    print(format_metrics(metrics))
     metrics.update(
         {
             "scenario": scenario.name,
@@ -116,12 +128,14 @@ def cmd_sim(args: argparse.Namespace) -> int:
             "solver": cfg.controller.mpc.solver,
             "mode": cfg.controller.mpc.mode,
             "plant": cfg.sim.plant.kind,
-            "timeline": [{"t": t, "event": e} for t, e in result.timeline],
+            "loop": loop,
+            "injections": list(args.inject),
+            "timeline": [{"t": t, "event": e} for t, e in timeline],
         }
     )
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
     if not args.no_plots:
-        plot_drive(out, scenario.trajectory, [result.trace], title=f"— {scenario.name}")
+        plot_drive(out, scenario.trajectory, [trace], title=f"— {scenario.name}")
     print(
         f"wrote {out / 'metrics.json'}"
         + ("" if args.no_plots else ", path.png, steering.png, speed.png")
@@ -299,6 +313,22 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", default="leafgate-sim", help="output directory (default: ./leafgate-sim/)"
     )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument(
+        "--inject",
+        action="append",
+        default=[],
+        metavar="KIND@T[+DUR]",
+        help="fault or driver action, e.g. localization-dropout@8s, override@10s (repeatable)",
+    )
+    loop = p.add_mutually_exclusive_group()
+    loop.add_argument(
+        "--direct",
+        action="store_true",
+        help="controller drives the plant directly (no CAN, no gateway)",
+    )
+    loop.add_argument(
+        "--realtime", action="store_true", help="the daemon's runtime in real time, in this process"
+    )
     p.set_defaults(func=cmd_sim)
 
     p = sub.add_parser("run", help="the gateway daemon (vehicle or simulated ECU)")

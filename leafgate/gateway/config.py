@@ -1,18 +1,136 @@
-"""Gateway section of the configuration (``gateway:``): loop rate, watchdogs, safety gate."""
+"""Gateway section of the configuration (``gateway:``): loop rate, watchdogs, safety gate.
+
+Every threshold of DESIGN's "Engagement, watchdogs, safety gate" tables lives here with its
+default. Angles may be written in degrees in YAML with the ``_deg``/``_degps`` suffixes
+(``max_heading_error_deg: 30``, ``rate_up_degps: [34, 29, 11]``).
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 
 from leafgate.config import positive
 
 
 @dataclass(frozen=True)
-class GatewayConfig:
-    rate_hz: float = 50.0  # Hz, control loop rate (DBW_STEER_CMD period 20 ms)
+class WatchdogConfig:
+    """Freshness and plausibility thresholds (DESIGN, watchdog table)."""
+
+    localization_stop_age: float = 0.100  # s, localization older than this → STOPPING
+    localization_fault_age: float = 0.500  # s, localization older than this → FAULT
+    localization_max_jump: float = 1.0  # m, position jump in one sample → FAULT
+    # s, a trajectory older than this cannot be engaged on; None: a plan never goes stale (for
+    # planners that publish a parking maneuver once). While engaged, the accepted plan is followed.
+    trajectory_max_age: float | None = 1.0
+    steer_report_period: float = 0.010  # s, DBW_STEER_RPT
+    long_report_period: float = 0.020  # s, DBW_LONG_RPT
+    system_report_period: float = 0.100  # s, DBW_SYSTEM_RPT
+    report_timeout_periods: float = 3.0  # report periods; an older report → FAULT
+    max_report_errors: int = 5  # bad-frame counter (+1 bad, −1 good, floor 0) at which → FAULT
+    max_overruns: int = 3  # consecutive late control ticks → FAULT
 
     def __post_init__(self) -> None:
-        positive(self, "rate_hz")
+        positive(
+            self,
+            "localization_stop_age",
+            "localization_fault_age",
+            "localization_max_jump",
+            "steer_report_period",
+            "long_report_period",
+            "system_report_period",
+            "report_timeout_periods",
+            "max_report_errors",
+            "max_overruns",
+        )
+        if self.trajectory_max_age is not None:
+            positive(self, "trajectory_max_age")
+        if self.localization_fault_age < self.localization_stop_age:
+            raise ValueError("localization_fault_age must not be below localization_stop_age")
+
+
+@dataclass(frozen=True)
+class EngageConfig:
+    """Preconditions of an engage request and the hand-shake with the ECU."""
+
+    max_distance: float = 1.0  # m, from the nearest point of the trajectory polyline
+    max_heading_error: float = math.radians(30.0)  # rad, from the trajectory's heading there
+    # s, time the ECU has to clear a latched override and then to report ENABLED after the
+    # ENABLE 0→1 edge (system reports come every 100 ms, so a few of them)
+    confirm_timeout: float = 0.5
+
+    def __post_init__(self) -> None:
+        positive(self, "max_distance", "max_heading_error", "confirm_timeout")
+
+
+@dataclass(frozen=True)
+class StopConfig:
+    """Controlled stop (STOPPING) and the brake held while a fault stops the car."""
+
+    decel: float = 1.5  # m/s², comfort deceleration of a controlled stop
+    jerk: float = 2.0  # m/s³, comfort jerk while building up the stop deceleration
+    fault_decel: float = 3.0  # m/s², deceleration after a fault (as the ECU's own timeout stop)
+    standstill_time: float = 0.2  # s, |v| below the standstill speed this long = at rest
+
+    def __post_init__(self) -> None:
+        positive(self, "decel", "jerk", "fault_decel", "standstill_time")
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Limits of the safety gate (the last word on every command).
+
+    The angle-rate tables are interpolated over ``rate_speeds`` like opendbc's
+    ``apply_std_steer_angle_limits``: ``rate_up`` when |angle| grows (wind-up), ``rate_down``
+    when it shrinks (unwind).
+    """
+
+    max_steer_angle: float | None = None  # rad, road-wheel; None: the vehicle's limit (±31°)
+    rate_speeds: tuple[float, ...] = (0.0, 3.0, 10.0)  # m/s, breakpoints of the rate tables
+    rate_up: tuple[float, ...] = (0.6, 0.5, 0.2)  # rad/s, wind-up rate limit at each breakpoint
+    rate_down: tuple[float, ...] = (0.6, 0.6, 0.3)  # rad/s, unwind rate limit at each breakpoint
+    max_lateral_accel: float = 3.0  # m/s², |tan δ / L| v² bound
+    max_accel: float | None = None  # m/s²; None: the vehicle's limit (+3.0)
+    min_accel: float | None = None  # m/s², negative; None: the vehicle's limit (−6.0)
+    max_jerk: float = 5.0  # m/s³, |Δaccel| per second between two sent commands
+    max_speed: float = 3.0  # m/s, maneuver speed limit
+    standstill_speed: float = 0.05  # m/s, below this the car counts as standing still
+
+    def __post_init__(self) -> None:
+        positive(self, "max_lateral_accel", "max_jerk", "max_speed", "standstill_speed")
+        if self.max_steer_angle is not None and not 0.0 < self.max_steer_angle < math.pi / 2:
+            raise ValueError("max_steer_angle must lie in (0, 90°)")
+        if self.max_accel is not None:
+            positive(self, "max_accel")
+        if self.min_accel is not None and not self.min_accel < 0.0:
+            raise ValueError("min_accel must be negative")
+        n = len(self.rate_speeds)
+        if n == 0 or len(self.rate_up) != n or len(self.rate_down) != n:
+            raise ValueError(
+                "rate_speeds, rate_up and rate_down must be non-empty and of equal length, got "
+                f"{n}, {len(self.rate_up)}, {len(self.rate_down)}"
+            )
+        if any(b <= a for a, b in zip(self.rate_speeds, self.rate_speeds[1:], strict=False)):
+            raise ValueError("rate_speeds must be strictly increasing")
+        if any(s < 0.0 for s in self.rate_speeds):
+            raise ValueError("rate_speeds must not be negative")
+        if not all(math.isfinite(r) and r > 0.0 for r in (*self.rate_up, *self.rate_down)):
+            raise ValueError("rate_up and rate_down must be positive numbers")
+
+
+@dataclass(frozen=True)
+class GatewayConfig:
+    rate_hz: float = 50.0  # Hz, control loop rate (DBW_STEER_CMD period 20 ms)
+    system_period: float = 0.100  # s, DBW_SYSTEM_CMD period
+    watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
+    engage: EngageConfig = field(default_factory=EngageConfig)
+    stop: StopConfig = field(default_factory=StopConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+    def __post_init__(self) -> None:
+        positive(self, "rate_hz", "system_period")
+        if self.stop.jerk > self.safety.max_jerk:
+            raise ValueError("stop.jerk must not exceed safety.max_jerk (the gate would clamp it)")
 
     @property
     def period(self) -> float:

@@ -1,0 +1,625 @@
+"""The gateway's decision core: ``Gateway.step(now, inputs) -> StepResult``.
+
+Pure and clock-free: the runtime (daemon), the process tests and the simulator call ``step``
+with the latest inputs and their receive times, and send what it returns. One tick:
+
+1. the watchdogs judge every input (:mod:`leafgate.gateway.watchdog`);
+2. their reactions move the engagement state (:mod:`leafgate.gateway.state`): faults latch,
+   an override hands back, a stale localization starts a controlled stop;
+3. the operator's request, if any, is answered (engage preconditions, reset when the fault's
+   cause is gone);
+4. the commands of the state are built — STANDBY/FAULT mirror the measured values with
+   ENABLE=0, ENGAGED runs the controller (handling gear changes at standstill), STOPPING brakes
+   to rest with the steering held — and every ENABLE=1 command passes the safety gate
+   (:mod:`leafgate.gateway.safety`) last;
+5. DBW_SYSTEM_CMD is added when due (every 100 ms of ``now``, and at once on a reset).
+
+Decisions that go beyond DESIGN's tables (documented here so the tests can hold them):
+
+- Staleness of localization and ECU reports acts only while the gateway drives (ENGAGED or
+  STOPPING); in STANDBY it only refuses an engage, so a gateway started before its inputs does
+  not latch a fault. Report frame errors, loop overruns and CAN send errors latch FAULT in any
+  state.
+- An operator ``disengage`` hands back at once (ENABLE=0), as Autoware's manual mode does; the
+  ECU's own not-engaged behaviour takes over.
+- A fault raised while the ECU is enabled keeps ENABLE=1 and brakes at ``stop.fault_decel``
+  with the steering held until the car is at rest (or the long report is lost), then sends
+  ENABLE=0 — a localization loss during a controlled stop must not release the car mid-stop.
+- The controller's ``finished`` (end reached, at rest) goes straight to STANDBY when the measured
+  speed is below the standstill speed, and through STOPPING otherwise.
+- Reset is accepted in FAULT when every latched cause is gone (``ecu`` causes are what the
+  CLEAR_FAULTS of the reset clears) and in STANDBY (to clear ECU faults); not while driving.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from leafgate.config import VehicleConfig
+from leafgate.control.base import Controller
+from leafgate.gateway.config import GatewayConfig
+from leafgate.gateway.safety import CLAMP_KINDS, Measured, SafetyGate, SafetyLimits, gear_sign
+from leafgate.gateway.state import (
+    EngagementMachine,
+    EngageReply,
+    Event,
+    Transition,
+    engage_refusal,
+)
+from leafgate.gateway.watchdog import (
+    Check,
+    Reaction,
+    Status,
+    WatchdogReport,
+    Watchdogs,
+    ecu_fault,
+    override_active,
+)
+from leafgate.messages import (
+    Commands,
+    ControlOutput,
+    EcuState,
+    GatewayState,
+    Gear,
+    LongCommand,
+    LongMode,
+    LongReport,
+    OperatorRequest,
+    Pose,
+    Stamped,
+    SteerCommand,
+    SteerReport,
+    SystemCommand,
+    SystemReport,
+    Trajectory,
+)
+
+_EPS = 1e-9  # s, slack when comparing times built from sums of periods
+
+
+@dataclass(frozen=True)
+class GatewayInputs:
+    """The latest value of every input, with its receive time (gateway clock, s)."""
+
+    pose: Stamped[Pose] | None
+    trajectory: Stamped[Trajectory] | None
+    steer_report: Stamped[SteerReport] | None
+    long_report: Stamped[LongReport] | None
+    system_report: Stamped[SystemReport] | None
+    good_report_frames: int = 0  # valid DBW report frames received since the last step
+    bad_report_frames: int = 0  # report frames with bad CRC/counter/length since the last step
+    request: OperatorRequest | None = None  # pending operator request
+    overrun: bool = False  # this tick started late (the period was exceeded)
+    bus_errors: int = 0  # command frames that could not be encoded or sent since the last step
+
+
+class EngagePhase(enum.Enum):
+    """Where an engagement is in its hand-shake with the ECU."""
+
+    IDLE = "idle"  # not driving
+    CLEARING_OVERRIDE = "clearing_override"  # sending CLEAR_OVERRIDE with ENABLE=0
+    ENABLING = "enabling"  # ENABLE=1 sent, waiting for the ECU to report ENABLED
+    ACTIVE = "active"  # the ECU follows the commands
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerFigures:
+    """The controller's figures of one tick (from :class:`~leafgate.messages.ControlOutput`)."""
+
+    converged: bool
+    iterations: int
+    solve_time: float  # s
+    clips: int
+    cost: float
+    nearest_index: int
+    finished: bool
+    gear: Gear
+    status: str
+
+    @classmethod
+    def of(cls, out: ControlOutput) -> ControllerFigures:
+        return cls(
+            converged=out.converged,
+            iterations=out.iterations,
+            solve_time=out.solve_time,
+            clips=out.clips,
+            cost=out.cost,
+            nearest_index=out.nearest_index,
+            finished=out.finished,
+            gear=out.gear,
+            status=out.status,
+        )
+
+
+def _json_value(value: Any) -> Any:
+    """JSON-able form: enums by name, non-finite floats as None, containers recursively."""
+    if isinstance(value, enum.Enum):
+        return value.name if isinstance(value, enum.IntEnum) else value.value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_value(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_value(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class Diagnostics:
+    """Everything the gateway knows about one tick; published at 10 Hz and recorded."""
+
+    time: float  # s, gateway clock
+    state: GatewayState
+    reason: str  # why the gateway is in its state
+    fault: str  # the latched fault's reason, "" when none
+    fault_causes: tuple[str, ...]  # what a reset waits for
+    engage_phase: EngagePhase
+    watchdogs: tuple[Check, ...]
+    error_counter: int  # report frame error counter (+1 bad, −1 good)
+    overruns_in_row: int
+    ecu_state: EcuState | None  # last valid DBW_SYSTEM_RPT state
+    controller: ControllerFigures | None  # None when the controller did not run this tick
+    gear_change: bool  # holding the brake for a gear change
+    clamps: dict[str, int] = field(default_factory=dict)  # safety clamps since start, by kind
+    clamped: tuple[str, ...] = ()  # kinds clamped this tick
+    transitions: tuple[Transition, ...] = ()  # state changes this tick
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-able dict (enums by name, NaN/inf as null)."""
+        return {
+            "time": _json_value(self.time),
+            "state": self.state.name,
+            "reason": self.reason,
+            "fault": self.fault,
+            "fault_causes": list(self.fault_causes),
+            "engage_phase": self.engage_phase.value,
+            "watchdogs": {
+                c.name: {
+                    "status": c.status.value,
+                    "age": _json_value(c.age),
+                    "limit": _json_value(c.limit),
+                    "reaction": c.reaction.name,
+                    "detail": c.detail,
+                    "value": _json_value(c.value),
+                }
+                for c in self.watchdogs
+            },
+            "error_counter": self.error_counter,
+            "overruns_in_row": self.overruns_in_row,
+            "ecu_state": None if self.ecu_state is None else self.ecu_state.name,
+            "controller": None
+            if self.controller is None
+            else {
+                k: _json_value(getattr(self.controller, k))
+                for k in ControllerFigures.__dataclass_fields__
+            },
+            "gear_change": self.gear_change,
+            "clamps": dict(self.clamps),
+            "clamped": list(self.clamped),
+            "transitions": [t.to_dict() for t in self.transitions],
+        }
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What one tick decided."""
+
+    commands: Commands
+    diagnostics: Diagnostics
+    reply: EngageReply | None  # the answer to ``inputs.request``, None without a request
+
+
+def _finite_output(out: ControlOutput) -> bool:
+    return all(math.isfinite(v) for v in (out.steer_angle, out.accel, out.speed))
+
+
+def _ramp(value: float, target: float, step: float) -> float:
+    """Move ``value`` towards ``target`` by at most ``step``."""
+    return min(max(target, value - step), value + step)
+
+
+class Gateway:
+    """Watchdogs, engagement state machine, controller and safety gate, stepped by the caller.
+
+    :param config: the ``gateway:`` section
+    :param vehicle: the vehicle's numbers (hard limits, wheelbase)
+    :param controller: the path/speed controller (MPC, pure pursuit, Stanley)
+    :param mode: which longitudinal command the ECU receives (acceleration or target speed)
+    """
+
+    def __init__(
+        self,
+        config: GatewayConfig,
+        vehicle: VehicleConfig,
+        controller: Controller,
+        mode: LongMode = LongMode.ACCELERATION,
+    ) -> None:
+        self.config = config
+        self.vehicle = vehicle
+        self.controller = controller
+        self.mode = mode
+        self.limits = SafetyLimits.from_config(config.safety, vehicle, config.period)
+        self.gate = SafetyGate(self.limits)
+        self.watchdogs = Watchdogs(config.watchdog)
+        self.machine = EngagementMachine()
+        self._phase = EngagePhase.IDLE
+        self._phase_since = 0.0  # s, when the current engage phase began
+        self._clear_sent = False  # a CLEAR_OVERRIDE frame went out in this engagement
+        self._override_latched = False  # the ECU latched an override we have not cleared
+        self._enable_sent = False  # the last commands carried ENABLE=1
+        self._fault_braking = False  # in FAULT, still braking with ENABLE=1
+        self._rest_since: float | None = None  # s, since when |v| is below standstill speed
+        self._stop_reason = ""
+        self._next_system: float | None = None  # s, when DBW_SYSTEM_CMD is due next
+        self.gate.seed(SteerCommand(angle=0.0), LongCommand(mode=mode))
+
+    @property
+    def state(self) -> GatewayState:
+        """The engagement state."""
+        return self.machine.state
+
+    # -- one tick --------------------------------------------------------------------------------
+
+    def step(self, now: float, inputs: GatewayInputs) -> StepResult:
+        """Decide one control tick. Pure: no clock, no I/O; never raises for bad inputs.
+
+        :param now: the gateway clock at this tick, s (the clock that stamps ``received``)
+        :param inputs: the latest inputs
+        """
+        m = self.machine
+        m.begin_tick()
+        wd = self.watchdogs.update(
+            now,
+            inputs.pose,
+            inputs.trajectory,
+            inputs.steer_report,
+            inputs.long_report,
+            inputs.system_report,
+            inputs.good_report_frames,
+            inputs.bad_report_frames,
+            inputs.overrun,
+        )
+        measured = self._measured(wd)
+        standstill = abs(measured.speed) < self.limits.standstill_speed
+        at_rest = self._update_rest(now, standstill)
+
+        self._react_to_watchdogs(now, wd, inputs.bus_errors)
+        reply, clear_faults = self._handle_request(now, inputs, wd, at_rest)
+        self._advance_engagement(now, wd)
+
+        output: ControlOutput | None = None
+        steer: SteerCommand
+        long: LongCommand
+        gear_change = False
+        if m.state == GatewayState.STOPPING and at_rest:
+            m.fire(Event.AT_REST, now, f"at rest after a controlled stop ({self._stop_reason})")
+        if m.state == GatewayState.ENGAGED and self._phase in (
+            EngagePhase.ENABLING,
+            EngagePhase.ACTIVE,
+        ):
+            output = self._run_controller(wd)
+            if not output.converged or not _finite_output(output):
+                self._stop(now, f"controller: {output.status} (converged={output.converged})")
+            elif output.finished:
+                if standstill:
+                    m.fire(Event.AT_REST, now, "trajectory end reached")
+                else:
+                    self._stop(now, "trajectory end reached")
+        if m.state == GatewayState.FAULT and self._fault_braking:
+            long_fresh = wd.get("long_report").ok
+            if at_rest or not long_fresh:
+                self._fault_braking = False
+        if m.state in (GatewayState.STANDBY, GatewayState.ENGAGED, GatewayState.STOPPING):
+            self._fault_braking = False
+        if m.state not in (GatewayState.ENGAGED, GatewayState.STOPPING):
+            self._phase = EngagePhase.IDLE
+
+        # -- commands of the state --
+        if m.state == GatewayState.ENGAGED and self._phase is EngagePhase.CLEARING_OVERRIDE:
+            steer, long = self._mirror(wd, clear_override=True)
+            self._clear_sent = True
+        elif m.state == GatewayState.ENGAGED and output is not None:
+            steer, long, gear_change = self._drive(output, measured, standstill)
+        elif m.state == GatewayState.STOPPING:
+            steer, long = self._brake(self.config.stop.decel, self.config.stop.jerk)
+        elif m.state == GatewayState.FAULT and self._fault_braking:
+            steer, long = self._brake(self.config.stop.fault_decel, self.limits.max_jerk)
+        else:
+            steer, long = self._mirror(wd, clear_override=False)
+
+        if steer.enable or long.enable:
+            steer, long = self.gate.apply(steer, long, measured)
+        else:
+            self.gate.seed(steer, long)
+        self._enable_sent = steer.enable or long.enable
+
+        system = self._system_command(now, clear_faults)
+        if reply is not None:
+            reply = replace(reply, state=m.state)
+        overruns = wd.get("overrun")
+        diagnostics = Diagnostics(
+            time=now,
+            state=m.state,
+            reason=m.reason,
+            fault=m.fault_reason,
+            fault_causes=tuple(sorted(m.fault_causes)),
+            engage_phase=self._phase,
+            watchdogs=wd.checks,
+            error_counter=self.watchdogs.errors.count,
+            overruns_in_row=int(overruns.value or 0),
+            ecu_state=None if wd.system is None else wd.system.value.state,
+            controller=None if output is None else ControllerFigures.of(output),
+            gear_change=gear_change,
+            clamps={k: self.gate.counts[k] for k in CLAMP_KINDS},
+            clamped=self.gate.last_clamped,
+            transitions=tuple(m.transitions),
+        )
+        return StepResult(Commands(steer=steer, long=long, system=system), diagnostics, reply)
+
+    # -- watchdog reactions ----------------------------------------------------------------------
+
+    def _react_to_watchdogs(self, now: float, wd: WatchdogReport, bus_errors: int) -> None:
+        m = self.machine
+        driving = m.state in (GatewayState.ENGAGED, GatewayState.STOPPING)
+        causes: dict[str, str] = {}
+        for name in ("report_errors", "overrun"):
+            check = wd.get(name)
+            if check.reaction >= Reaction.FAULT:
+                causes[name] = check.detail
+        if bus_errors > 0:
+            causes["bus"] = f"{bus_errors} command frame(s) could not be encoded or sent"
+        if driving:
+            for check in wd.failing(Reaction.FAULT):
+                causes.setdefault(check.name, check.detail)
+            steer, long, system = self._reports(wd)
+            fault = ecu_fault(steer, long, system)
+            if fault is not None:
+                causes["ecu"] = fault
+            elif (
+                self._phase is EngagePhase.ACTIVE
+                and steer is not None
+                and long is not None
+                and not (steer.enabled and long.enabled)
+                and not override_active(steer, long, system)
+            ):
+                causes["ecu"] = "ECU disengaged without an override"
+        if causes:
+            self._fault(now, causes, wd)
+            return
+        if not driving:
+            if override_active(*self._reports(wd)):
+                self._override_latched = True
+            return
+        if self._phase is not EngagePhase.CLEARING_OVERRIDE and override_active(*self._reports(wd)):
+            self._override_latched = True
+            m.fire(Event.OVERRIDE, now, "driver override reported by the ECU")
+            return
+        if m.state == GatewayState.ENGAGED:
+            stops = wd.failing(Reaction.STOP)
+            if stops:
+                self._stop(now, stops[0].detail)
+
+    def _fault(self, now: float, causes: dict[str, str], wd: WatchdogReport) -> None:
+        m = self.machine
+        if m.state != GatewayState.FAULT:
+            # Keep braking if the ECU follows us and we can see the car's speed.
+            self._fault_braking = self._enable_sent and wd.get("long_report").ok
+        reason = "; ".join(causes[k] for k in sorted(causes))
+        m.fire(Event.FAULT, now, reason, frozenset(causes))
+
+    def _stop(self, now: float, reason: str) -> None:
+        """A controlled stop; an engagement that never sent ENABLE=1 just ends."""
+        m = self.machine
+        if self._enable_sent:
+            if m.fire(Event.STOP, now, reason):
+                self._stop_reason = reason
+        else:
+            m.fire(Event.ABORT, now, f"engagement ended before the ECU was enabled: {reason}")
+
+    # -- operator requests -----------------------------------------------------------------------
+
+    def _handle_request(
+        self, now: float, inputs: GatewayInputs, wd: WatchdogReport, at_rest: bool
+    ) -> tuple[EngageReply | None, bool]:
+        """Answer the pending request; True as second value when CLEAR_FAULTS is to be sent."""
+        request = inputs.request
+        m = self.machine
+        state = m.state
+        if request is None:
+            return None, False
+        if request is OperatorRequest.ENGAGE:
+            if state == GatewayState.ENGAGED:
+                return EngageReply(True, state, "already engaged"), False
+            refusal = engage_refusal(state, m.fault_reason, wd, self.config.engage)
+            if refusal is not None:
+                return EngageReply(False, state, refusal), False
+            clear = self._override_latched or override_active(*self._reports(wd))
+            m.fire(Event.ENGAGE, now, "operator engage")
+            self.controller.reset()
+            self._phase = EngagePhase.CLEARING_OVERRIDE if clear else EngagePhase.ENABLING
+            self._phase_since = now
+            self._clear_sent = False
+            reason = "engaging after clearing the override" if clear else "engaged"
+            return EngageReply(True, m.state, reason), False
+        if request is OperatorRequest.DISENGAGE:
+            if state in (GatewayState.ENGAGED, GatewayState.STOPPING):
+                m.fire(Event.DISENGAGE, now, "operator disengage")
+                return EngageReply(True, m.state, "disengaged"), False
+            if state == GatewayState.FAULT:
+                self._fault_braking = False
+                return EngageReply(True, state, f"fault stays latched ({m.fault_reason})"), False
+            return EngageReply(True, state, "already in STANDBY"), False
+        # RESET
+        if state == GatewayState.STANDBY:
+            return EngageReply(True, state, "ECU faults cleared"), True
+        if state != GatewayState.FAULT:
+            return EngageReply(
+                False, state, f"reset only in STANDBY or FAULT (is {state.name})"
+            ), False
+        if self._fault_braking and not at_rest:
+            return EngageReply(False, state, "vehicle still braking to rest"), False
+        remaining = self._remaining_causes(wd, inputs.bus_errors)
+        if remaining:
+            return EngageReply(
+                False, state, "fault cause still present: " + "; ".join(remaining)
+            ), False
+        m.fire(Event.RESET, now, f"reset after: {m.fault_reason}")
+        self._fault_braking = False
+        return EngageReply(True, m.state, "fault cleared"), True
+
+    def _remaining_causes(self, wd: WatchdogReport, bus_errors: int) -> list[str]:
+        out = []
+        for cause in sorted(self.machine.fault_causes):
+            if cause == "ecu":
+                continue  # cleared by the CLEAR_FAULTS this reset sends
+            if cause == "bus":
+                if bus_errors > 0:
+                    out.append(f"{bus_errors} command frame(s) could not be sent")
+                continue
+            check = wd.get(cause)
+            if check.status is not Status.OK:
+                out.append(check.detail or f"{cause} {check.status.value}")
+        return out
+
+    # -- engagement hand-shake -------------------------------------------------------------------
+
+    def _advance_engagement(self, now: float, wd: WatchdogReport) -> None:
+        m = self.machine
+        if m.state not in (GatewayState.ENGAGED, GatewayState.STOPPING):
+            return
+        timeout = self.config.engage.confirm_timeout
+        steer, long, system = self._reports(wd)
+        if self._phase is EngagePhase.CLEARING_OVERRIDE:
+            if self._clear_sent and not override_active(steer, long, system):
+                self._override_latched = False
+                self._phase, self._phase_since = EngagePhase.ENABLING, now
+            elif now - self._phase_since > timeout + _EPS:
+                m.fire(Event.ABORT, now, f"override not cleared within {timeout:g} s")
+                return
+        if self._phase is EngagePhase.ENABLING and self._enable_sent:
+            if steer is not None and long is not None and steer.enabled and long.enabled:
+                self._phase = EngagePhase.ACTIVE
+            elif now - self._phase_since > timeout + _EPS:
+                if m.state == GatewayState.STOPPING:
+                    m.fire(Event.AT_REST, now, f"ECU did not report ENABLED within {timeout:g} s")
+                else:
+                    m.fire(Event.ABORT, now, f"ECU did not report ENABLED within {timeout:g} s")
+
+    # -- commands --------------------------------------------------------------------------------
+
+    def _run_controller(self, wd: WatchdogReport) -> ControlOutput:
+        """Call the controller; an exception becomes a not-converged output (never propagates)."""
+        assert wd.pose is not None and wd.trajectory is not None and wd.steer is not None
+        try:
+            return self.controller.step(wd.pose.value, wd.steer.value.angle, wd.trajectory.value)
+        except Exception as exc:  # the control loop must survive any controller bug
+            return ControlOutput(
+                steer_angle=math.nan,
+                accel=math.nan,
+                speed=math.nan,
+                converged=False,
+                status=f"exception {type(exc).__name__}: {exc}",
+            )
+
+    def _drive(
+        self, out: ControlOutput, measured: Measured, standstill: bool
+    ) -> tuple[SteerCommand, LongCommand, bool]:
+        """The controller's command in wire terms, or the brake held for a gear change."""
+        want = measured.gear if out.gear == Gear.NONE else out.gear
+        steer = SteerCommand(angle=out.steer_angle, enable=True)
+        if want != measured.gear:
+            # Hold the brake; ask for the gear only at standstill; drive on once it is reported.
+            last = self.gate.last_long
+            dt = self.limits.period
+            stop = self.config.stop
+            long = LongCommand(
+                mode=self.mode,
+                accel=_ramp(last.accel, -stop.decel, stop.jerk * dt),
+                speed=0.0,
+                gear=want if standstill else Gear.NONE,
+                enable=True,
+            )
+            return steer, long, True
+        sign = gear_sign(measured.gear)  # the controller's accel is d(signed v)/dt
+        long = LongCommand(
+            mode=self.mode,
+            accel=sign * out.accel,
+            speed=abs(out.speed) if sign != 0.0 else 0.0,
+            gear=Gear.NONE,
+            enable=True,
+        )
+        return steer, long, False
+
+    def _brake(self, decel: float, jerk: float) -> tuple[SteerCommand, LongCommand]:
+        """Steering held at the last sent angle; deceleration built up at ``jerk``."""
+        dt = self.limits.period
+        last_steer, last_long = self.gate.last_steer, self.gate.last_long
+        steer = SteerCommand(angle=last_steer.angle, enable=True)
+        long = LongCommand(
+            mode=self.mode,
+            accel=_ramp(last_long.accel, -decel, jerk * dt),
+            speed=max(0.0, last_long.speed - decel * dt),
+            gear=Gear.NONE,
+            enable=True,
+        )
+        return steer, long
+
+    def _mirror(self, wd: WatchdogReport, clear_override: bool) -> tuple[SteerCommand, LongCommand]:
+        """ENABLE=0 frames mirroring the measured angle (accel 0, speed 0, no gear request)."""
+        angle = self.gate.last_steer.angle
+        if wd.steer is not None and math.isfinite(wd.steer.value.angle):
+            limit = self.limits.max_angle
+            angle = min(max(wd.steer.value.angle, -limit), limit)
+        steer = SteerCommand(angle=angle, enable=False, clear_override=clear_override)
+        long = LongCommand(mode=self.mode, enable=False, clear_override=clear_override)
+        return steer, long
+
+    def _system_command(self, now: float, clear_faults: bool) -> SystemCommand | None:
+        """DBW_SYSTEM_CMD every ``system_period`` of ``now``, and at once with CLEAR_FAULTS."""
+        period = self.config.system_period
+        due = self._next_system is None or now >= self._next_system - _EPS
+        if not (due or clear_faults):
+            return None
+        if self._next_system is None or clear_faults or now - self._next_system >= period:
+            self._next_system = now + period  # (re)anchor after a start, reset or long gap
+        else:
+            self._next_system += period
+        return SystemCommand(state=self.machine.state, clear_faults=clear_faults)
+
+    # -- measured state --------------------------------------------------------------------------
+
+    @staticmethod
+    def _reports(
+        wd: WatchdogReport,
+    ) -> tuple[SteerReport | None, LongReport | None, SystemReport | None]:
+        """The last valid reports (also when stale: their flags are the latest we know)."""
+        return (
+            None if wd.steer is None else wd.steer.value,
+            None if wd.long is None else wd.long.value,
+            None if wd.system is None else wd.system.value,
+        )
+
+    @staticmethod
+    def _measured(wd: WatchdogReport) -> Measured:
+        """Speed and gear: the ECU's long report when fresh, else localization; NaN if neither.
+
+        A NaN speed makes the safety gate assume the maneuver speed limit and refuse gear changes.
+        """
+        gear = Gear.NONE if wd.long is None else wd.long.value.gear
+        if wd.long is not None and wd.get("long_report").ok:
+            return Measured(wd.long.value.speed, gear)
+        if wd.pose is not None and wd.get("localization").ok:
+            return Measured(wd.pose.value.speed, gear)
+        return Measured(math.nan, gear)
+
+    def _update_rest(self, now: float, standstill: bool) -> bool:
+        """True once the car has stood still for ``stop.standstill_time``."""
+        if not standstill:
+            self._rest_since = None
+            return False
+        if self._rest_since is None:
+            self._rest_since = now
+        return now - self._rest_since >= self.config.stop.standstill_time - _EPS

@@ -1,0 +1,211 @@
+"""The engagement state machine: STANDBY → ENGAGED → STOPPING · FAULT (DESIGN, "Engagement").
+
+The transitions are a table (:data:`TRANSITIONS`) of (state, event) → state; an event that is not
+in the table for a state does not change it. The preconditions of an engage request are a pure
+function (:func:`engage_refusal`) over the watchdogs' verdicts, the ECU's reports and the
+vehicle's deviation from the trajectory (:func:`path_deviation`), so every refusal can be tested
+on its own. :class:`EngagementMachine` holds the state, the reason for it, the latched fault's
+causes and the transitions of the current tick.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from leafgate.gateway.config import EngageConfig
+from leafgate.gateway.watchdog import Status, WatchdogReport, ecu_fault
+from leafgate.messages import EcuState, GatewayState, Pose, Trajectory
+
+
+class Event(enum.Enum):
+    """What can move the engagement state."""
+
+    ENGAGE = "engage"  # an accepted engage request
+    DISENGAGE = "disengage"  # operator: hand back now (ENABLE=0)
+    STOP = "stop"  # a watchdog or the controller asks for a controlled stop
+    AT_REST = "at_rest"  # the controlled stop is complete / the trajectory's end is reached
+    ABORT = "abort"  # an engage could not complete (override not cleared, ECU did not enable)
+    OVERRIDE = "override"  # the driver took over
+    FAULT = "fault"  # a watchdog latched a fault
+    RESET = "reset"  # an accepted reset request
+
+
+S = GatewayState
+E = Event
+
+#: Every allowed transition; anything not listed leaves the state unchanged.
+TRANSITIONS: dict[tuple[GatewayState, Event], GatewayState] = {
+    (S.STANDBY, E.ENGAGE): S.ENGAGED,
+    (S.STANDBY, E.FAULT): S.FAULT,
+    (S.ENGAGED, E.DISENGAGE): S.STANDBY,
+    (S.ENGAGED, E.STOP): S.STOPPING,
+    (S.ENGAGED, E.AT_REST): S.STANDBY,
+    (S.ENGAGED, E.ABORT): S.STANDBY,
+    (S.ENGAGED, E.OVERRIDE): S.STANDBY,
+    (S.ENGAGED, E.FAULT): S.FAULT,
+    (S.STOPPING, E.DISENGAGE): S.STANDBY,
+    (S.STOPPING, E.AT_REST): S.STANDBY,
+    (S.STOPPING, E.OVERRIDE): S.STANDBY,
+    (S.STOPPING, E.FAULT): S.FAULT,
+    (S.FAULT, E.RESET): S.STANDBY,
+}
+
+
+def next_state(state: GatewayState, event: Event) -> GatewayState | None:
+    """The state after ``event`` in ``state``; None when the event does not apply there."""
+    return TRANSITIONS.get((state, event))
+
+
+@dataclass(frozen=True, slots=True)
+class Transition:
+    """One change of state, for diagnostics and the session record."""
+
+    time: float  # s, gateway clock
+    source: GatewayState
+    target: GatewayState
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "time": self.time,
+            "from": self.source.name,
+            "to": self.target.name,
+            "reason": self.reason,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class EngageReply:
+    """The answer to an operator request (``gateway/engage`` queryable)."""
+
+    accepted: bool
+    state: GatewayState  # the state after the request was handled
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON reply ``{accepted, state, reason}``."""
+        return {"accepted": self.accepted, "state": self.state.name, "reason": self.reason}
+
+
+def wrap_angle(angle: float) -> float:
+    """Angle wrapped to [−π, π), rad."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def path_deviation(pose: Pose, trajectory: Trajectory) -> tuple[float, float]:
+    """Distance to the nearest point of the trajectory polyline and the heading error there.
+
+    The heading of the path at the nearest point is interpolated between the segment's two
+    waypoints (the shorter way round).
+
+    :returns: (distance in m, absolute heading error in rad)
+    """
+    x, y = trajectory.x, trajectory.y
+    if len(trajectory) == 1:
+        d = math.hypot(pose.x - float(x[0]), pose.y - float(y[0]))
+        return d, abs(wrap_angle(pose.heading - float(trajectory.heading[0])))
+    dx, dy = np.diff(x), np.diff(y)
+    length2 = dx * dx + dy * dy
+    px, py = pose.x - x[:-1], pose.y - y[:-1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(length2 > 0.0, (px * dx + py * dy) / length2, 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    dist = np.hypot(px - t * dx, py - t * dy)
+    i = int(np.argmin(dist))
+    h0, h1 = float(trajectory.heading[i]), float(trajectory.heading[i + 1])
+    heading = h0 + float(t[i]) * wrap_angle(h1 - h0)
+    return float(dist[i]), abs(wrap_angle(pose.heading - heading))
+
+
+def engage_refusal(
+    state: GatewayState,
+    fault_reason: str,
+    watchdogs: WatchdogReport,
+    config: EngageConfig,
+) -> str | None:
+    """Why an engage request must be refused now, or None when it may be accepted.
+
+    Checked in order: state, latched fault, inputs (localization, trajectory, each ECU report:
+    present, valid, fresh), report error counter, the ECU's state and flags, and the vehicle's
+    distance and heading to the trajectory.
+    """
+    if state == GatewayState.FAULT:
+        return f"fault latched ({fault_reason}); reset first"
+    if state == GatewayState.STOPPING:
+        return "stopping; engage again in STANDBY"
+    if state != GatewayState.STANDBY:
+        return f"not in STANDBY (state {state.name})"
+    for name in ("localization", "trajectory", "steer_report", "long_report", "system_report"):
+        check = watchdogs.get(name)
+        if check.status is not Status.OK:
+            return f"{name} not fresh and valid: {check.detail or check.status.value}"
+    errors = watchdogs.get("report_errors")
+    if not errors.ok:
+        return errors.detail
+    # Engage needs fresh samples, and the watchdogs keep the last valid one of each.
+    assert watchdogs.pose is not None and watchdogs.trajectory is not None
+    assert watchdogs.steer is not None and watchdogs.long is not None
+    assert watchdogs.system is not None
+    steer, long, system = watchdogs.steer.value, watchdogs.long.value, watchdogs.system.value
+    fault = ecu_fault(steer, long, system)
+    if fault is not None:
+        return f"{fault}; reset first"
+    if system.state not in (EcuState.READY, EcuState.OVERRIDE):
+        return f"ECU not ready (state {system.state.name})"
+    distance, heading_error = path_deviation(watchdogs.pose.value, watchdogs.trajectory.value)
+    if distance > config.max_distance:
+        return f"vehicle {distance:.2f} m from the trajectory (limit {config.max_distance:g} m)"
+    if heading_error > config.max_heading_error:
+        return (
+            f"heading {math.degrees(heading_error):.1f}° off the trajectory "
+            f"(limit {math.degrees(config.max_heading_error):g}°)"
+        )
+    return None
+
+
+class EngagementMachine:
+    """Holds the engagement state, why it is so, and what a latched fault waits for.
+
+    :param start: the initial state (STANDBY)
+    """
+
+    def __init__(self, start: GatewayState = GatewayState.STANDBY) -> None:
+        self.state = start
+        self.reason = "start"
+        self.fault_reason = ""
+        #: names of the causes of the latched fault (watchdog names or "ecu", "bus")
+        self.fault_causes: frozenset[str] = frozenset()
+        self.transitions: list[Transition] = []  # of the current tick
+
+    def begin_tick(self) -> None:
+        """Forget the previous tick's transitions."""
+        self.transitions = []
+
+    def fire(
+        self, event: Event, now: float, reason: str, causes: frozenset[str] = frozenset()
+    ) -> bool:
+        """Apply ``event``; True when the state changed.
+
+        A FAULT in FAULT adds its causes to the latched ones (the fault stays until all are gone).
+        """
+        if event is Event.FAULT and self.state == GatewayState.FAULT:
+            self.fault_causes |= causes
+            return False
+        target = next_state(self.state, event)
+        if target is None or target == self.state:
+            return False
+        self.transitions.append(Transition(now, self.state, target, reason))
+        self.state = target
+        self.reason = reason
+        if target == GatewayState.FAULT:
+            self.fault_reason = reason
+            self.fault_causes = causes
+        elif event is Event.RESET:
+            self.fault_reason = ""
+            self.fault_causes = frozenset()
+        return True

@@ -1,0 +1,454 @@
+"""Watchdogs: freshness and plausibility of every input, evaluated without a clock.
+
+Each watchdog is a small class fed with the latest input slot (and the gateway's ``now``) once
+per tick and answering a :class:`Check`: how old the last valid sample is, its status, and the
+reaction DESIGN's watchdog table asks for while the gateway is engaged or stopping.
+
+=============================  ======================================  ===========
+watchdog                       threshold (``WatchdogConfig``)          reaction
+=============================  ======================================  ===========
+localization age               > ``localization_stop_age`` (100 ms)    STOP
+localization age / jump        > ``localization_fault_age`` (500 ms),  FAULT
+                               > ``localization_max_jump`` (1 m)
+ECU report age (each report)   > 3 periods (10, 20, 100 ms)            FAULT
+report CRC/counter errors      counter ≥ 5 (+1 bad, −1 good, floor 0)  FAULT
+control loop overrun           3 ticks in a row                        FAULT
+ECU reports OVERRIDE           —                                       STANDBY
+=============================  ======================================  ===========
+
+The engagement logic decides *when* a reaction applies (staleness of inputs matters only while
+the gateway drives; bus errors and overruns latch a fault in any state).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from leafgate.gateway.config import WatchdogConfig
+from leafgate.messages import (
+    EcuState,
+    LongReport,
+    Pose,
+    Stamped,
+    SteerReport,
+    SystemReport,
+    Trajectory,
+)
+
+T = TypeVar("T")
+
+TIME_EPS = 1e-9  # s, ages within this of a threshold count as at it (times are sums of periods)
+
+
+class Status(enum.Enum):
+    """Status of one watchdog."""
+
+    OK = "ok"
+    MISSING = "missing"  # no valid sample received yet
+    INVALID = "invalid"  # samples arrive but none was valid yet
+    STALE = "stale"  # older than the stop threshold
+    LOST = "lost"  # older than the fault threshold
+    JUMP = "jump"  # implausible change in one sample
+    ERRORS = "errors"  # error counter at or above its threshold
+    OVERRUN = "overrun"  # too many late ticks in a row
+
+
+class Reaction(enum.IntEnum):
+    """What a watchdog asks of the engagement state machine; ordered by severity."""
+
+    NONE = 0
+    STOP = 1
+    FAULT = 2
+
+
+@dataclass(frozen=True, slots=True)
+class Check:
+    """The verdict of one watchdog for one tick."""
+
+    name: str
+    status: Status
+    age: float | None  # s since the last valid sample was received; None: never (or no age)
+    limit: float  # the threshold that applies (s, m or a count)
+    reaction: Reaction  # what it asks for while engaged
+    detail: str = ""  # human-readable reason, empty when OK
+    value: float | None = None  # jump (m), error counter or overruns in a row
+
+    @property
+    def ok(self) -> bool:
+        return self.status is Status.OK
+
+
+def age_of(received: float | None, now: float) -> float | None:
+    """Age of a sample received at ``received`` (gateway clock), s."""
+    return None if received is None else now - received
+
+
+def freshness(age: float | None, stale_after: float, lost_after: float) -> Status:
+    """OK, STALE (older than ``stale_after``), LOST (older than ``lost_after``) or MISSING."""
+    if age is None:
+        return Status.MISSING
+    if age > lost_after + TIME_EPS:
+        return Status.LOST
+    if age > stale_after + TIME_EPS:
+        return Status.STALE
+    return Status.OK
+
+
+def pose_is_valid(pose: Pose) -> bool:
+    """A pose is usable when position, heading and speed are finite."""
+    return all(math.isfinite(v) for v in (pose.x, pose.y, pose.heading, pose.speed))
+
+
+def trajectory_is_valid(trajectory: Trajectory) -> bool:
+    """A trajectory is usable when it has two or more points and only finite values."""
+    if len(trajectory) < 2:
+        return False
+    return all(
+        bool(math.isfinite(float(arr.sum())))  # the sum is non-finite iff an element is
+        for arr in (trajectory.x, trajectory.y, trajectory.heading, trajectory.speed)
+    )
+
+
+def position_jump(previous: Stamped[Pose], current: Stamped[Pose]) -> float:
+    """Distance between a new position and the previous one carried forward, m.
+
+    The previous sample is moved on by its own speed and heading over the time between the two
+    receptions, so normal motion is no jump even when a sample or two went missing.
+    """
+    p, c = previous.value, current.value
+    dt = max(current.received - previous.received, 0.0)
+    x = p.x + p.speed * dt * math.cos(p.heading)
+    y = p.y + p.speed * dt * math.sin(p.heading)
+    return math.hypot(c.x - x, c.y - y)
+
+
+class _SlotWatchdog(Generic[T]):
+    """Keeps the last valid sample of a latest-value slot."""
+
+    def __init__(self) -> None:
+        self.last: Stamped[T] | None = None  # last valid sample
+        self.seen_invalid = False
+
+    def _is_valid(self, sample: Stamped[T]) -> bool:
+        return sample.valid
+
+    def _take(self, sample: Stamped[T] | None) -> bool:
+        """Record the sample; True when it is a new valid one."""
+        if sample is None:
+            return False
+        if self.last is not None and sample.received == self.last.received:
+            return False
+        if not (sample.valid and self._is_valid(sample)):
+            self.seen_invalid = True
+            return False
+        self.last = sample
+        return True
+
+    def _missing_status(self) -> Status:
+        return Status.INVALID if self.seen_invalid else Status.MISSING
+
+
+class PoseWatchdog(_SlotWatchdog[Pose]):
+    """Localization: age (stop, then fault) and position jumps."""
+
+    name = "localization"
+
+    def __init__(self, config: WatchdogConfig) -> None:
+        super().__init__()
+        self.config = config
+
+    def _is_valid(self, sample: Stamped[Pose]) -> bool:
+        return pose_is_valid(sample.value)
+
+    def update(self, now: float, sample: Stamped[Pose] | None) -> Check:
+        """Feed this tick's slot content and judge it."""
+        cfg = self.config
+        previous = self.last
+        jump: float | None = None
+        if self._take(sample) and previous is not None and self.last is not None:
+            jump = position_jump(previous, self.last)
+        if self.last is None:
+            status = self._missing_status()
+            return Check(
+                self.name,
+                status,
+                None,
+                cfg.localization_fault_age,
+                Reaction.FAULT,
+                f"localization {status.value}",
+            )
+        age = now - self.last.received
+        if jump is not None and jump > cfg.localization_max_jump:
+            return Check(
+                self.name,
+                Status.JUMP,
+                age,
+                cfg.localization_max_jump,
+                Reaction.FAULT,
+                f"localization jumped {jump:.2f} m > {cfg.localization_max_jump:g} m in one sample",
+                jump,
+            )
+        status = freshness(age, cfg.localization_stop_age, cfg.localization_fault_age)
+        if status is Status.LOST:
+            return Check(
+                self.name,
+                status,
+                age,
+                cfg.localization_fault_age,
+                Reaction.FAULT,
+                f"localization age {age:.3f} s > {cfg.localization_fault_age:g} s",
+                jump,
+            )
+        if status is Status.STALE:
+            return Check(
+                self.name,
+                status,
+                age,
+                cfg.localization_stop_age,
+                Reaction.STOP,
+                f"localization age {age:.3f} s > {cfg.localization_stop_age:g} s",
+                jump,
+            )
+        return Check(self.name, Status.OK, age, cfg.localization_stop_age, Reaction.NONE, "", jump)
+
+
+class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
+    """Trajectory: present, valid, and fresh enough to engage on (no reaction while engaged)."""
+
+    name = "trajectory"
+
+    def __init__(self, config: WatchdogConfig) -> None:
+        super().__init__()
+        self.config = config
+
+    def _is_valid(self, sample: Stamped[Trajectory]) -> bool:
+        if self.last is not None and sample.value is self.last.value:
+            return True  # the same plan re-received: its (read-only) arrays were checked
+        return trajectory_is_valid(sample.value)
+
+    def update(self, now: float, sample: Stamped[Trajectory] | None) -> Check:
+        """Feed this tick's slot content and judge it."""
+        self._take(sample)
+        max_age = self.config.trajectory_max_age
+        limit = math.inf if max_age is None else max_age
+        if self.last is None:
+            status = self._missing_status()
+            return Check(
+                self.name, status, None, limit, Reaction.NONE, f"trajectory {status.value}"
+            )
+        age = now - self.last.received
+        if age > limit + TIME_EPS:
+            return Check(
+                self.name,
+                Status.STALE,
+                age,
+                limit,
+                Reaction.NONE,
+                f"trajectory age {age:.3f} s > {limit:g} s",
+            )
+        return Check(self.name, Status.OK, age, limit, Reaction.NONE)
+
+
+class ReportWatchdog(_SlotWatchdog[T]):
+    """One ECU report: FAULT when older than ``periods`` report periods.
+
+    :param name: diagnostics name (``steer_report`` …)
+    :param period: the report's period, s
+    :param periods: how many periods may pass without a report
+    """
+
+    def __init__(self, name: str, period: float, periods: float) -> None:
+        super().__init__()
+        self.name = name
+        self.timeout = period * periods  # s
+
+    def update(self, now: float, sample: Stamped[T] | None) -> Check:
+        """Feed this tick's slot content and judge it."""
+        self._take(sample)
+        if self.last is None:
+            status = self._missing_status()
+            return Check(
+                self.name, status, None, self.timeout, Reaction.FAULT, f"{self.name} {status.value}"
+            )
+        age = now - self.last.received
+        if age > self.timeout + TIME_EPS:
+            return Check(
+                self.name,
+                Status.LOST,
+                age,
+                self.timeout,
+                Reaction.FAULT,
+                f"{self.name} age {age:.3f} s > {self.timeout:g} s",
+            )
+        return Check(self.name, Status.OK, age, self.timeout, Reaction.NONE)
+
+
+def update_error_counter(count: int, good: int, bad: int) -> tuple[int, int]:
+    """panda-style error counter over one tick: +1 per bad frame, −1 per good one, floor 0.
+
+    The order of the frames within a tick is unknown, so both results are the highest any order
+    could give: the peak when the bad frames come first, the value after the tick when the good
+    ones do. The counter therefore never lags a frame-by-frame one.
+
+    :returns: (peak within the tick, value after the tick)
+    """
+    good, bad = max(good, 0), max(bad, 0)
+    return count + bad, max(count - good, 0) + bad
+
+
+class ErrorCounter:
+    """Report CRC/counter/length errors (``max_report_errors``, as panda does)."""
+
+    name = "report_errors"
+
+    def __init__(self, threshold: int) -> None:
+        self.threshold = threshold
+        self.count = 0
+
+    def update(self, good: int, bad: int) -> Check:
+        """Count this tick's good and bad report frames."""
+        peak, self.count = update_error_counter(self.count, good, bad)
+        if peak >= self.threshold or self.count >= self.threshold:
+            return Check(
+                self.name,
+                Status.ERRORS,
+                None,
+                self.threshold,
+                Reaction.FAULT,
+                f"report frame errors reached {peak} (limit {self.threshold})",
+                peak,
+            )
+        return Check(self.name, Status.OK, None, self.threshold, Reaction.NONE, "", self.count)
+
+
+class OverrunWatchdog:
+    """Control loop overruns: ``max_overruns`` late ticks in a row → FAULT."""
+
+    name = "overrun"
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.in_row = 0
+
+    def update(self, overrun: bool) -> Check:
+        """Count this tick (``overrun``: it started late)."""
+        self.in_row = self.in_row + 1 if overrun else 0
+        if self.in_row >= self.limit:
+            return Check(
+                self.name,
+                Status.OVERRUN,
+                None,
+                self.limit,
+                Reaction.FAULT,
+                f"control loop overran {self.in_row} ticks in a row",
+                self.in_row,
+            )
+        return Check(self.name, Status.OK, None, self.limit, Reaction.NONE, "", self.in_row)
+
+
+def override_active(
+    steer: SteerReport | None, long: LongReport | None, system: SystemReport | None
+) -> bool:
+    """The ECU reports a driver override on any of its reports."""
+    return bool(
+        (steer is not None and steer.override)
+        or (long is not None and long.override)
+        or (system is not None and system.state == EcuState.OVERRIDE)
+    )
+
+
+def ecu_fault(
+    steer: SteerReport | None, long: LongReport | None, system: SystemReport | None
+) -> str | None:
+    """Why the ECU cannot drive (fault or command timeout flags, FAULT state), or None."""
+    reasons = []
+    if system is not None and system.state == EcuState.FAULT:
+        reasons.append("state FAULT")
+    if (steer is not None and steer.fault) or (long is not None and long.fault):
+        reasons.append("actuator fault")
+    if (steer is not None and steer.cmd_timeout) or (long is not None and long.cmd_timeout):
+        reasons.append("command timeout")
+    return "ECU reports " + ", ".join(reasons) if reasons else None
+
+
+@dataclass(frozen=True)
+class WatchdogReport:
+    """All watchdogs' checks for one tick and the last valid sample of each input."""
+
+    checks: tuple[Check, ...]
+    pose: Stamped[Pose] | None
+    trajectory: Stamped[Trajectory] | None
+    steer: Stamped[SteerReport] | None
+    long: Stamped[LongReport] | None
+    system: Stamped[SystemReport] | None
+
+    def get(self, name: str) -> Check:
+        """The check named ``name``.
+
+        :raises KeyError: no such watchdog
+        """
+        for c in self.checks:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+    def failing(self, at_least: Reaction) -> tuple[Check, ...]:
+        """The checks asking for ``at_least`` this severe a reaction."""
+        return tuple(c for c in self.checks if c.reaction >= at_least)
+
+
+class Watchdogs:
+    """Every input watchdog of the gateway, updated together once per tick."""
+
+    REPORTS: tuple[str, ...] = ("steer_report", "long_report", "system_report")
+
+    def __init__(self, config: WatchdogConfig) -> None:
+        self.config = config
+        self.pose = PoseWatchdog(config)
+        self.trajectory = TrajectoryWatchdog(config)
+        n = config.report_timeout_periods
+        self.steer: ReportWatchdog[SteerReport] = ReportWatchdog(
+            "steer_report", config.steer_report_period, n
+        )
+        self.long: ReportWatchdog[LongReport] = ReportWatchdog(
+            "long_report", config.long_report_period, n
+        )
+        self.system: ReportWatchdog[SystemReport] = ReportWatchdog(
+            "system_report", config.system_report_period, n
+        )
+        self.errors = ErrorCounter(config.max_report_errors)
+        self.overrun = OverrunWatchdog(config.max_overruns)
+
+    def update(
+        self,
+        now: float,
+        pose: Stamped[Pose] | None,
+        trajectory: Stamped[Trajectory] | None,
+        steer: Stamped[SteerReport] | None,
+        long: Stamped[LongReport] | None,
+        system: Stamped[SystemReport] | None,
+        good_frames: int,
+        bad_frames: int,
+        overrun: bool,
+    ) -> WatchdogReport:
+        """Feed one tick's inputs to every watchdog."""
+        checks = (
+            self.pose.update(now, pose),
+            self.trajectory.update(now, trajectory),
+            self.steer.update(now, steer),
+            self.long.update(now, long),
+            self.system.update(now, system),
+            self.errors.update(good_frames, bad_frames),
+            self.overrun.update(overrun),
+        )
+        return WatchdogReport(
+            checks=checks,
+            pose=self.pose.last,
+            trajectory=self.trajectory.last,
+            steer=self.steer.last,
+            long=self.long.last,
+            system=self.system.last,
+        )

@@ -1,0 +1,303 @@
+"""Every row of DESIGN's watchdog table: the watchdog alone, then its reaction in the gateway —
+input withheld, late or corrupted → the stated reaction within one control period of the
+threshold."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from test_gateway_core import PERIOD, FakeController, Rig
+
+from leafgate.gateway.config import GatewayConfig, WatchdogConfig
+from leafgate.gateway.watchdog import (
+    ErrorCounter,
+    OverrunWatchdog,
+    PoseWatchdog,
+    Reaction,
+    ReportWatchdog,
+    Status,
+    freshness,
+    position_jump,
+    update_error_counter,
+)
+from leafgate.messages import ControlOutput, GatewayState, OperatorRequest, Pose, Stamped
+
+CFG = WatchdogConfig()
+
+
+# --- the watchdogs alone -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "age, status",
+    [
+        (None, Status.MISSING),
+        (0.0, Status.OK),
+        (0.100, Status.OK),
+        (0.1001, Status.STALE),
+        (0.500, Status.STALE),
+        (0.5001, Status.LOST),
+    ],
+)
+def test_freshness_thresholds_are_strictly_greater(age: float | None, status: Status) -> None:
+    assert freshness(age, 0.1, 0.5) is status
+
+
+def test_pose_watchdog_stale_then_lost_from_the_last_valid_sample() -> None:
+    wd = PoseWatchdog(CFG)
+    sample = Stamped(Pose(0.0, 0.0, 0.0, 0.0), 1.0)
+    assert wd.update(1.0, sample).reaction is Reaction.NONE
+    assert wd.update(1.1, sample).status is Status.OK
+    check = wd.update(1.1 + 1e-6, sample)
+    assert check.status is Status.STALE and check.reaction is Reaction.STOP
+    check = wd.update(1.5 + 1e-6, sample)
+    assert check.status is Status.LOST and check.reaction is Reaction.FAULT
+    assert check.age == pytest.approx(0.5 + 1e-6)
+
+
+def test_pose_watchdog_ignores_invalid_and_non_finite_samples() -> None:
+    wd = PoseWatchdog(CFG)
+    assert wd.update(0.0, Stamped(Pose(0.0, 0.0, 0.0, 0.0), 0.0, valid=False)).status is (
+        Status.INVALID
+    )
+    good = Stamped(Pose(0.0, 0.0, 0.0, 0.0), 0.1)
+    wd.update(0.1, good)
+    check = wd.update(0.3, Stamped(Pose(math.nan, 0.0, 0.0, 0.0), 0.3))
+    assert check.status is Status.STALE and check.age == pytest.approx(0.2)
+    assert wd.last is good
+
+
+@pytest.mark.parametrize("jump, faults", [(0.9, False), (0.999, False), (1.001, True), (3.0, True)])
+def test_pose_jump_over_one_metre_in_one_sample_faults(jump: float, faults: bool) -> None:
+    wd = PoseWatchdog(CFG)
+    wd.update(0.0, Stamped(Pose(5.0, 5.0, 0.3, 0.0), 0.0))
+    check = wd.update(0.02, Stamped(Pose(5.0, 5.0 + jump, 0.3, 0.0), 0.02))
+    assert (check.status is Status.JUMP) is faults
+    assert (check.reaction is Reaction.FAULT) is faults
+    assert check.value == pytest.approx(jump)
+
+
+def test_pose_jump_discounts_the_distance_driven() -> None:
+    # 3 m/s for 0.4 s (missed samples) is 1.2 m of motion, not a jump.
+    prev = Stamped(Pose(0.0, 0.0, math.pi / 2, 3.0), 0.0)
+    cur = Stamped(Pose(0.0, 1.2, math.pi / 2, 3.0), 0.4)
+    assert position_jump(prev, cur) == pytest.approx(0.0, abs=1e-9)
+    sideways = Stamped(Pose(1.2, 1.2, math.pi / 2, 3.0), 0.4)
+    assert position_jump(prev, sideways) == pytest.approx(1.2)
+
+
+@pytest.mark.parametrize("period", [0.010, 0.020, 0.100])
+def test_report_watchdog_faults_after_three_periods(period: float) -> None:
+    wd: ReportWatchdog[int] = ReportWatchdog("r", period, 3.0)
+    assert wd.update(0.0, None).status is Status.MISSING
+    sample = Stamped(1, 0.0)
+    assert wd.update(3 * period, sample).ok
+    check = wd.update(3 * period + 1e-6, sample)
+    assert check.status is Status.LOST and check.reaction is Reaction.FAULT
+
+
+def test_error_counter_counts_like_panda() -> None:
+    counter = ErrorCounter(5)
+    assert counter.update(good=0, bad=4).ok and counter.count == 4
+    assert counter.update(good=10, bad=0).ok and counter.count == 0  # floor 0
+    assert counter.update(good=0, bad=-3).ok and counter.count == 0
+    # Order within a tick unknown: bad first for the peak, good first for the value after.
+    assert counter.update(good=1, bad=2).ok and counter.count == 2  # peak 2
+    assert counter.update(good=1, bad=2).ok and counter.count == 3  # peak 4
+    check = counter.update(good=1, bad=2)  # peak 5
+    assert check.status is Status.ERRORS and check.reaction is Reaction.FAULT
+
+
+def test_error_counter_five_bad_frames_in_one_tick_faults() -> None:
+    assert not ErrorCounter(5).update(good=100, bad=5).ok
+    assert ErrorCounter(5).update(good=100, bad=4).ok
+
+
+@given(
+    st.lists(
+        st.lists(st.booleans(), max_size=12),  # one tick's frames in arrival order (True = bad)
+        max_size=40,
+    )
+)
+def test_error_counter_never_lags_the_frame_by_frame_counter(ticks: list[list[bool]]) -> None:
+    count = panda = 0
+    for frames in ticks:
+        bad = sum(frames)
+        peak, count = update_error_counter(count, len(frames) - bad, bad)
+        panda_peak = panda
+        for is_bad in frames:
+            panda = panda + 1 if is_bad else max(panda - 1, 0)
+            panda_peak = max(panda_peak, panda)
+        assert peak >= panda_peak
+        assert count >= panda
+
+
+def test_overrun_three_ticks_in_a_row_faults() -> None:
+    wd = OverrunWatchdog(3)
+    assert [wd.update(o).ok for o in (True, True, False, True, True)] == [True] * 5
+    assert wd.update(True).reaction is Reaction.FAULT
+
+
+# --- the reactions in the gateway, in simulated time -------------------------------------------
+
+
+def assert_within_one_period(delay: float, threshold: float) -> None:
+    """The reaction came at the first tick past the threshold."""
+    assert threshold < delay <= threshold + PERIOD + 1e-9
+
+
+def _first_state(rig: Rig, state: GatewayState, seconds: float) -> float:
+    """Step until the gateway reaches ``state``; the time of that tick."""
+    for _ in range(round(seconds / PERIOD)):
+        now = rig.now
+        rig.step()
+        if rig.state == state:
+            return now
+    raise AssertionError(f"no {state.name} within {seconds} s (state {rig.state.name})")
+
+
+def test_localization_withheld_stops_after_100_ms_then_faults_after_500_ms() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.step()
+    last = rig.now - PERIOD  # the last pose sent
+    rig.send["pose"] = False
+    t_stop = _first_state(rig, GatewayState.STOPPING, 1.0)
+    assert_within_one_period(t_stop - last, 0.100)
+    t_fault = _first_state(rig, GatewayState.FAULT, 1.0)
+    assert_within_one_period(t_fault - last, 0.500)
+    assert "localization age" in rig.results[-1].diagnostics.fault
+
+
+def test_localization_corrupted_counts_as_withheld() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.step()
+    last = rig.now - PERIOD
+    rig.pose_offset = (math.nan, 0.0)
+    t_stop = _first_state(rig, GatewayState.STOPPING, 1.0)
+    assert_within_one_period(t_stop - last, 0.100)
+
+
+def test_position_jump_faults_in_the_same_tick() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.pose_offset = (0.0, 1.2)
+    rig.step()
+    assert rig.state == GatewayState.FAULT
+    assert "jumped" in rig.results[-1].diagnostics.fault
+
+
+def test_small_position_correction_is_no_jump() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.pose_offset = (0.0, 0.8)
+    rig.run(0.2)
+    assert rig.state == GatewayState.ENGAGED
+
+
+@pytest.mark.parametrize("report, period", [("steer", 0.010), ("long", 0.020), ("system", 0.100)])
+def test_ecu_report_withheld_faults_after_three_periods(report: str, period: float) -> None:
+    rig = Rig()
+    rig.engage()
+    rig.step()
+    last = rig.now - PERIOD
+    rig.send[report] = False
+    t_fault = _first_state(rig, GatewayState.FAULT, 1.0)
+    assert_within_one_period(t_fault - last, 3 * period)
+    assert f"{report}_report age" in rig.results[-1].diagnostics.fault
+
+
+def test_report_crc_errors_fault_at_five() -> None:
+    rig = Rig()
+    rig.engage()
+    for _ in range(4):
+        rig.step(good_report_frames=0, bad_report_frames=1)
+    assert rig.state == GatewayState.ENGAGED
+    rig.step(good_report_frames=0, bad_report_frames=1)
+    assert rig.state == GatewayState.FAULT
+    assert rig.results[-1].diagnostics.error_counter == 5
+
+
+def test_report_errors_balanced_by_good_frames_do_not_fault() -> None:
+    rig = Rig()
+    rig.engage()
+    for _ in range(100):
+        rig.step(good_report_frames=2, bad_report_frames=1)
+    assert rig.state == GatewayState.ENGAGED
+
+
+def test_override_hands_back_to_standby() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.ecu.override = True
+    rig.ecu.enabled = False
+    rig.step()
+    assert rig.state == GatewayState.STANDBY
+    assert not rig.results[-1].commands.steer.enable
+    assert "override" in rig.results[-1].diagnostics.reason
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        ControlOutput(0.3, 0.5, 1.0, converged=False, status="max iterations"),
+        ControlOutput(math.nan, 0.5, 1.0),
+        ControlOutput(0.0, math.inf, 1.0),
+        ControlOutput(0.0, 0.5, -math.nan),
+    ],
+)
+def test_solver_failure_holds_last_safe_command_and_stops(bad: ControlOutput) -> None:
+    outputs = iter([ControlOutput(0.1, 0.5, 1.0)] * 40)
+
+    def script(ctl: FakeController, pose: Pose, steer: float) -> ControlOutput:
+        return next(outputs, bad)
+
+    rig = Rig(FakeController(script))
+    rig.engage()
+    rig.run(0.7)
+    held = [r for r in rig.results if r.diagnostics.state == GatewayState.STOPPING]
+    assert held, "no STOPPING"
+    last_good = rig.results[len(rig.results) - len(held) - 1].commands.steer.angle
+    assert last_good == pytest.approx(0.1)
+    for r in held:
+        assert r.commands.steer.enable and r.commands.steer.angle == last_good
+        assert math.isfinite(r.commands.long.accel) and r.commands.long.accel <= 0.5
+
+
+def test_three_overruns_in_a_row_fault_two_do_not() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.step(overrun=True)
+    rig.step(overrun=True)
+    rig.step()
+    rig.step(overrun=True)
+    rig.step(overrun=True)
+    assert rig.state == GatewayState.ENGAGED
+    rig.step(overrun=True)
+    assert rig.state == GatewayState.FAULT
+    assert "overran" in rig.results[-1].diagnostics.fault
+
+
+def test_stale_inputs_in_standby_refuse_engage_but_do_not_fault() -> None:
+    rig = Rig()
+    rig.send["pose"] = False
+    rig.send["long"] = False
+    rig.run(1.0)
+    assert rig.state == GatewayState.STANDBY
+    reply = rig.step(OperatorRequest.ENGAGE).reply
+    assert reply is not None and not reply.accepted
+
+
+def test_thresholds_come_from_config() -> None:
+    cfg = GatewayConfig(watchdog=WatchdogConfig(localization_stop_age=0.3))
+    rig = Rig(config=cfg)
+    rig.engage()
+    rig.step()
+    last = rig.now - PERIOD
+    rig.send["pose"] = False
+    t_stop = _first_state(rig, GatewayState.STOPPING, 1.0)
+    assert_within_one_period(t_stop - last, 0.3)
