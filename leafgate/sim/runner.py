@@ -352,7 +352,9 @@ def run(
                 timeline.append((now, f"operator engage: {verdict} ({result.reply.reason})"))
             diag = result.diagnostics
             ctl = diag.controller
-            if ctl is not None and gateway.state == GatewayState.ENGAGED:
+            # Count every tick the controller ran while engaged, including the one whose
+            # failure moved the gateway to STOPPING.
+            if ctl is not None and last_state == GatewayState.ENGAGED:
                 solve_times.append(ctl.solve_time)
                 not_converged += 0 if ctl.converged else 1
                 clips += ctl.clips

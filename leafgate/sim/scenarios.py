@@ -98,15 +98,20 @@ def straight() -> Scenario:
 
 
 def slalom() -> Scenario:
-    """Sinusoidal slalom ±1.5 m, 24 m wavelength, at 3 m/s."""
-    lead, wave, amplitude, periods = 5.0, 24.0, 1.5, 2  # m, m, m, -
+    """Sinusoidal slalom ±1.5 m, 30 m wavelength, at 3 m/s."""
+    lead, wave, amplitude, periods = 5.0, 30.0, 1.5, 2  # m, m, m, -
 
     def path(u: FloatArray) -> tuple[FloatArray, FloatArray]:
-        t = np.clip(u - lead, 0.0, wave * periods)
-        return u, amplitude * np.sin(2.0 * math.pi * t / wave)
+        span = wave * periods
+        t = np.clip(u - lead, 0.0, span)
+        # A smoothstep window over the first and last half wave: the sine then starts and ends
+        # with zero slope and curvature, so there is no heading kink at the straights.
+        ramp = np.clip(np.minimum(t, span - t) / (0.5 * wave), 0.0, 1.0)
+        window = ramp * ramp * (3.0 - 2.0 * ramp)
+        return u, amplitude * window * np.sin(2.0 * math.pi * t / wave)
 
     return _forward(
-        "slalom", "slalom ±1.5 m, 24 m wavelength, at 3 m/s", path, 2 * lead + wave * periods, 3.0
+        "slalom", "slalom ±1.5 m, 30 m wavelength, at 3 m/s", path, 2 * lead + wave * periods, 3.0
     )
 
 
