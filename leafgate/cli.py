@@ -168,7 +168,9 @@ def cmd_sim_ecu(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     cfg = _with_overrides(cfg, {"sim.plant.kind": args.plant})
-    return run_sim_ecu(cfg, _scenario(args.scenario or cfg.sim.scenario), threading.Event())
+    return run_sim_ecu(
+        cfg, _scenario(args.scenario or cfg.sim.scenario), threading.Event(), args.trace
+    )
 
 
 def cmd_request(args: argparse.Namespace) -> int:
@@ -194,19 +196,19 @@ def cmd_status(args: argparse.Namespace) -> int:
             print(json.dumps(diag), flush=True)
             return
         loop = diag.get("loop", {})
-        ages = diag.get("watchdogs", diag.get("ages", {}))
-        age_text = (
-            ", ".join(
-                f"{k} {v * 1e3:.0f} ms" if isinstance(v, (int, float)) else f"{k} {v}"
-                for k, v in ages.items()
-            )
-            if isinstance(ages, dict)
-            else str(ages)
-        )
+        parts = []
+        for name, wd in (diag.get("watchdogs") or {}).items():
+            if not isinstance(wd, dict):
+                continue
+            age = wd.get("age")
+            shown = f"{age * 1e3:.0f} ms" if isinstance(age, (int, float)) else str(wd.get("value"))
+            flag = "" if wd.get("status") == "ok" else f" [{wd.get('status')}]"
+            parts.append(f"{name} {shown}{flag}")
+        compute = loop.get("compute_median_s")
+        compute_text = f"{compute * 1e6:.0f} µs" if isinstance(compute, (int, float)) else "?"
         print(
-            f"{diag.get('state', '?'):<9} {diag.get('reason', '')!s:<40} "
-            f"loop {loop.get('compute_median_s', float('nan')) * 1e6:.0f} µs median, "
-            f"{loop.get('overruns', 0)} overruns | {age_text}",
+            f"{diag.get('state', '?'):<9} {diag.get('reason', '')!s:<32} "
+            f"loop {compute_text} median, {loop.get('overruns', 0)} overruns | {', '.join(parts)}",
             flush=True,
         )
 
@@ -225,7 +227,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     from leafgate.control import make_controller
 
     cfg = load_config(args.file)
-    CanCodec()  # the DBCs load
+    CanCodec(cfg.can.dbw_dbc, cfg.can.car_dbc)  # the DBCs load
     make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
     _scenario(cfg.sim.scenario)
     print(
@@ -344,6 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="start the plant on this scenario's first waypoint (default: sim.scenario)",
     )
     p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
+    p.add_argument(
+        "--trace", metavar="CSV", help="write the plant's states there on exit (every 20 ms)"
+    )
     p.set_defaults(func=cmd_sim_ecu)
 
     for name, text in (

@@ -119,7 +119,7 @@ def run_daemon(
     """
     stop = stop or threading.Event()
     clock = time.perf_counter
-    codec = CanCodec()  # CanCodecError when a DBC is missing or invalid
+    codec = CanCodec(cfg.can.dbw_dbc, cfg.can.car_dbc)  # CanCodecError: a DBC missing/invalid
     gateway = build_gateway(cfg)
     requests = RequestBox()
     from leafgate.transport.node import GatewayTransport  # zenoh loads only where it is used

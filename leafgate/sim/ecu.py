@@ -612,7 +612,7 @@ def run_ecu_realtime(
     stop = stop if stop is not None else threading.Event()
     ecu_cfg = config.sim.ecu
     plant = make_plant(config.sim.plant, config.vehicle, start or Pose(0.0, 0.0, 0.0, 0.0))
-    codec = CanCodec()
+    codec = CanCodec(config.can.dbw_dbc, config.can.car_dbc)
     ecu = SimulatedEcu(ecu_cfg, plant, config.vehicle, codec)
     car_ids = codec.receive_ids("car")
     dbw_bus = open_bus(config.can.dbw, codec.receive_ids("commands"))

@@ -78,8 +78,14 @@ class LocalizationFeed:
             log.warning("localization not published: %s", exc)
 
 
-def run_sim_ecu(cfg: LeafgateConfig, scenario: Scenario, stop: threading.Event) -> int:
-    """The body of ``leafgate sim-ecu``: ECU + plant on the configured bus, localization on Zenoh."""
+def run_sim_ecu(
+    cfg: LeafgateConfig, scenario: Scenario, stop: threading.Event, trace_path: str | None = None
+) -> int:
+    """The body of ``leafgate sim-ecu``: ECU + plant on the configured bus, localization on Zenoh.
+
+    :param trace_path: write the plant's states (t, x, y, heading, speed, steer_angle; SI) as CSV
+        there on exit, every 20 ms
+    """
     from leafgate.gateway.daemon import signals_set, tool_view
     from leafgate.transport.client import OdometryPublisher
     from leafgate.transport.session import open_session
@@ -89,6 +95,13 @@ def run_sim_ecu(cfg: LeafgateConfig, scenario: Scenario, stop: threading.Event) 
     try:
         with OdometryPublisher(session, zcfg) as odom:
             feed = LocalizationFeed(odom.publish, cfg.sim.localization)
+            trace = _PlantTrace()
+
+            def on_tick(now: float, ecu: SimulatedEcu) -> None:
+                feed.on_tick(now, ecu)
+                if trace_path is not None:
+                    trace.on_tick(now, ecu)
+
             log.info(
                 "simulated ECU on %s:%s, plant %s at %s; localization on %r at %.0f Hz",
                 cfg.can.dbw.interface,
@@ -99,7 +112,11 @@ def run_sim_ecu(cfg: LeafgateConfig, scenario: Scenario, stop: threading.Event) 
                 cfg.sim.localization.rate_hz,
             )
             with signals_set(stop):
-                stats = run_ecu_realtime(cfg, stop, start=scenario.start, on_tick=feed.on_tick)
+                try:
+                    stats = run_ecu_realtime(cfg, stop, start=scenario.start, on_tick=on_tick)
+                finally:
+                    if trace_path is not None:
+                        trace.write_csv(trace_path)
             log.info(
                 "simulated ECU stopped: %d ticks, %d frames sent, %d received, %d overruns; "
                 "%d poses published",
@@ -127,6 +144,12 @@ class _PlantTrace:
             self._next = now + self.period
             p = ecu.plant
             self.rows.append((now, p.x, p.y, p.heading, p.speed, p.steer_angle))
+
+    def write_csv(self, path: str) -> None:
+        with open(path, "w", encoding="utf-8") as f:
+            f.write("t,x,y,heading,speed,steer_angle\n")
+            for row in self.rows:
+                f.write(",".join(f"{v:.6f}" for v in row) + "\n")
 
 
 def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:

@@ -16,7 +16,7 @@ import itertools
 import re
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 import numpy as np
@@ -41,6 +41,9 @@ from leafgate.sim.metrics import path_errors, tracking_metrics
 from leafgate.sim.plant import STANDSTILL_SPEED, SpeedController, gear_direction, make_plant
 from leafgate.sim.plots import Trace
 from leafgate.sim.scenarios import Scenario
+
+if TYPE_CHECKING:  # recording is optional: leafgate.replay is imported only by its callers
+    from leafgate.replay.recorder import Recorder
 
 ECU_TICK = 0.01  # s, simulated ECU step (its fastest report period)
 ENGAGE_AT = 0.5  # s, when the scripted operator asks to engage (reports are fresh by then)
@@ -235,18 +238,27 @@ def run(
     label: str = "",
     injections: tuple[Injection, ...] = (),
     engage_at: float = ENGAGE_AT,
+    recorder: Recorder | None = None,
 ) -> SimResult:
-    """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate."""
+    """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate.
+
+    :param recorder: records the drive (``leafgate.replay.recorder``): every frame the gateway
+        receives and sends, stamped with the simulated time, and every tick's inputs and result
+    """
     period = config.gateway.period
     ticks_per_control = max(1, round(period / ECU_TICK))
     ecu_dt = period / ticks_per_control
     traj = scenario.trajectory
     mode = LongMode.SPEED if config.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
     controller = make_controller(config.controller, config.vehicle, period)
+    if recorder is not None:  # recording: a transparent wrapper lets it see the predicted path
+        controller = recorder.wrap_controller(controller)
     gateway = Gateway(config.gateway, config.vehicle, controller, mode)
     plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
-    ecu = SimulatedEcu(config.sim.ecu, plant, config.vehicle, CanCodec())
-    gw_codec = CanCodec()
+    ecu = SimulatedEcu(
+        config.sim.ecu, plant, config.vehicle, CanCodec(config.can.dbw_dbc, config.can.car_dbc)
+    )
+    gw_codec = CanCodec(config.can.dbw_dbc, config.can.car_dbc)
     report_ids = gw_codec.receive_ids("reports") | gw_codec.receive_ids("car")
     channel = f"leafgate-sim-{next(_channel_ids)}"
     gw_bus = can.Bus(
@@ -292,6 +304,8 @@ def run(
             # 2. The gateway's receive side decodes what arrived.
             while (rx := gw_bus.recv(timeout=0.0)) is not None:
                 frames_received += 1
+                if recorder is not None:  # recording: every frame the gateway receives
+                    recorder.on_can_frame(rx, "rx")
                 decoded = gw_codec.decode(rx)
                 value = decoded.value
                 if isinstance(value, (SteerReport, LongReport, SystemReport)) or decoded.error in (
@@ -334,19 +348,17 @@ def run(
                 last_pose = Stamped(pose, now)
             request = OperatorRequest.ENGAGE if abs(now - engage_at) < ecu_dt / 2 else None
             good, bad = slots.take_counts()
-            result = gateway.step(
-                now,
-                GatewayInputs(
-                    pose=last_pose,
-                    trajectory=Stamped(traj, 0.0),
-                    steer_report=slots.steer,
-                    long_report=slots.long,
-                    system_report=slots.system,
-                    good_report_frames=good,
-                    bad_report_frames=bad,
-                    request=request,
-                ),
+            inputs = GatewayInputs(
+                pose=last_pose,
+                trajectory=Stamped(traj, 0.0),
+                steer_report=slots.steer,
+                long_report=slots.long,
+                system_report=slots.system,
+                good_report_frames=good,
+                bad_report_frames=bad,
+                request=request,
             )
+            result = gateway.step(now, inputs)
             if result.reply is not None:
                 verdict = "accepted" if result.reply.accepted else "refused"
                 timeline.append((now, f"operator engage: {verdict} ({result.reply.reason})"))
@@ -375,6 +387,7 @@ def run(
             # 4. Command frames out, through the codec, to the ECU.
             cmds = result.commands
             steer_target = cmds.steer.angle
+            sent: list[can.Message] = []  # recording: the frames that went onto the bus
             for value in (cmds.steer, cmds.long, cmds.system):
                 if value is None:
                     continue
@@ -382,6 +395,9 @@ def run(
                 frames_sent += 1
                 if not command_dropout:
                     gw_bus.send(frame)
+                    sent.append(frame)
+            if recorder is not None:  # recording: the tick's inputs, result and sent frames
+                recorder.on_tick(now, inputs, result, sent)
             while (cmd_frame := ecu_bus.recv(timeout=0.0)) is not None:
                 ecu.receive_frame(now, cmd_frame)
             rec.add(now, plant.pose(), plant.steer_angle, steer_target)

@@ -64,7 +64,7 @@ float32 acceleration_mps2
 float32 heading_rate_rps
 float32 front_wheel_angle_rad
 float32 rear_wheel_angle_rad
-""",  # noqa: E501 (the upstream comment line, kept verbatim)
+""",
     TRAJECTORY: """\
 std_msgs/Header header
 autoware_planning_msgs/TrajectoryPoint[] points

@@ -1,0 +1,195 @@
+"""The daemon as users run it: separate processes on udp_multicast CAN and loopback Zenoh.
+
+``leafgate sim-ecu`` and ``leafgate run`` are started as subprocesses with config/sim.yaml (on a
+free Zenoh port and a private multicast group, so parallel runs do not meet); the trajectory is
+published and the gateway engaged with the CLI, exactly as the README shows.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+import yaml
+
+from leafgate.can.codec import CanCodec
+from leafgate.messages import EcuState, SystemReport
+from leafgate.sim.metrics import tracking_metrics
+from leafgate.sim.scenarios import get_scenario
+
+ROOT = Path(__file__).resolve().parent.parent
+CLI = [sys.executable, "-m", "leafgate.cli"]
+
+pytestmark = pytest.mark.slow
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def udp_multicast_works() -> bool:
+    try:
+        import msgpack  # noqa: F401  (python-can's udp_multicast needs it)
+
+        bus = can.Bus(interface="udp_multicast", channel="239.74.163.250", port=free_port())
+    except Exception:
+        return False
+    bus.shutdown()
+    return True
+
+
+@pytest.fixture
+def sim_config(tmp_path: Path) -> Path:
+    cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    cfg["can"]["dbw"]["channel"] = f"239.74.{random.randint(164, 250)}.{random.randint(1, 250)}"
+    cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def cli(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+
+
+def start(*args: str, log: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [*CLI, *args], stdout=log.open("wb"), stderr=subprocess.STDOUT, cwd=ROOT
+    )
+
+
+def status(config: Path) -> dict:
+    result = cli("status", "--config", str(config), "--duration", "0.4", "--json", timeout=20)
+    lines = [line for line in result.stdout.splitlines() if line.startswith("{")]
+    return json.loads(lines[-1]) if lines else {}
+
+
+def ecu_state(config: Path) -> EcuState | None:
+    """Listen on the bus for DBW_SYSTEM_RPT and return the ECU's state."""
+    cfg = yaml.safe_load(config.read_text())["can"]["dbw"]
+    codec = CanCodec()
+    with can.Bus(interface="udp_multicast", channel=cfg["channel"], **cfg["kwargs"]) as bus:
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            msg = bus.recv(timeout=0.2)
+            if msg is None:
+                continue
+            decoded = codec.decode(msg)
+            if isinstance(decoded.value, SystemReport):
+                return decoded.value.state
+    return None
+
+
+@pytest.mark.skipif(not udp_multicast_works(), reason="python-can udp_multicast unavailable here")
+def test_s_curve_in_real_time_across_processes(sim_config: Path, tmp_path: Path) -> None:
+    trace = tmp_path / "trace.csv"
+    ecu = start(
+        "sim-ecu", "--config", str(sim_config), "--trace", str(trace), log=tmp_path / "ecu.log"
+    )
+    daemon = start("run", "--config", str(sim_config), log=tmp_path / "gw.log")
+    planner = start(
+        "publish-trajectory",
+        "--scenario",
+        "s-curve",
+        "--config",
+        str(sim_config),
+        log=tmp_path / "pub.log",
+    )
+    try:
+        reply: dict = {}
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            result = cli("engage", "--config", str(sim_config), "--timeout", "2")
+            reply = json.loads(result.stdout) if result.stdout.startswith("{") else {}
+            if result.returncode == 0 and reply.get("accepted"):
+                break
+            time.sleep(0.5)
+        assert reply.get("accepted"), f"engage refused: {reply} {result.stderr}"
+
+        diag: dict = {}
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            diag = status(sim_config)
+            if diag.get("state") in ("STANDBY", "FAULT"):
+                break
+            time.sleep(1.0)
+        assert diag.get("state") == "STANDBY", diag.get("reason")
+        assert "trajectory end" in diag.get("reason", "")
+
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=10) == 0
+        # Disengaged: the daemon sent ENABLE=0 before it went quiet (silence alone would be a
+        # command timeout while engaged, which the ECU reports as FAULT).
+        assert ecu_state(sim_config) in (EcuState.READY, EcuState.NOT_READY)
+    finally:
+        for proc in (planner, daemon, ecu):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        for proc in (planner, daemon, ecu):
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    data = np.loadtxt(trace, delimiter=",", skiprows=1)
+    t, x, y, heading, speed, steer = (data[:, i].copy() for i in range(6))
+    metrics = tracking_metrics(get_scenario("s-curve").trajectory, t, x, y, heading, speed, steer)
+    assert metrics["lateral_error_max_m"] <= 0.10
+    assert metrics["final_position_error_m"] <= 0.20
+    assert abs(speed[-1]) < 0.01  # stopped at the end
+
+
+BAD_CONFIGS = {
+    "unknown key": ("gateway:\n  rate_hz: 50\n  ratehz: 60\n", "gateway.ratehz: unknown key"),
+    "bad value": ("controller:\n  mpc:\n    solver: gurobi\n", "controller.mpc.solver"),
+    "missing DBC": (
+        "can:\n  dbw_dbc: /nonexistent/leafgate_dbw.dbc\n",
+        "/nonexistent/leafgate_dbw.dbc",
+    ),
+    "unknown interface": ("can:\n  dbw: {interface: warpdrive, channel: x}\n", "warpdrive"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CONFIGS))
+def test_startup_error_is_one_line(case: str, tmp_path: Path) -> None:
+    text, expected = BAD_CONFIGS[case]
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    result = cli("run", "--config", str(path))
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("leafgate: error:"), result.stderr
+    assert expected in lines[0]
+
+
+def test_engage_without_gateway_fails_with_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "cfg.yaml"
+    path.write_text(f"zenoh:\n  listen: ['tcp/127.0.0.1:{free_port()}']\n")
+    result = cli("engage", "--config", str(path), "--timeout", "0.5")
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    assert result.stderr.strip().startswith("leafgate: error:")
+
+
+def test_check_config_accepts_shipped_configs() -> None:
+    for name in ("sim.yaml", "leafgate.yaml"):
+        result = cli("check-config", str(ROOT / "config" / name))
+        assert result.returncode == 0, result.stderr
+        assert "ok" in result.stdout
+
+
+if os.environ.get("LEAFGATE_NO_SUBPROCESS"):
+    pytest.skip("subprocess tests disabled", allow_module_level=True)
