@@ -220,7 +220,7 @@ def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
             ecu_thread.start()
             gw_thread.start()
             deadline = time.perf_counter() + scenario.duration + 5.0
-            engaged = False
+            engaged = drove = False
             next_plan = 0.0
             last_state: GatewayState | None = None
             engage_after = time.perf_counter() + 0.5
@@ -241,8 +241,9 @@ def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
                         engaged = True
                     else:
                         engage_after = t + 0.5
+                drove |= state in (GatewayState.ENGAGED, GatewayState.STOPPING)
                 idle = state in (GatewayState.STANDBY, GatewayState.FAULT)
-                if engaged and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
+                if drove and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
                     break
                 time.sleep(0.02)
             stop_gw.set()

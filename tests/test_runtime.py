@@ -1,0 +1,275 @@
+"""The daemon's runtime: slots, requests, ticks, bus faults as state, shutdown, systemd notify."""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from leafgate.can.codec import CanCodec
+from leafgate.config import VehicleConfig
+from leafgate.gateway.config import GatewayConfig
+from leafgate.gateway.core import Gateway
+from leafgate.gateway.daemon import StablePlan, same_plan, tool_view
+from leafgate.gateway.runtime import CanReceiver, RequestBox, Runtime, sd_notify
+from leafgate.messages import (
+    ControlOutput,
+    EcuState,
+    GatewayState,
+    Gear,
+    LongReport,
+    OperatorRequest,
+    Pose,
+    Stamped,
+    SteerCommand,
+    SteerReport,
+    SystemReport,
+    Trajectory,
+)
+from leafgate.transport.config import ZenohConfig
+
+STRAIGHT = Trajectory(
+    x=np.arange(0.0, 20.0, 0.5), y=np.zeros(40), heading=np.zeros(40), speed=np.full(40, 1.0)
+)
+
+
+class HoldController:
+    """A controller that asks for nothing: straight wheels, no acceleration."""
+
+    period = 0.02
+
+    def reset(self) -> None:
+        pass
+
+    def step(self, pose: Pose, steer_angle: float, trajectory: Trajectory) -> ControlOutput:
+        return ControlOutput(steer_angle=0.0, accel=0.0, speed=0.0, gear=Gear.D)
+
+
+class Inputs:
+    """Fresh localization and trajectory stamped on the runtime's clock."""
+
+    def __init__(self, clock) -> None:  # type: ignore[no-untyped-def]
+        self.clock = clock
+
+    def latest_pose(self) -> Stamped[Pose]:
+        return Stamped(Pose(0.0, 0.0, 0.0, 0.0), self.clock())
+
+    def latest_trajectory(self) -> Stamped[Trajectory]:
+        return Stamped(STRAIGHT, self.clock())
+
+
+class FailingBus(can.BusABC):
+    """A bus whose every send fails, like a bus-off controller."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="failing")
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        raise can.CanOperationError("bus off")
+
+    def _recv_internal(self, timeout: float | None) -> tuple[None, bool]:
+        return None, False
+
+
+def feed_reports(receiver: CanReceiver, ecu_codec: CanCodec) -> None:
+    """One fresh, valid set of ECU reports through the receiver (as the Notifier would)."""
+    for value in (
+        SteerReport(0.0, 0.0, 0.0, False, False, False, False),
+        LongReport(0.0, 0.0, Gear.D, 0.0, 0.0, False, False, False, False),
+        SystemReport(EcuState.READY, False, False, False, False, 0),
+    ):
+        receiver.on_message_received(ecu_codec.encode(value))
+
+
+def make_runtime(bus: can.BusABC, clock) -> tuple[Runtime, CanReceiver]:  # type: ignore[no-untyped-def]
+    codec = CanCodec()
+    receiver = CanReceiver(codec, clock)
+    gateway = Gateway(GatewayConfig(), VehicleConfig(), HoldController())
+    return Runtime(gateway, codec, bus, receiver, Inputs(clock), 0.02, clock=clock), receiver
+
+
+def test_receiver_fills_slots_and_counts_good_and_bad_frames() -> None:
+    now = [5.0]
+    receiver = CanReceiver(CanCodec(), lambda: now[0])
+    ecu_codec = CanCodec()
+    feed_reports(receiver, ecu_codec)
+    steer = receiver.steer.get()
+    assert steer is not None and steer.received == 5.0 and steer.valid
+    bad = ecu_codec.encode(SteerReport(0.1, 0.0, 0.0, False, False, False, False))
+    bad.data[7] ^= 0xFF  # corrupt the CRC
+    receiver.on_message_received(bad)
+    assert receiver.take_counts() == (3, 1)
+    assert receiver.take_counts() == (0, 0)
+    assert receiver.steer.get() is steer  # the bad frame did not replace the good report
+
+
+def test_request_box_answers_from_the_control_thread() -> None:
+    box = RequestBox()
+    replies: list[dict] = []
+    asker = threading.Thread(
+        target=lambda: replies.append(box.submit(OperatorRequest.ENGAGE, timeout=2))
+    )
+    asker.start()
+    item = None
+    for _ in range(200):
+        item = box.take()
+        if item is not None:
+            break
+        time.sleep(0.005)
+    assert item is not None and item.request == OperatorRequest.ENGAGE
+    item.future.set_result({"accepted": True, "state": "ENGAGED", "reason": "engaged"})
+    asker.join(timeout=2)
+    assert replies == [{"accepted": True, "state": "ENGAGED", "reason": "engaged"}]
+
+
+def test_request_box_times_out_with_a_refusal() -> None:
+    reply = RequestBox().submit(OperatorRequest.ENGAGE, timeout=0.01)
+    assert reply["accepted"] is False and "did not answer" in reply["reason"]
+
+
+def test_tick_sends_steer_long_and_periodic_system_frames() -> None:
+    now = [0.0]
+    with (
+        can.Bus(interface="virtual", channel="rt-tick") as bus,
+        can.Bus(interface="virtual", channel="rt-tick") as listener,
+    ):
+        runtime, receiver = make_runtime(bus, lambda: now[0])
+        ids = []
+        for k in range(10):
+            now[0] = k * 0.02
+            feed_reports(receiver, CanCodec())
+            runtime.tick(now[0])
+            while (msg := listener.recv(timeout=0)) is not None:
+                ids.append(msg.arbitration_id)
+    assert ids.count(0x0A0) == 10 and ids.count(0x0A1) == 10
+    assert 1 <= ids.count(0x0A2) <= 3  # DBW_SYSTEM_CMD every 100 ms
+    assert runtime.stats.ticks == 10 and runtime.stats.send_errors == 0
+
+
+def test_bus_send_errors_become_a_fault_not_an_exception() -> None:
+    now = [0.0]
+    runtime, receiver = make_runtime(FailingBus(), lambda: now[0])
+    for k in range(5):
+        now[0] = k * 0.02
+        feed_reports(receiver, CanCodec())
+        runtime.tick(now[0])  # must not raise
+    assert runtime.stats.send_errors >= 2
+    assert runtime.gateway.state == GatewayState.FAULT
+
+
+def test_encode_error_is_counted_and_faults() -> None:
+    now = [0.0]
+    with can.Bus(interface="virtual", channel="rt-encode") as bus:
+        runtime, receiver = make_runtime(bus, lambda: now[0])
+        real = runtime.gateway.step
+
+        def bad_step(t, inputs):  # type: ignore[no-untyped-def]
+            result = real(t, inputs)
+            object.__setattr__(
+                result.commands, "steer", SteerCommand(angle=50.0)
+            )  # out of DBC range
+            return result
+
+        runtime.gateway.step = bad_step  # type: ignore[method-assign]
+        for k in range(3):
+            now[0] = k * 0.02
+            feed_reports(receiver, CanCodec())
+            runtime.tick(now[0])
+        runtime.gateway.step = real  # type: ignore[method-assign]
+        runtime.tick(0.06)
+    assert runtime.stats.encode_errors >= 1
+    assert runtime.gateway.state == GatewayState.FAULT
+
+
+def test_run_ticks_in_real_time_and_disengages_on_stop() -> None:
+    with (
+        can.Bus(interface="virtual", channel="rt-run") as bus,
+        can.Bus(interface="virtual", channel="rt-run") as listener,
+    ):
+        runtime, receiver = make_runtime(bus, time.perf_counter)
+        stop = threading.Event()
+        ready = threading.Event()
+        ecu_codec = CanCodec()
+        feeder_stop = threading.Event()
+
+        def feeder() -> None:
+            while not feeder_stop.is_set():
+                feed_reports(receiver, ecu_codec)
+                time.sleep(0.005)
+
+        threads = [
+            threading.Thread(target=feeder, daemon=True),
+            threading.Thread(
+                target=runtime.run, args=(stop,), kwargs={"on_ready": ready.set}, daemon=True
+            ),
+        ]
+        for t in threads:
+            t.start()
+        assert ready.wait(2.0)
+        time.sleep(0.3)
+        reply = runtime.requests.submit(OperatorRequest.ENGAGE, timeout=2.0)
+        stop.set()
+        threads[1].join(timeout=5.0)
+        feeder_stop.set()
+        frames = []
+        while (msg := listener.recv(timeout=0)) is not None:
+            frames.append(msg)
+    assert reply["state"] in ("ENGAGED", "STANDBY")  # answered by the control thread
+    assert runtime.stats.ticks > 10
+    last_steer = [CanCodec().decode(m).value for m in frames if m.arbitration_id == 0x0A0][-1]
+    assert isinstance(last_steer, SteerCommand) and last_steer.enable is False  # disengaged on stop
+
+
+def test_sd_notify_sends_ready_to_the_notify_socket(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "notify.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind(str(path))
+        monkeypatch.setenv("NOTIFY_SOCKET", str(path))
+        assert sd_notify("READY=1")
+        assert server.recv(64) == b"READY=1"
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    assert not sd_notify("READY=1")  # outside systemd: a no-op
+
+
+def test_stable_plan_keeps_one_object_for_a_republished_plan() -> None:
+    copy = Trajectory(
+        x=STRAIGHT.x.copy(), y=STRAIGHT.y.copy(), heading=STRAIGHT.heading, speed=STRAIGHT.speed
+    )
+    other = Trajectory(
+        x=STRAIGHT.x + 1.0, y=STRAIGHT.y, heading=STRAIGHT.heading, speed=STRAIGHT.speed
+    )
+    samples = iter([Stamped(STRAIGHT, 1.0), Stamped(copy, 2.0), Stamped(other, 3.0)])
+
+    class Source:
+        def latest_pose(self) -> None:
+            return None
+
+        def latest_trajectory(self) -> Stamped[Trajectory]:
+            return next(samples)
+
+    plan = StablePlan(Source())
+    first = plan.latest_trajectory()
+    second = plan.latest_trajectory()
+    third = plan.latest_trajectory()
+    assert first is not None and second is not None and third is not None
+    assert second.value is STRAIGHT and second.received == 2.0
+    assert third.value is other
+    assert same_plan(STRAIGHT, copy) and not same_plan(STRAIGHT, other)
+
+
+def test_tools_connect_to_the_daemons_endpoint_instead_of_listening() -> None:
+    cfg = ZenohConfig(listen=("tcp/127.0.0.1:7447",), connect=("tcp/10.0.0.2:7447",))
+    tool = tool_view(cfg)
+    assert tool.listen == () and tool.connect == ("tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447")
+
+
+if os.name != "posix":  # AF_UNIX datagram sockets
+    pytest.skip("POSIX only", allow_module_level=True)
