@@ -77,6 +77,25 @@ def format_metrics(metrics: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _run_recorded(cfg: LeafgateConfig, scenario: Scenario, injections: Any, directory: Path) -> Any:
+    """Run the simulated loop while recording it as the daemon would (CAN log + session)."""
+    from leafgate.replay.recorder import open_recording
+    from leafgate.sim.runner import run
+
+    rec_cfg = dataclasses.replace(cfg.recording, enabled=True, directory=str(directory))
+    # Simulated time everywhere: frames keep the simulator's timestamps (no wall clock).
+    recording = open_recording(rec_cfg, cfg, clock=None, wall_clock=None)
+    try:
+        result = run(cfg, scenario, injections=injections, recorder=recording)
+    finally:
+        recording.close()
+    if recording.fault:
+        print(f"leafgate: warning: recording fault: {recording.fault}", file=sys.stderr)
+    for path in sorted(directory.iterdir()):
+        print(f"recorded {path}")
+    return result
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from leafgate.sim.plots import plot_drive
     from leafgate.sim.runner import Injection, run, run_direct
@@ -93,8 +112,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
     )
     scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)
-    if injections and (args.direct or args.realtime):
-        raise ConfigError("--inject needs the full simulated loop (not --direct or --realtime)")
+    if (injections or args.record) and (args.direct or args.realtime):
+        raise ConfigError(
+            "--inject and --record need the full simulated loop (not --direct or --realtime)"
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.realtime:
@@ -104,9 +125,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
         metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
         loop = "real time (daemon runtime, in-process Zenoh, virtual CAN)"
     else:
-        result = (
-            run_direct(cfg, scenario) if args.direct else run(cfg, scenario, injections=injections)
-        )
+        if args.direct:
+            result = run_direct(cfg, scenario)
+        elif args.record:
+            result = _run_recorded(cfg, scenario, injections, Path(args.record))
+        else:
+            result = run(cfg, scenario, injections=injections)
         metrics, trace, timeline = dict(result.metrics), result.trace, list(result.timeline)
         loop = (
             "direct (controller → plant)"
@@ -281,6 +305,34 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    if args.replay_command == "check":
+        from leafgate.replay.check import main_check
+
+        return main_check(
+            args.log, config=args.config, as_json=args.json, gap_periods=args.gap_periods
+        )
+    if args.replay_command == "play":
+        from leafgate.replay.play import main_play
+
+        return main_play(
+            args.log,
+            interface=args.interface,
+            channel=args.channel,
+            speed=args.speed,
+            start=args.start,
+            ids=args.ids,
+            bitrate=args.bitrate,
+        )
+    if args.replay_command == "rerun":
+        from leafgate.replay.rerun import main_rerun
+
+        return main_rerun(args.session, overrides=args.set, as_json=args.json)
+    from leafgate.replay.plot import main_plot
+
+    return main_plot(args.log, out=args.out)
+
+
 def cmd_decode(args: argparse.Namespace) -> int:
     from leafgate.can.decode import decode_log
 
@@ -321,6 +373,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="KIND@T[+DUR]",
         help="fault or driver action, e.g. localization-dropout@8s, override@10s (repeatable)",
+    )
+    p.add_argument(
+        "--record", metavar="DIR", help="record the drive (CAN log and session .mcap) into DIR"
     )
     loop = p.add_mutually_exclusive_group()
     loop.add_argument(
@@ -366,6 +421,42 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=1.0, help="s to watch (default 1)")
     p.add_argument("--json", action="store_true", help="print the raw JSON records")
     p.set_defaults(func=cmd_status)
+
+    p = sub.add_parser("replay", help="check, play back, re-run and plot recorded drives")
+    rsub = p.add_subparsers(dest="replay_command", metavar="ACTION", required=True)
+    r = rsub.add_parser(
+        "check", help="offline safety check of a CAN log or session (exit 1 on any finding)"
+    )
+    r.add_argument("log", help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap)")
+    r.add_argument("--config", help="the deployment config whose limits apply (default: built-in)")
+    r.add_argument("--json", action="store_true", help="machine-readable report")
+    r.add_argument(
+        "--gap-periods", type=float, default=3.0, help="a gap is this many periods of silence"
+    )
+    r = rsub.add_parser("play", help="timed playback of a log onto a bus")
+    r.add_argument("log")
+    r.add_argument(
+        "--interface", required=True, help="python-can interface (socketcan, udp_multicast, …)"
+    )
+    r.add_argument("--channel", required=True)
+    r.add_argument("--speed", type=float, default=1.0, help="speed factor (0: as fast as possible)")
+    r.add_argument("--start", type=float, default=0.0, help="s into the log to start at")
+    r.add_argument("--ids", help="only these IDs, hex, comma-separated (e.g. 0A0,0A1)")
+    r.add_argument("--bitrate", type=int, default=500_000)
+    r = rsub.add_parser("rerun", help="re-run a recorded session through Gateway.step and compare")
+    r.add_argument("session", help="session .mcap")
+    r.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. controller.mpc.weight_lateral=10",
+    )
+    r.add_argument("--json", action="store_true")
+    r = rsub.add_parser("plot", help="path, steering and speed plots of a recorded drive")
+    r.add_argument("log", help="CAN log or session .mcap")
+    r.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("check-config", help="load and check a config file")
     p.add_argument("file")

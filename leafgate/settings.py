@@ -9,6 +9,8 @@ from leafgate.can.config import CanConfig
 from leafgate.config import VehicleConfig, from_mapping, load_yaml
 from leafgate.control.config import ControllerConfig
 from leafgate.gateway.config import GatewayConfig
+from leafgate.messages import LongMode
+from leafgate.replay.config import RecordingConfig
 from leafgate.sim.config import SimConfig
 from leafgate.transport.config import ZenohConfig
 
@@ -21,6 +23,12 @@ class LeafgateConfig:
     can: CanConfig = field(default_factory=CanConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+
+    @property
+    def long_mode(self) -> LongMode:
+        """The longitudinal command the ECU receives: the MPC's mode (paper §II.B)."""
+        return LongMode.SPEED if self.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
 
 
 def load_config(path: str | Path | None) -> LeafgateConfig:

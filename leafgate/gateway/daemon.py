@@ -24,9 +24,10 @@ import numpy as np
 from leafgate.can.bus import open_buses
 from leafgate.can.codec import CanCodec
 from leafgate.control import make_controller
+from leafgate.control.base import Controller
 from leafgate.gateway.core import Gateway
 from leafgate.gateway.runtime import CanReceiver, InputSource, RequestBox, Runtime, sd_notify
-from leafgate.messages import LongMode, OperatorRequest, Pose, Stamped, Trajectory
+from leafgate.messages import OperatorRequest, Pose, Stamped, Trajectory
 from leafgate.settings import LeafgateConfig
 from leafgate.transport.config import ZenohConfig
 
@@ -77,11 +78,17 @@ class StablePlan:
         return stamped
 
 
-def build_gateway(cfg: LeafgateConfig) -> Gateway:
-    """The pure core with its controller, as the config says."""
-    mode = LongMode.SPEED if cfg.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
+def build_gateway(
+    cfg: LeafgateConfig, wrap_controller: Callable[[Controller], Controller] | None = None
+) -> Gateway:
+    """The pure core with its controller, as the config says.
+
+    :param wrap_controller: e.g. the session recorder's tap on the controller's internals
+    """
     controller = make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
-    return Gateway(cfg.gateway, cfg.vehicle, controller, mode)
+    if wrap_controller is not None:
+        controller = wrap_controller(controller)
+    return Gateway(cfg.gateway, cfg.vehicle, controller, cfg.long_mode)
 
 
 @contextmanager
@@ -120,11 +127,15 @@ def run_daemon(
     stop = stop or threading.Event()
     clock = time.perf_counter
     codec = CanCodec(cfg.can.dbw_dbc, cfg.can.car_dbc)  # CanCodecError: a DBC missing/invalid
-    gateway = build_gateway(cfg)
     requests = RequestBox()
+    from leafgate.replay.recorder import open_recording
     from leafgate.transport.node import GatewayTransport  # zenoh loads only where it is used
 
     with ExitStack() as stack:
+        # Recording never stops the loop: a file problem becomes a fault in diagnostics.
+        recording = open_recording(cfg.recording, cfg, clock=clock)
+        stack.callback(recording.close)
+        gateway = build_gateway(cfg, wrap_controller=recording.wrap_controller)
         buses = stack.enter_context(
             open_buses(cfg.can, codec.receive_ids("reports"), codec.receive_ids("car"))
         )
@@ -137,7 +148,9 @@ def run_daemon(
         else:
             transport = GatewayTransport(session, cfg.zenoh, answer, clock=clock)
         stack.enter_context(transport)
+        transport.on_raw = recording.on_zenoh_input
         receiver = CanReceiver(codec, clock)
+        receiver.on_frame = lambda msg, _decoded: recording.on_can_frame(msg, "rx")
         notifier = can.Notifier(
             [buses.dbw] if buses.shared else [buses.dbw, buses.car], [receiver], timeout=0.1
         )
@@ -152,7 +165,11 @@ def run_daemon(
             publisher=transport,
             requests=requests,
             clock=clock,
-            extra_diagnostics=lambda: {"zenoh_decode_errors": transport.decode_errors},
+            on_tick=recording.on_tick,
+            extra_diagnostics=lambda: {
+                "zenoh_decode_errors": transport.decode_errors,
+                "recording": recording.diagnostics(),
+            },
         )
         if on_runtime is not None:
             on_runtime(runtime)

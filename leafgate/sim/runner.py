@@ -27,7 +27,6 @@ from leafgate.errors import ConfigError
 from leafgate.gateway.core import Gateway, GatewayInputs
 from leafgate.messages import (
     GatewayState,
-    LongMode,
     LongReport,
     OperatorRequest,
     Pose,
@@ -249,11 +248,10 @@ def run(
     ticks_per_control = max(1, round(period / ECU_TICK))
     ecu_dt = period / ticks_per_control
     traj = scenario.trajectory
-    mode = LongMode.SPEED if config.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
     controller = make_controller(config.controller, config.vehicle, period)
     if recorder is not None:  # recording: a transparent wrapper lets it see the predicted path
         controller = recorder.wrap_controller(controller)
-    gateway = Gateway(config.gateway, config.vehicle, controller, mode)
+    gateway = Gateway(config.gateway, config.vehicle, controller, config.long_mode)
     plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
     ecu = SimulatedEcu(
         config.sim.ecu, plant, config.vehicle, CanCodec(config.can.dbw_dbc, config.can.car_dbc)

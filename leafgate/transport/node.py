@@ -35,7 +35,7 @@ from leafgate.messages import (
     SteerReport,
     Trajectory,
 )
-from leafgate.transport import keys
+from leafgate.transport import cdr, keys
 from leafgate.transport.config import ZenohConfig
 from leafgate.transport.payloads import (
     Codec,
@@ -226,6 +226,10 @@ class GatewayTransport:
         self._codecs = codecs(cfg.encoding)
         self._publish_errors: dict[str, int] = {}
         self._handler_errors = 0
+        # Called with (key, raw payload, receive time, ROS type name or None for JSON) for every
+        # input sample before it is decoded: the session recorder's tap.
+        self.on_raw: Callable[[str, bytes, float, str | None], None] | None = None
+        self._tap_errors = 0
         self._lock = threading.Lock()
         # Queries are answered on a thread of our own: the handler may wait for the control
         # thread, and a Zenoh callback that blocks stalls the link it arrived on (and with it
@@ -244,13 +248,19 @@ class GatewayTransport:
         try:
             self._declared.append(
                 session.declare_subscriber(
-                    self.pose.key, self._subscriber(self.pose, self._codecs.pose, pose_is_valid)
+                    self.pose.key,
+                    self._subscriber(self.pose, self._codecs.pose, pose_is_valid, cdr.ODOMETRY),
                 )
             )
             self._declared.append(
                 session.declare_subscriber(
                     self.trajectory.key,
-                    self._subscriber(self.trajectory, self._codecs.trajectory, trajectory_is_valid),
+                    self._subscriber(
+                        self.trajectory,
+                        self._codecs.trajectory,
+                        trajectory_is_valid,
+                        cdr.TRAJECTORY,
+                    ),
                 )
             )
             self._declared.append(
@@ -302,14 +312,21 @@ class GatewayTransport:
     # --- inputs ---------------------------------------------------------------------------
 
     def _subscriber(
-        self, slot: LatestSlot[T], codec: Codec[T], valid: Callable[[T], bool]
+        self, slot: LatestSlot[T], codec: Codec[T], valid: Callable[[T], bool], typename: str
     ) -> Callable[[zenoh.Sample], None]:
         clock = self._clock
+        typename_or_none = typename if self._cfg.encoding == "cdr" else None
 
         def on_sample(sample: zenoh.Sample) -> None:
             received = clock()  # before decoding: the age counts from arrival
+            payload = sample.payload.to_bytes()
+            if self.on_raw is not None:
+                try:
+                    self.on_raw(slot.key, payload, received, typename_or_none)
+                except Exception:  # a recorder problem must not stop the inputs
+                    self._tap_errors += 1
             try:
-                value = codec.decode(sample.payload.to_bytes())
+                value = codec.decode(payload)
                 ok = valid(value)
             except Exception as exc:  # PayloadError, or a bug: never raise into Zenoh
                 slot.count_error(str(exc))

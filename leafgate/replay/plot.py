@@ -1,0 +1,194 @@
+"""``leafgate replay plot LOG|SESSION --out DIR``: path, steering and speed plots of a drive.
+
+The same three PNGs as the simulator (:func:`leafgate.sim.plots.plot_drive`):
+
+- from a **session**: the localization's path against the recorded trajectory, the steering
+  command against the measured road-wheel angle (DBW_STEER_RPT), and the measured speed
+  against the trajectory's speed at the nearest point;
+- from a **CAN log**: one sample per DBW_STEER_CMD frame, with the latest reports before it.
+  A CAN log holds no localization, so the path is dead-reckoned from the reported speed and
+  road-wheel angle with the kinematic bicycle (``θ̇ = v tan δ / L``) and starts at the origin;
+  the speed reference is the commanded speed (meaningful in velocity mode).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Final, TextIO
+
+import numpy as np
+
+from leafgate.config import VehicleConfig
+from leafgate.messages import (
+    FloatArray,
+    LongCommand,
+    LongReport,
+    SteerCommand,
+    SteerReport,
+    Trajectory,
+)
+from leafgate.replay.logs import FrameSource, is_session
+from leafgate.replay.session import TOPIC_TICK, TOPIC_TRAJECTORY, SessionReader, decode_trajectory
+from leafgate.sim.plots import Trace, plot_drive
+
+__all__ = ["main_plot", "plot_recording", "trace_from_log", "trace_from_session"]
+
+MAX_POINTS: Final = 5000  # samples plotted (and projected onto the path): more is not visible
+
+
+def _thin(n: int) -> slice:
+    return slice(None, None, max(1, math.ceil(n / MAX_POINTS)))
+
+
+def trace_from_session(path: str | Path) -> tuple[Trace, Trajectory | None]:
+    """The drive of a session and the last trajectory it followed.
+
+    :raises ReplayError: the file is not a readable session
+    """
+    from leafgate.sim.metrics import path_errors
+
+    t: list[float] = []
+    x: list[float] = []
+    y: list[float] = []
+    heading: list[float] = []
+    speed: list[float] = []
+    actual: list[float] = []
+    target: list[float] = []
+    trajectory: Trajectory | None = None
+    with SessionReader(path) as reader:
+        for record in reader.records(frozenset({TOPIC_TICK, TOPIC_TRAJECTORY})):
+            data = record.json()
+            if record.topic == TOPIC_TRAJECTORY:
+                trajectory = decode_trajectory(data)
+                continue
+            pose = data["inputs"]["pose"]
+            steer = data["inputs"]["steer_report"]
+            if pose is None:
+                continue
+            p = pose["value"]
+            t.append(float(data["now"]))
+            x.append(float(p["x"]))
+            y.append(float(p["y"]))
+            heading.append(float(p["heading"]))
+            speed.append(float(p["speed"]))
+            actual.append(math.nan if steer is None else float(steer["value"]["angle"]))
+            target.append(float(data["commands"]["steer"]["angle"]))
+    arrays = {
+        k: np.asarray(v, dtype=np.float64)[_thin(len(t))]
+        for k, v in {
+            "t": t,
+            "x": x,
+            "y": y,
+            "heading": heading,
+            "speed": speed,
+            "actual": actual,
+            "target": target,
+        }.items()
+    }
+    if trajectory is not None and len(trajectory) >= 2 and arrays["t"].size:
+        speed_ref = path_errors(trajectory, arrays["x"], arrays["y"], arrays["heading"]).speed_ref
+    else:
+        speed_ref = np.full_like(arrays["t"], math.nan)
+    trace = Trace(
+        label=Path(path).stem,
+        t=arrays["t"],
+        x=arrays["x"],
+        y=arrays["y"],
+        speed=arrays["speed"],
+        steer_actual=arrays["actual"],
+        steer_target=arrays["target"],
+        speed_ref=speed_ref,
+    )
+    return trace, trajectory
+
+
+def trace_from_log(path: str | Path, vehicle: VehicleConfig | None = None) -> Trace:
+    """The drive of a CAN log, sampled at each steering command; the path dead-reckoned.
+
+    :raises ReplayError: the file is missing or unreadable
+    """
+    from leafgate.can.codec import CanCodec
+
+    wheelbase = (vehicle or VehicleConfig()).wheelbase
+    codecs: dict[object, CanCodec] = {}
+    steer: SteerReport | None = None
+    long: LongReport | None = None
+    cmd_speed = math.nan
+    rows: list[tuple[float, float, float, float, float]] = []  # t, v, δ measured, δ cmd, v cmd
+    for msg in FrameSource(path):
+        codec = codecs.get(msg.channel)
+        if codec is None:
+            codec = codecs[msg.channel] = CanCodec()
+        decoded = codec.decode(msg)
+        if not decoded.valid:
+            continue
+        value = decoded.value
+        if isinstance(value, SteerReport):
+            steer = value
+        elif isinstance(value, LongReport):
+            long = value
+        elif isinstance(value, LongCommand):
+            cmd_speed = value.speed
+        elif isinstance(value, SteerCommand):
+            rows.append(
+                (
+                    msg.timestamp,
+                    math.nan if long is None else long.speed,
+                    math.nan if steer is None else steer.angle,
+                    value.angle,
+                    cmd_speed,
+                )
+            )
+    data = np.asarray(rows, dtype=np.float64).reshape(-1, 5)
+    t, v, delta, target, v_cmd = data.T
+    x, y = _dead_reckon(t, np.nan_to_num(v), np.nan_to_num(delta), wheelbase)
+    thin = _thin(t.size)
+    return Trace(
+        label=Path(path).stem,
+        t=t[thin] - (t[0] if t.size else 0.0),
+        x=x[thin],
+        y=y[thin],
+        speed=v[thin],
+        steer_actual=delta[thin],
+        steer_target=target[thin],
+        speed_ref=v_cmd[thin],
+    )
+
+
+def _dead_reckon(
+    t: FloatArray, v: FloatArray, delta: FloatArray, wheelbase: float
+) -> tuple[FloatArray, FloatArray]:
+    """Rear-axle path of the kinematic bicycle from speed and road-wheel angle (Euler steps)."""
+    if t.size == 0:
+        return t.copy(), t.copy()
+    dt = np.diff(t, prepend=t[0])
+    theta = np.cumsum(v * np.tan(delta) / wheelbase * dt)  # θ̇ = v tan δ / L
+    x = np.cumsum(v * np.cos(theta) * dt)
+    y = np.cumsum(v * np.sin(theta) * dt)
+    return x, y
+
+
+def plot_recording(path: str | Path, out_dir: str | Path) -> Mapping[str, Path]:
+    """Write path.png, steering.png and speed.png of a log or session into ``out_dir``."""
+    if is_session(path):
+        trace, trajectory = trace_from_session(path)
+        title = f"({Path(path).name})"
+    else:
+        trace, trajectory = trace_from_log(path), None
+        title = f"({Path(path).name}, path dead-reckoned)"
+    return plot_drive(Path(out_dir), trajectory, [trace], title)
+
+
+def main_plot(log: str | Path, *, out: str | Path, stdout: TextIO | None = None) -> int:
+    """``leafgate replay plot LOG|SESSION --out DIR``.
+
+    :return: 0
+    :raises LeafgateError: unreadable log or session (the CLI prints it)
+    """
+    stdout = stdout or sys.stdout
+    for name, file in plot_recording(log, out).items():
+        stdout.write(f"{name}: {file}\n")
+    return 0

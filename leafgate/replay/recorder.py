@@ -1,0 +1,675 @@
+"""Recording a drive: CAN logs in python-can formats and whole sessions in MCAP.
+
+The hooks are called from the threads that see the data — the python-can Notifier thread
+(received frames), Zenoh callback threads (inputs) and the control thread (ticks and sent
+frames). They only put an item on a bounded queue and return: a writer thread per file does
+the encoding and the disk I/O, so a slow disk never delays a control tick. When the queue is
+full, items are dropped and counted.
+
+Crash safety: the writer thread makes the file readable up to the last item every
+``flush_period`` (≤ 1 s): the MCAP chunk in progress is closed, the BLF container in progress
+is compressed and written and the BLF header updated, text formats are flushed. A clean
+:meth:`close` finishes every file properly (MCAP summary and footer, BLF header).
+
+Disk full, an unwritable directory, any write error: the recorder's :attr:`fault` says what
+and where and its counters grow; the file is given up (later items are dropped and counted);
+nothing is raised into the caller's thread — the control loop keeps running.
+
+Wiring (daemon)::
+
+    recording = open_recording(config.recording, config, clock=runtime_clock)
+    receiver.on_frame = lambda msg, decoded: recording.on_can_frame(msg, "rx")
+    runtime = Runtime(..., on_tick=recording.on_tick,
+                      extra_diagnostics=lambda: {"recording": recording.diagnostics()})
+    # each Zenoh input sample: recording.on_zenoh_input(key, payload, received, typename)
+    ...
+    recording.close()   # after the runtime has stopped
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import IO, Any, Final, Literal, Protocol
+
+import can
+import numpy as np
+
+from leafgate.control.base import Controller
+from leafgate.gateway.core import GatewayInputs, StepResult
+from leafgate.messages import ControlOutput, Pose, Trajectory
+from leafgate.replay.config import CAN_LOG_SUFFIXES, RecordingConfig
+from leafgate.replay.session import SessionWriter
+from leafgate.settings import LeafgateConfig
+
+__all__ = [
+    "CanLogRecorder",
+    "ControllerTap",
+    "Direction",
+    "Recorder",
+    "Recording",
+    "SessionRecorder",
+    "open_recording",
+]
+
+log = logging.getLogger(__name__)
+
+Direction = Literal["rx", "tx"]
+_STOP: Final = object()
+_ROTATE_CHECK_EVERY: Final = 256  # frames between file-size checks (tell() is not free)
+
+
+class Recorder(Protocol):
+    """What the simulator and the runtime call; every method returns at once."""
+
+    def on_can_frame(self, msg: can.Message, direction: Direction) -> None: ...
+
+    def on_tick(
+        self, now: float, inputs: GatewayInputs, result: StepResult, frames: Sequence[can.Message]
+    ) -> None: ...
+
+    def wrap_controller(self, controller: Controller) -> Controller: ...
+
+
+class ControllerTap:
+    """A transparent controller wrapper that keeps the last :class:`ControlOutput`.
+
+    The gateway's :class:`~leafgate.gateway.core.StepResult` carries the controller's figures
+    but not its predicted path; wrapping the controller lets the session record it. Behaviour
+    is unchanged: every call goes to the wrapped controller.
+    """
+
+    def __init__(self, controller: Controller) -> None:
+        self.controller = controller
+        self.period = controller.period
+        self.last_output: ControlOutput | None = None
+
+    def reset(self) -> None:
+        self.controller.reset()
+
+    def step(self, pose: Pose, steer_angle: float, trajectory: Trajectory) -> ControlOutput:
+        out = self.controller.step(pose, steer_angle, trajectory)
+        self.last_output = out
+        return out
+
+    def take(self) -> ControlOutput | None:
+        """The output since the last take (None when the controller did not run)."""
+        out, self.last_output = self.last_output, None
+        return out
+
+
+class _BackgroundWriter:
+    """A bounded queue drained by one thread that writes, flushes on time and closes.
+
+    :param name: thread name and the start of every fault message
+    :param write: called on the thread for each item
+    :param flush: makes everything written so far durable in the file
+    :param close: finishes the file
+    """
+
+    def __init__(
+        self,
+        name: str,
+        write: Callable[[Any], None],
+        flush: Callable[[], None],
+        close: Callable[[], None],
+        flush_period: float,
+        queue_size: int,
+    ) -> None:
+        self.name = name
+        self._write = write
+        self._flush = flush
+        self._close = close
+        self._period = flush_period
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self._lock = threading.Lock()
+        self.fault = ""  # the last problem, "" while healthy
+        self.failed = False  # the file was given up after a write error
+        self.errors = 0  # write/flush/close errors
+        self.dropped = 0  # items not written (queue full, or after a failure)
+        self.written = 0
+        self.flushes = 0
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def put(self, item: Any) -> None:
+        """Queue an item; never blocks."""
+        if self.failed or self._closed:
+            self.dropped += 1
+            return
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            with self._lock:
+                self.dropped += 1
+
+    def fail(self, what: str, exc: BaseException) -> None:
+        """Record a fault; an OSError (disk full, permissions …) gives the file up."""
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        self.fault = f"{self.name}: {what}: {reason or type(exc).__name__}"
+        self.errors += 1
+        if isinstance(exc, OSError):
+            self.failed = True
+        log.error("%s", self.fault)
+
+    def _guarded(self, what: str, fn: Callable[[], None]) -> None:
+        if self.failed:
+            return
+        try:
+            fn()
+        except Exception as exc:  # nothing may escape into (or kill) the writer thread
+            self.fail(what, exc)
+
+    def _run(self) -> None:
+        period = self._period
+        next_flush = time.monotonic() + period
+        dirty = False
+        while True:
+            timeout = max(0.0, next_flush - time.monotonic())
+            try:
+                item = self._queue.get(timeout=timeout)
+            except queue.Empty:
+                item = None
+            if item is _STOP:
+                break
+            if isinstance(item, threading.Event):  # a flush request
+                if dirty:
+                    self._guarded("flush", self._flush)
+                    self.flushes += 1
+                    dirty = False
+                item.set()
+                continue
+            if item is not None:
+                if self.failed:
+                    self.dropped += 1
+                else:
+                    try:
+                        self._write(item)
+                        self.written += 1
+                        dirty = True
+                    except Exception as exc:
+                        self.fail("write", exc)
+            now = time.monotonic()
+            if now >= next_flush:
+                if dirty:
+                    self._guarded("flush", self._flush)
+                    self.flushes += 1
+                    dirty = False
+                next_flush = now + period
+        self._guarded("close", self._close)
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Wait until everything queued so far is written and flushed (for tests and tools)."""
+        if self._closed:
+            return False
+        done = threading.Event()
+        try:
+            self._queue.put(done, timeout=timeout)
+        except queue.Full:
+            return False
+        return done.wait(timeout)
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Write what is queued, finish the file and stop the thread."""
+        if self._closed:
+            return
+        self._closed = True
+        self._queue.put(_STOP)
+        self._thread.join(timeout)
+
+    def counters(self) -> dict[str, Any]:
+        return {
+            "written": self.written,
+            "dropped": self.dropped,
+            "errors": self.errors,
+            "flushes": self.flushes,
+            "queued": self._queue.qsize(),
+            "fault": self.fault,
+        }
+
+
+class _BlfWriter(can.BLFWriter):
+    """python-can's BLF writer with a flush that leaves a readable file behind.
+
+    ``BLFWriter`` writes a container only when 128 KiB are buffered and fills in the file
+    header only in ``stop()``; here a flush writes the partial container and updates the
+    header (start time, object count), so a crash loses nothing flushed. It uses two
+    internals of python-can 4.x (``_flush``, ``_write_header``); tests cover them.
+    """
+
+    def flush(self) -> None:
+        while self._buffer_size > 0:
+            self._flush()
+        if self.file.seekable():
+            end = self.file.tell()
+            self.file.seek(0)
+            self._write_header(end)
+            self.file.seek(end)
+        self.file.flush()
+
+
+class _AscWriter(can.ASCWriter):
+    """python-can's ASC writer with the start time's milliseconds zero-padded.
+
+    python-can 4.6 writes 31 ms as ``…:20.31``, which its own reader (and CANoe) read as
+    310 ms: every absolute time in the file moves by up to a second.
+    """
+
+    FORMAT_DATE = "%a %b %d %H:%M:%S.{:03d} %Y"
+
+
+def _open_can_writer(path: Path, channel: str) -> can.io.generic.FileIOMessageWriter[Any]:
+    """The writer for the suffix; ``channel`` names frames without one in ``.log`` files
+    (BLF and ASC number their channels and use python-can's default, 1)."""
+    if path.suffix.lower() == ".blf":
+        return _BlfWriter(path)
+    if path.suffix.lower() == ".log":
+        return can.CanutilsLogWriter(path, channel=channel)
+    return _AscWriter(path)
+
+
+def _tx_copy(msg: can.Message, timestamp: float, channel: str) -> can.Message:
+    return can.Message(
+        timestamp=timestamp,
+        arbitration_id=msg.arbitration_id,
+        is_extended_id=msg.is_extended_id,
+        is_remote_frame=msg.is_remote_frame,
+        is_error_frame=msg.is_error_frame,
+        channel=msg.channel if msg.channel is not None else channel,
+        dlc=msg.dlc,
+        data=msg.data,
+        is_fd=msg.is_fd,
+        is_rx=False,
+    )
+
+
+class CanLogRecorder:
+    """Every CAN frame in and out, in a python-can log file with size rotation.
+
+    The format follows the suffix of ``path``: ``.blf`` (Vector binary logging), ``.log``
+    (``candump -L``, which ``cantools decode`` reads) or ``.asc``. Files are numbered:
+    ``can.blf`` is written as ``can_000.blf``, ``can_001.blf`` … each at most about
+    ``max_bytes`` long.
+
+    :param path: base file name; its directory is created
+    :param max_bytes: rotate when a file reaches this size (0: never)
+    :param flush_period: s between flushes (a crash loses at most this much)
+    :param queue_size: frames waiting for the writer thread before frames are dropped
+    :param tx_clock: stamps sent frames when given (the daemon passes ``time.time`` so sent
+        frames share the clock of received ones); None keeps each frame's own timestamp
+    :param channel: channel written for frames that carry none (sent frames)
+
+    An unwritable directory is not raised: :attr:`fault` tells, and frames are counted as
+    dropped.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        max_bytes: int = 0,
+        flush_period: float = 1.0,
+        queue_size: int = 20_000,
+        tx_clock: Callable[[], float] | None = None,
+        channel: str = "can0",
+    ) -> None:
+        self.path = Path(path)
+        if self.path.suffix.lower() not in CAN_LOG_SUFFIXES:
+            raise ValueError(f"{self.path}: a CAN log must end in one of {CAN_LOG_SUFFIXES}")
+        self.max_bytes = max_bytes
+        self.tx_clock = tx_clock
+        self.channel = channel
+        self.files: list[Path] = []
+        self.frames = 0
+        self._writer: can.io.generic.FileIOMessageWriter[Any] | None = None
+        self._since_check = 0
+        self._bg = _BackgroundWriter(
+            f"can-log {self.path.name}",
+            self._write,
+            self._flush,
+            self._finish,
+            flush_period,
+            queue_size,
+        )
+        try:
+            self._rotate()
+        except Exception as exc:
+            self._bg.fail(f"cannot open {self._next_name()}", exc)
+
+    # -- hooks (any thread) --
+
+    def on_can_frame(self, msg: can.Message, direction: Direction) -> None:
+        """Record one frame; ``direction`` is ``"rx"`` (received) or ``"tx"`` (sent)."""
+        if direction == "tx":
+            stamp = self.tx_clock() if self.tx_clock is not None else msg.timestamp
+            msg = _tx_copy(msg, stamp, self.channel)
+        self._bg.put(msg)
+
+    def on_tick(
+        self, now: float, inputs: GatewayInputs, result: StepResult, frames: Sequence[can.Message]
+    ) -> None:
+        """Record the frames sent this tick."""
+        for frame in frames:
+            self.on_can_frame(frame, "tx")
+
+    def on_zenoh_input(
+        self, key: str, payload: bytes, received: float, typename: str | None = None
+    ) -> None:
+        """Zenoh inputs are not CAN frames: ignored here (the session records them)."""
+
+    def wrap_controller(self, controller: Controller) -> Controller:
+        """The controller unchanged (a CAN log records no controller internals)."""
+        return controller
+
+    # -- writer thread --
+
+    def _next_name(self) -> Path:
+        return self.path.with_name(f"{self.path.stem}_{len(self.files):03d}{self.path.suffix}")
+
+    def _rotate(self) -> None:
+        if self._writer is not None:
+            writer, self._writer = self._writer, None
+            writer.stop()
+        name = self._next_name()
+        name.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = _open_can_writer(name, self.channel)
+        self.files.append(name)
+
+    def _write(self, msg: can.Message) -> None:
+        if self._writer is None:
+            raise OSError(0, "no open log file")
+        self._writer.on_message_received(msg)
+        self.frames += 1
+        self._since_check += 1
+        if self.max_bytes and self._since_check >= _ROTATE_CHECK_EVERY:
+            self._since_check = 0
+            if self._writer.file_size() >= self.max_bytes:
+                self._rotate()
+
+    def _flush(self) -> None:
+        if self._writer is None:
+            return
+        if isinstance(self._writer, _BlfWriter):
+            self._writer.flush()
+        else:
+            self._writer.file.flush()
+        if self.max_bytes and self._writer.file_size() >= self.max_bytes:
+            self._rotate()
+
+    def _finish(self) -> None:
+        if self._writer is not None:
+            writer, self._writer = self._writer, None
+            writer.stop()
+
+    # -- control --
+
+    @property
+    def fault(self) -> str:
+        """The last recording problem ("" while healthy)."""
+        return self._bg.fault
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Block until every frame handed in so far is in the file."""
+        return self._bg.flush(timeout)
+
+    def close(self) -> None:
+        """Write what is queued and close the file properly."""
+        self._bg.close()
+
+    def diagnostics(self) -> dict[str, Any]:
+        return {"files": [str(f) for f in self.files], **self._bg.counters()}
+
+    def __enter__(self) -> CanLogRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SessionRecorder:
+    """The whole session in one MCAP file (see :mod:`leafgate.replay.session`).
+
+    :param path: the ``.mcap`` file; its directory is created
+    :param config: the configuration the gateway runs with (recorded as metadata; a re-run
+        rebuilds the gateway from it)
+    :param clock: the gateway clock, stamping received frames as they are handed in (the
+        daemon passes the runtime's clock); None uses each frame's own timestamp (simulator)
+    :param tap: the controller wrapper whose output gives the predicted path (optional)
+    :param diagnostics: also record ``Diagnostics.to_dict()`` every tick
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        config: LeafgateConfig,
+        *,
+        clock: Callable[[], float] | None = None,
+        flush_period: float = 1.0,
+        queue_size: int = 20_000,
+        compression: Literal["zstd", "lz4", "none"] = "zstd",
+        diagnostics: bool = True,
+        tap: ControllerTap | None = None,
+        session: dict[str, str] | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.clock = clock
+        self.tap = tap
+        self.record_diagnostics = diagnostics
+        self.ticks = 0
+        self._file: IO[bytes] | None = None
+        self._writer: SessionWriter | None = None
+        self._bg = _BackgroundWriter(
+            f"session {self.path.name}",
+            self._write,
+            self._flush,
+            self._finish,
+            flush_period,
+            queue_size,
+        )
+        meta = {"clock": "gateway" if clock is not None else "frame timestamps"}
+        meta["started"] = datetime.now().astimezone().isoformat(timespec="seconds")
+        meta.update(session or {})
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = self.path.open("wb")
+            self._writer = SessionWriter(self._file, config, compression, meta)
+            self._file.flush()
+        except Exception as exc:
+            self._bg.fail(f"cannot open {self.path}", exc)
+
+    # -- hooks (any thread) --
+
+    def on_can_frame(self, msg: can.Message, direction: Direction) -> None:
+        t = self.clock() if self.clock is not None else msg.timestamp
+        self._bg.put(("can", t, msg, direction == "rx"))
+
+    def on_zenoh_input(
+        self, key: str, payload: bytes, received: float, typename: str | None = None
+    ) -> None:
+        """A raw Zenoh input sample with its receive time (gateway clock)."""
+        self._bg.put(("zenoh", key, bytes(payload), received, typename))
+
+    def on_tick(
+        self, now: float, inputs: GatewayInputs, result: StepResult, frames: Sequence[can.Message]
+    ) -> None:
+        """One control tick and the frames it sent (control thread)."""
+        xy = None
+        if self.tap is not None:
+            output = self.tap.take()
+            if output is not None and output.predicted_xy is not None:
+                # the controller may reuse its buffer next tick: copy before handing over
+                xy = np.array(output.predicted_xy, dtype=np.float64)
+        self._bg.put(("tick", now, inputs, result, xy))
+        for frame in frames:
+            self._bg.put(("can", now, frame, False))
+
+    def wrap_controller(self, controller: Controller) -> Controller:
+        """Wrap the controller so its predicted path is recorded (its output is unchanged)."""
+        self.tap = ControllerTap(controller)
+        return self.tap
+
+    # -- writer thread --
+
+    def _write(self, item: tuple[Any, ...]) -> None:
+        writer = self._writer
+        if writer is None:
+            raise OSError(0, "no open session file")
+        kind = item[0]
+        if kind == "can":
+            _, t, msg, rx = item
+            writer.can_frame(t, msg, rx)
+        elif kind == "tick":
+            _, now, inputs, result, xy = item
+            writer.tick(now, inputs, result, xy, self.record_diagnostics)
+            self.ticks += 1
+        else:
+            _, key, payload, received, typename = item
+            writer.zenoh_input(key, payload, received, typename)
+
+    def _flush(self) -> None:
+        if self._writer is not None and self._file is not None:
+            self._writer.flush()
+            self._file.flush()
+
+    def _finish(self) -> None:
+        try:
+            if self._writer is not None:
+                self._writer.finish()
+        finally:
+            if self._file is not None:
+                self._file.close()
+
+    # -- control --
+
+    @property
+    def fault(self) -> str:
+        return self._bg.fault
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Block until every item handed in so far is in the file (a crash now loses none)."""
+        return self._bg.flush(timeout)
+
+    def close(self) -> None:
+        """Write what is queued and finish the MCAP file (summary, footer)."""
+        self._bg.close()
+
+    def diagnostics(self) -> dict[str, Any]:
+        return {"file": str(self.path), "ticks": self.ticks, **self._bg.counters()}
+
+    def __enter__(self) -> SessionRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_AnyRecorder = CanLogRecorder | SessionRecorder
+
+
+class Recording:
+    """The configured recorders behind one set of hooks (what the runtime is given)."""
+
+    def __init__(self, recorders: Sequence[_AnyRecorder] = ()) -> None:
+        self.recorders = tuple(recorders)
+
+    def wrap_controller(self, controller: Controller) -> Controller:
+        """Wrap the controller so the session records its predicted path (unchanged output)."""
+        for r in self.recorders:
+            controller = r.wrap_controller(controller)
+        return controller
+
+    def on_can_frame(self, msg: can.Message, direction: Direction) -> None:
+        for r in self.recorders:
+            r.on_can_frame(msg, direction)
+
+    def on_zenoh_input(
+        self, key: str, payload: bytes, received: float, typename: str | None = None
+    ) -> None:
+        for r in self.recorders:
+            r.on_zenoh_input(key, payload, received, typename)
+
+    def on_tick(
+        self, now: float, inputs: GatewayInputs, result: StepResult, frames: Sequence[can.Message]
+    ) -> None:
+        for r in self.recorders:
+            r.on_tick(now, inputs, result, frames)
+
+    @property
+    def fault(self) -> str:
+        """The first recorder fault ("" while every file is healthy)."""
+        return next((r.fault for r in self.recorders if r.fault), "")
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        return all([r.flush(timeout) for r in self.recorders])
+
+    def close(self) -> None:
+        for r in self.recorders:
+            r.close()
+
+    def diagnostics(self) -> dict[str, Any]:
+        """For the runtime's diagnostics: ``{fault, can_log, session}``."""
+        out: dict[str, Any] = {"fault": self.fault}
+        for r in self.recorders:
+            out["session" if isinstance(r, SessionRecorder) else "can_log"] = r.diagnostics()
+        return out
+
+    def __enter__(self) -> Recording:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_recording(
+    cfg: RecordingConfig,
+    config: LeafgateConfig,
+    *,
+    clock: Callable[[], float] | None = None,
+    wall_clock: Callable[[], float] | None = time.time,
+    start: datetime | None = None,
+) -> Recording:
+    """The recorders ``cfg`` asks for (none when ``enabled`` is false).
+
+    Never raises for file problems: a recorder that cannot open its file reports it in
+    ``fault`` (and the daemon's diagnostics).
+
+    :param clock: the gateway clock for the session (the runtime's ``clock``)
+    :param wall_clock: stamps sent frames in the CAN log; python-can stamps received frames
+        with the epoch clock, so the default ``time.time`` keeps the log on one clock
+    :param start: the time substituted for ``{start}`` (default now)
+    """
+    if not cfg.enabled:
+        return Recording()
+    stamp = (start or datetime.now()).strftime("%Y%m%dT%H%M%S")
+    directory = Path(cfg.directory)
+    recorders: list[_AnyRecorder] = []
+    if cfg.can_log is not None:
+        recorders.append(
+            CanLogRecorder(
+                directory / cfg.can_log.format(start=stamp),
+                max_bytes=cfg.max_bytes,
+                flush_period=cfg.flush_period,
+                queue_size=cfg.queue_size,
+                tx_clock=wall_clock,
+                channel=config.can.dbw.channel,
+            )
+        )
+    if cfg.session is not None:
+        recorders.append(
+            SessionRecorder(
+                directory / cfg.session.format(start=stamp),
+                config,
+                clock=clock,
+                flush_period=cfg.flush_period,
+                queue_size=cfg.queue_size,
+                compression=cfg.compression,
+                diagnostics=cfg.diagnostics,
+            )
+        )
+    return Recording(recorders)

@@ -1,0 +1,261 @@
+"""``leafgate replay rerun SESSION.mcap``: re-run a recorded drive through ``Gateway.step``.
+
+The session holds, per tick, the :class:`~leafgate.gateway.core.GatewayInputs` exactly as the
+gateway got them, the commands it sent, and the configuration it ran with. The re-run rebuilds
+the controller and the gateway from that configuration (with optional dotted-key overrides,
+``controller.mpc.weight_lateral=10``), feeds every recorded tick on the recorded clock, and
+compares the commands per signal: largest and RMS difference, how many ticks differ and the
+first time they do. The gateway and the controllers are deterministic, so identical code and
+configuration reproduce every command bit for bit; a changed weight shows where the drive
+would have gone differently (open loop: the recorded vehicle does not react to the new
+commands, so differences after the first divergence are indicative only).
+
+Exit status: 0 when every command is identical, 1 when any signal diverges.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final, TextIO
+
+import yaml
+
+from leafgate.control import make_controller
+from leafgate.errors import ConfigError, ReplayError
+from leafgate.gateway.core import Gateway
+from leafgate.messages import Commands, GatewayState, Trajectory
+from leafgate.replay.session import (
+    TOPIC_TICK,
+    TOPIC_TRAJECTORY,
+    SessionReader,
+    decode_commands,
+    decode_inputs,
+    decode_trajectory,
+    gateway_mode,
+)
+
+__all__ = ["RerunReport", "SignalDiff", "main_rerun", "parse_overrides", "rerun_session"]
+
+#: The compared signals, in report order.
+SIGNALS: Final = (
+    "steer.angle",
+    "steer.rate_limit",
+    "steer.enable",
+    "steer.clear_override",
+    "long.mode",
+    "long.accel",
+    "long.speed",
+    "long.gear",
+    "long.enable",
+    "long.clear_override",
+    "system.sent",
+    "system.state",
+    "system.clear_faults",
+    "state",
+)
+
+
+def command_signals(commands: Commands, state: GatewayState | str) -> tuple[float, ...]:
+    """The compared signals of one tick as numbers (flags 0/1, enums by code, NaN if absent)."""
+    s, lc, sys_cmd = commands.steer, commands.long, commands.system
+    state_code = GatewayState[state] if isinstance(state, str) else state
+    return (
+        s.angle,
+        s.rate_limit,
+        float(s.enable),
+        float(s.clear_override),
+        float(lc.mode),
+        lc.accel,
+        lc.speed,
+        float(lc.gear),
+        float(lc.enable),
+        float(lc.clear_override),
+        float(sys_cmd is not None),
+        math.nan if sys_cmd is None else float(sys_cmd.state),
+        math.nan if sys_cmd is None else float(sys_cmd.clear_faults),
+        float(state_code),
+    )
+
+
+@dataclass
+class SignalDiff:
+    """Recorded vs re-run values of one signal over the session."""
+
+    name: str
+    max_abs: float = 0.0  # in the signal's unit (rad, m/s², m/s, code)
+    sum_sq: float = 0.0
+    ticks: int = 0  # ticks compared
+    differing: int = 0  # ticks whose values are not identical
+    first_divergence: float | None = None  # s, gateway clock of the first differing tick
+
+    @property
+    def rms(self) -> float:
+        return math.sqrt(self.sum_sq / self.ticks) if self.ticks else 0.0
+
+    def add(self, t: float, recorded: float, rerun: float) -> None:
+        self.ticks += 1
+        if recorded == rerun or (math.isnan(recorded) and math.isnan(rerun)):
+            return
+        diff = abs(recorded - rerun)
+        if math.isnan(diff):  # present on one side only
+            diff = math.inf
+        self.differing += 1
+        self.max_abs = max(self.max_abs, diff)
+        self.sum_sq += diff * diff if math.isfinite(diff) else 0.0
+        if self.first_divergence is None:
+            self.first_divergence = t
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "signal": self.name,
+            "max_abs_diff": self.max_abs if math.isfinite(self.max_abs) else None,
+            "rms_diff": self.rms,
+            "differing_ticks": self.differing,
+            "first_divergence_s": self.first_divergence,
+        }
+
+
+@dataclass
+class RerunReport:
+    """The comparison of a re-run with the recording."""
+
+    path: str
+    overrides: dict[str, Any] = field(default_factory=dict)
+    ticks: int = 0
+    signals: list[SignalDiff] = field(default_factory=lambda: [SignalDiff(n) for n in SIGNALS])
+    truncated: bool = False  # the session ended before its footer (a crash): re-run up to there
+
+    @property
+    def identical(self) -> bool:
+        return all(s.differing == 0 for s in self.signals)
+
+    @property
+    def first_divergence(self) -> float | None:
+        times = [s.first_divergence for s in self.signals if s.first_divergence is not None]
+        return min(times) if times else None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "path": self.path,
+            "overrides": self.overrides,
+            "ticks": self.ticks,
+            "identical": self.identical,
+            "first_divergence_s": self.first_divergence,
+            "truncated": self.truncated,
+            "signals": [s.to_dict() for s in self.signals],
+        }
+
+    def format(self) -> list[str]:
+        lines = [
+            f"{self.path}: {self.ticks} ticks re-run"
+            + (
+                f" with {', '.join(f'{k}={v}' for k, v in self.overrides.items())}"
+                if self.overrides
+                else ""
+            )
+            + (" (truncated session)" if self.truncated else ""),
+            f"{'signal':<22} {'max |diff|':>12} {'RMS diff':>12} {'ticks':>7} {'first [s]':>11}",
+        ]
+        for s in self.signals:
+            first = "-" if s.first_divergence is None else f"{s.first_divergence:.3f}"
+            lines.append(
+                f"{s.name:<22} {s.max_abs:>12.6g} {s.rms:>12.6g} {s.differing:>7} {first:>11}"
+            )
+        if self.identical:
+            lines.append("IDENTICAL: every command reproduced bit for bit")
+        else:
+            lines.append(f"DIVERGED: first at {self.first_divergence:.3f} s")
+        return lines
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings (values in YAML: ``10``, ``true``, ``[1, 2]``) → a mapping.
+
+    :raises ConfigError: an item without ``=``
+    """
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(
+                f"--set {item!r}: expected KEY=VALUE, e.g. controller.mpc.weight_lateral=10"
+            )
+        try:
+            out[key.strip()] = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
+    return out
+
+
+def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) -> RerunReport:
+    """Re-run a session through a fresh gateway and compare the commands.
+
+    :raises ReplayError: not a session, or one without configuration or ticks
+    :raises ConfigError: the recorded configuration (with the overrides) does not load
+    """
+    path = Path(path)
+    report = RerunReport(str(path), dict(overrides or {}))
+    with SessionReader(path) as reader:
+        reader.read_metadata()
+        config = reader.config(overrides)
+        controller = make_controller(config.controller, config.vehicle, config.gateway.period)
+        gateway = Gateway(config.gateway, config.vehicle, controller, gateway_mode(config))
+        contents: dict[int, Mapping[str, Any]] = {}
+        current: tuple[int, Trajectory] | None = None  # (obj, the object handed to the gateway)
+
+        def trajectory(ref: int, obj: int) -> Trajectory:
+            nonlocal current
+            if current is None or current[0] != obj:
+                try:
+                    current = (obj, decode_trajectory(contents[ref]))
+                except KeyError:
+                    raise ReplayError(
+                        f"{path}: a tick refers to trajectory {ref}, never recorded"
+                    ) from None
+            return current[1]
+
+        for record in reader.records(frozenset({TOPIC_TICK, TOPIC_TRAJECTORY})):
+            data = record.json()
+            if record.topic == TOPIC_TRAJECTORY:
+                contents[int(data["ref"])] = data
+                continue
+            now = float(data["now"])
+            inputs = decode_inputs(data["inputs"], trajectory)
+            result = gateway.step(now, inputs)
+            recorded = command_signals(decode_commands(data["commands"]), data["state"])
+            rerun = command_signals(result.commands, result.diagnostics.state)
+            for diff, a, b in zip(report.signals, recorded, rerun, strict=True):
+                diff.add(now, a, b)
+            report.ticks += 1
+        report.truncated = reader.truncated
+    if report.ticks == 0:
+        raise ReplayError(f"{path}: the session holds no control ticks")
+    return report
+
+
+def main_rerun(
+    session: str | Path,
+    *,
+    overrides: Sequence[str] = (),
+    as_json: bool = False,
+    out: TextIO | None = None,
+) -> int:
+    """``leafgate replay rerun SESSION.mcap [--set KEY=VALUE …] [--json]``.
+
+    :return: 0 when every command is reproduced exactly, 1 when any diverges
+    :raises LeafgateError: unreadable session or configuration (the CLI prints it)
+    """
+    out = out or sys.stdout
+    report = rerun_session(session, parse_overrides(overrides))
+    if as_json:
+        json.dump(report.to_dict(), out, indent=2)
+        out.write("\n")
+    else:
+        for line in report.format():
+            out.write(line + "\n")
+    return 0 if report.identical else 1

@@ -1,0 +1,682 @@
+"""Session files: one MCAP file holding everything needed to replay and re-run a drive.
+
+Layout (profile ``leafgate``; every JSON record is one object, floats written exactly):
+
+=========================== ========= ==============================================================
+topic                       encoding  content
+=========================== ========= ==============================================================
+``/<zenoh key>``            cdr/json  raw Zenoh input payloads as received; CDR channels carry their
+                                      ``ros2msg`` schema so Foxglove and the ``mcap`` CLI decode them
+``/can``                    json      every CAN frame in and out: ``{t, dir, id, ext, data, channel}``
+``/leafgate/trajectory``    json      each distinct trajectory once: ``{ref, stamp, x, y, heading,
+                                      speed}``, written before the first tick that refers to it
+``/leafgate/tick``          json      per control tick the ``GatewayInputs`` exactly as passed to
+                                      ``Gateway.step`` (trajectory by ``ref``), the commands sent,
+                                      the state and the operator reply
+``/leafgate/diagnostics``   json      per tick ``Diagnostics.to_dict()`` plus the controller's
+                                      predicted path
+=========================== ========= ==============================================================
+
+Metadata ``leafgate.config`` holds the configuration as YAML (``{"yaml": …}``) and
+``leafgate.session`` the clock and format version; both are written first, so a file cut
+short by a crash still has them.
+
+Times: MCAP ``log_time`` is the gateway clock in ns (the clock that stamps ``received``);
+exact float seconds live inside the JSON, so a re-run sees bit-identical inputs. Non-finite
+floats are written as the strings ``"nan"``, ``"inf"``, ``"-inf"`` (JSON has no NaN).
+
+Reading is sequential (:class:`SessionReader`), not through the summary at the end: a file
+truncated by a crash yields every record up to its last complete chunk (the recorder closes a
+chunk at least every second) and reports ``truncated``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import json
+import math
+import types
+import typing
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any, Final, get_type_hints
+
+import can
+import numpy as np
+import yaml
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from leafgate.config import from_mapping
+from leafgate.errors import ConfigError, ReplayError
+from leafgate.gateway.core import GatewayInputs, StepResult
+from leafgate.messages import (
+    Commands,
+    FloatArray,
+    LongCommand,
+    LongMode,
+    LongReport,
+    OperatorRequest,
+    Pose,
+    Stamped,
+    SteerCommand,
+    SteerReport,
+    SystemCommand,
+    SystemReport,
+    Trajectory,
+)
+from leafgate.settings import LeafgateConfig
+
+__all__ = [
+    "FORMAT_VERSION",
+    "TOPIC_CAN",
+    "TOPIC_DIAGNOSTICS",
+    "TOPIC_TICK",
+    "TOPIC_TRAJECTORY",
+    "SessionReader",
+    "SessionRecord",
+    "SessionWriter",
+    "TrajectoryRefs",
+    "apply_overrides",
+    "config_from_yaml",
+    "config_to_yaml",
+    "decode_commands",
+    "decode_inputs",
+    "decode_trajectory",
+    "encode_commands",
+    "encode_inputs",
+    "encode_trajectory",
+    "frame_from_record",
+    "gateway_mode",
+    "to_ns",
+]
+
+PROFILE: Final = "leafgate"
+FORMAT_VERSION: Final = "1"
+TOPIC_CAN: Final = "/can"
+TOPIC_TICK: Final = "/leafgate/tick"
+TOPIC_TRAJECTORY: Final = "/leafgate/trajectory"
+TOPIC_DIAGNOSTICS: Final = "/leafgate/diagnostics"
+META_CONFIG: Final = "leafgate.config"
+META_SESSION: Final = "leafgate.session"
+_CDR_HEADERS: Final = (b"\x00\x00", b"\x00\x01")  # CDR encapsulation: big / little endian
+_CHUNK_SIZE: Final = 4 * 1024 * 1024  # bytes; chunks are closed by flush() long before this
+
+
+def to_ns(t: float) -> int:
+    """Seconds → MCAP nanoseconds (clamped at 0: MCAP times are unsigned)."""
+    return max(0, round(t * 1e9)) if math.isfinite(t) else 0
+
+
+def gateway_mode(config: LeafgateConfig) -> LongMode:
+    """The longitudinal command mode the gateway runs with for this configuration."""
+    return config.long_mode
+
+
+# --- configuration ------------------------------------------------------------------------------
+
+
+def _plain(value: Any) -> Any:
+    """A config value as plain YAML data: dataclasses → mappings (init fields), tuples → lists."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    return value
+
+
+def config_to_yaml(config: LeafgateConfig) -> str:
+    """The whole configuration as YAML, SI keys, loadable by :func:`config_from_yaml`."""
+    return yaml.safe_dump(_plain(config), sort_keys=False)
+
+
+def apply_overrides(data: dict[str, Any], overrides: Mapping[str, Any], source: str) -> None:
+    """Set dotted keys (``controller.mpc.weight_lateral``) in a config mapping, in place.
+
+    A key with a unit suffix (``gateway.safety.max_steer_angle_deg``) replaces its SI twin.
+
+    :raises ConfigError: when a dotted key runs through a value that is not a mapping
+    """
+    for dotted, value in overrides.items():
+        parts = dotted.split(".")
+        node = data
+        for i, part in enumerate(parts[:-1]):
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                where = ".".join(parts[: i + 1])
+                raise ConfigError(f"{source}: {dotted}: {where} is not a section")
+            node = child
+        key = parts[-1]
+        for suffix in ("_degps", "_deg", "_kmh"):
+            if key.endswith(suffix):
+                node.pop(key[: -len(suffix)], None)
+                break
+        node[key] = value
+
+
+def config_from_yaml(
+    text: str, source: str, overrides: Mapping[str, Any] | None = None
+) -> LeafgateConfig:
+    """Rebuild the recorded configuration, with optional dotted-key overrides.
+
+    :raises ConfigError: the YAML is invalid or a key/value is rejected (named)
+    """
+    try:
+        data = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{source}: invalid YAML: {str(exc).splitlines()[0]}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the recorded configuration is not a mapping")
+    # Sections this version does not know (a newer recorder) are dropped, not fatal: a re-run
+    # only needs the sections that build the gateway.
+    known = {f.name for f in dataclasses.fields(LeafgateConfig)}
+    data = {k: v for k, v in data.items() if k in known}
+    if overrides:
+        apply_overrides(data, overrides, "override")
+    return from_mapping(LeafgateConfig, data, source)
+
+
+# --- values ⇄ JSON ------------------------------------------------------------------------------
+
+
+def _float_out(value: float) -> float | str:
+    return value if math.isfinite(value) else repr(value)  # 'nan', 'inf', '-inf'
+
+
+def _float_in(value: Any) -> float:
+    if isinstance(value, str):
+        return float(value)  # 'nan', 'inf', '-inf'
+    return float(value)
+
+
+def encode_flat(value: Any) -> dict[str, Any]:
+    """A flat message dataclass → JSON object: enums by number, floats exact."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(value):
+        v = getattr(value, f.name)
+        if isinstance(v, enum.Enum):
+            out[f.name] = v.value
+        elif isinstance(v, float):
+            out[f.name] = _float_out(v)
+        else:
+            out[f.name] = v
+    return out
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    """Field name → type of a message dataclass (cached: get_type_hints is slow)."""
+    hints = _HINTS.get(cls)
+    if hints is None:
+        all_hints = get_type_hints(cls)
+        fields = dataclasses.fields(cls)
+        hints = _HINTS[cls] = {f.name: all_hints[f.name] for f in fields if f.init}
+    return hints
+
+
+def _convert(tp: Any, value: Any) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None:
+            return None
+        tp = next(a for a in typing.get_args(tp) if a is not type(None))
+    if tp is float:
+        return _float_in(value)
+    if tp is bool:
+        return bool(value)
+    if tp is int:
+        return int(value)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        return tp(value)
+    return value
+
+
+T = typing.TypeVar("T")
+
+
+def decode_flat(cls: type[T], data: Mapping[str, Any]) -> T:
+    """The inverse of :func:`encode_flat` (missing fields take their defaults)."""
+    hints = _hints(cls)
+    kwargs = {name: _convert(tp, data[name]) for name, tp in hints.items() if name in data}
+    return cls(**kwargs)
+
+
+def _stamped(s: Stamped[Any] | None) -> dict[str, Any] | None:
+    if s is None:
+        return None
+    return {"value": encode_flat(s.value), "received": _float_out(s.received), "valid": s.valid}
+
+
+def _unstamped(cls: type[T], d: Mapping[str, Any] | None) -> Stamped[T] | None:
+    if d is None:
+        return None
+    return Stamped(decode_flat(cls, d["value"]), _float_in(d["received"]), bool(d["valid"]))
+
+
+def encode_trajectory(ref: int, trajectory: Trajectory) -> dict[str, Any]:
+    """A trajectory record (``ref`` is how ticks refer to it)."""
+    return {
+        "ref": ref,
+        "stamp": _float_out(trajectory.stamp),
+        **{k: [_float_out(float(v)) for v in getattr(trajectory, k)] for k in _TRAJ_ARRAYS},
+    }
+
+
+_TRAJ_ARRAYS: Final = ("x", "y", "heading", "speed")
+
+
+def decode_trajectory(d: Mapping[str, Any]) -> Trajectory:
+    """A new :class:`Trajectory` object from its record."""
+    arrays = {k: np.array([_float_in(v) for v in d[k]], dtype=np.float64) for k in _TRAJ_ARRAYS}
+    return Trajectory(stamp=_float_in(d["stamp"]), **arrays)
+
+
+class TrajectoryRefs:
+    """Numbers trajectories for the session: each distinct content is stored once.
+
+    Two numbers per tick: ``ref`` names the content, ``obj`` changes whenever the gateway was
+    handed a *different object* (the controller restarts its search on a new object, even with
+    the same content, so a re-run must hand over a new object at the same tick).
+    """
+
+    def __init__(self) -> None:
+        self._last: Trajectory | None = None  # kept alive so identity comparisons stay valid
+        self._last_ref = 0
+        self._obj = 0
+        self._by_content: dict[bytes, int] = {}
+
+    def refer(self, trajectory: Trajectory) -> tuple[int, int, bool]:
+        """``(ref, obj, new_content)`` for the trajectory of this tick."""
+        if trajectory is self._last:
+            return self._last_ref, self._obj, False
+        digest = hashlib.blake2b(digest_size=16)
+        for name in _TRAJ_ARRAYS:
+            digest.update(np.ascontiguousarray(getattr(trajectory, name)).tobytes())
+            digest.update(b"|")
+        digest.update(repr(trajectory.stamp).encode())
+        key = digest.digest()
+        new = key not in self._by_content
+        if new:
+            self._by_content[key] = len(self._by_content) + 1
+        self._last, self._last_ref = trajectory, self._by_content[key]
+        self._obj += 1
+        return self._last_ref, self._obj, new
+
+
+def encode_inputs(inputs: GatewayInputs, trajectory: tuple[int, int] | None) -> dict[str, Any]:
+    """The inputs of one tick; the trajectory by ``(ref, obj)`` from :class:`TrajectoryRefs`."""
+    traj: dict[str, Any] | None = None
+    if inputs.trajectory is not None:
+        assert trajectory is not None
+        traj = {
+            "ref": trajectory[0],
+            "obj": trajectory[1],
+            "received": _float_out(inputs.trajectory.received),
+            "valid": inputs.trajectory.valid,
+        }
+    return {
+        "pose": _stamped(inputs.pose),
+        "trajectory": traj,
+        "steer_report": _stamped(inputs.steer_report),
+        "long_report": _stamped(inputs.long_report),
+        "system_report": _stamped(inputs.system_report),
+        "good_report_frames": inputs.good_report_frames,
+        "bad_report_frames": inputs.bad_report_frames,
+        "request": None if inputs.request is None else inputs.request.value,
+        "overrun": inputs.overrun,
+        "bus_errors": inputs.bus_errors,
+    }
+
+
+def decode_inputs(
+    d: Mapping[str, Any], trajectory: Callable[[int, int], Trajectory]
+) -> GatewayInputs:
+    """The inverse of :func:`encode_inputs`; ``trajectory(ref, obj)`` supplies the object.
+
+    :raises KeyError: a field is missing or the trajectory ref is unknown
+    """
+    traj = d["trajectory"]
+    return GatewayInputs(
+        pose=_unstamped(Pose, d["pose"]),
+        trajectory=None
+        if traj is None
+        else Stamped(
+            trajectory(int(traj["ref"]), int(traj["obj"])),
+            _float_in(traj["received"]),
+            bool(traj["valid"]),
+        ),
+        steer_report=_unstamped(SteerReport, d["steer_report"]),
+        long_report=_unstamped(LongReport, d["long_report"]),
+        system_report=_unstamped(SystemReport, d["system_report"]),
+        good_report_frames=int(d["good_report_frames"]),
+        bad_report_frames=int(d["bad_report_frames"]),
+        request=None if d["request"] is None else OperatorRequest(d["request"]),
+        overrun=bool(d["overrun"]),
+        bus_errors=int(d["bus_errors"]),
+    )
+
+
+def encode_commands(commands: Commands) -> dict[str, Any]:
+    return {
+        "steer": encode_flat(commands.steer),
+        "long": encode_flat(commands.long),
+        "system": None if commands.system is None else encode_flat(commands.system),
+        "extra": {k: _float_out(float(v)) for k, v in commands.extra.items()},
+    }
+
+
+def decode_commands(d: Mapping[str, Any]) -> Commands:
+    return Commands(
+        steer=decode_flat(SteerCommand, d["steer"]),
+        long=decode_flat(LongCommand, d["long"]),
+        system=None if d["system"] is None else decode_flat(SystemCommand, d["system"]),
+        extra={k: _float_in(v) for k, v in d.get("extra", {}).items()},
+    )
+
+
+def _channel_text(channel: object) -> str | int | None:
+    return channel if isinstance(channel, (str, int)) or channel is None else str(channel)
+
+
+def frame_record(t: float, msg: can.Message, rx: bool) -> dict[str, Any]:
+    return {
+        "t": _float_out(t),
+        "dir": "rx" if rx else "tx",
+        "id": msg.arbitration_id,
+        "ext": msg.is_extended_id,
+        "data": bytes(msg.data).hex(),
+        "channel": _channel_text(msg.channel),
+        "error": msg.is_error_frame,
+        "remote": msg.is_remote_frame,
+    }
+
+
+def frame_from_record(d: Mapping[str, Any]) -> can.Message:
+    """A python-can frame from a ``/can`` record."""
+    data = bytes.fromhex(d["data"])
+    return can.Message(
+        timestamp=_float_in(d["t"]),
+        arbitration_id=int(d["id"]),
+        is_extended_id=bool(d["ext"]),
+        is_rx=d["dir"] == "rx",
+        is_error_frame=bool(d.get("error", False)),
+        is_remote_frame=bool(d.get("remote", False)),
+        channel=d.get("channel"),
+        dlc=len(data),
+        data=data,
+    )
+
+
+def _dumps(value: Any) -> bytes:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
+
+
+# --- writing ------------------------------------------------------------------------------------
+
+_JSON_SCHEMAS: Final = {
+    TOPIC_CAN: "leafgate.CanFrame",
+    TOPIC_TICK: "leafgate.Tick",
+    TOPIC_TRAJECTORY: "leafgate.Trajectory",
+    TOPIC_DIAGNOSTICS: "leafgate.Diagnostics",
+}
+
+_COMPRESSION: Final = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
+
+
+class SessionWriter:
+    """Writes one session file. Not thread-safe: one thread (the recorder's) calls it.
+
+    :param stream: a binary stream opened for writing (the caller closes it after
+        :meth:`finish`)
+    :param config: the configuration the gateway runs with (written first, as metadata)
+    :param compression: MCAP chunk compression: ``zstd``, ``lz4`` or ``none``
+    :param session: extra ``leafgate.session`` metadata (clock name, start time …)
+    :raises OSError: when the stream cannot be written
+    """
+
+    def __init__(
+        self,
+        stream: IO[bytes],
+        config: LeafgateConfig,
+        compression: str = "zstd",
+        session: Mapping[str, str] | None = None,
+    ) -> None:
+        self._writer = Writer(stream, chunk_size=_CHUNK_SIZE, compression=_COMPRESSION[compression])
+        self._writer.start(profile=PROFILE, library="leafgate")
+        self._writer.add_metadata(META_CONFIG, {"yaml": config_to_yaml(config)})
+        self._writer.add_metadata(
+            META_SESSION, {"format_version": FORMAT_VERSION, **dict(session or {})}
+        )
+        self._channels: dict[str, int] = {}
+        self._zenoh: dict[tuple[str, str], int] = {}
+        self._trajectories = TrajectoryRefs()
+        self._sequence = 0
+        for topic, name in _JSON_SCHEMAS.items():
+            schema = json.dumps({"title": name, "type": "object"}).encode()
+            schema_id = self._writer.register_schema(name, "jsonschema", schema)
+            self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
+
+    def _add(
+        self, channel_id: int, log_time: int, data: bytes, publish_time: int | None = None
+    ) -> None:
+        self._sequence += 1
+        self._writer.add_message(
+            channel_id,
+            log_time=log_time,
+            data=data,
+            publish_time=log_time if publish_time is None else publish_time,
+            sequence=self._sequence & 0xFFFFFFFF,
+        )
+
+    def can_frame(self, log_time: float, msg: can.Message, rx: bool) -> None:
+        """One CAN frame (``log_time`` on the gateway clock; the frame keeps its bus time)."""
+        self._add(
+            self._channels[TOPIC_CAN],
+            to_ns(log_time),
+            _dumps(frame_record(msg.timestamp, msg, rx)),
+            to_ns(msg.timestamp),
+        )
+
+    def zenoh_input(self, key: str, payload: bytes, received: float, typename: str | None) -> None:
+        """A raw Zenoh payload as received; CDR payloads get a ``ros2msg`` schema channel."""
+        cdr = typename is not None and payload[:2] in _CDR_HEADERS
+        encoding = "cdr" if cdr else "json"
+        channel_id = self._zenoh.get((key, encoding))
+        if channel_id is None:
+            schema_id = 0
+            if cdr:
+                from leafgate.transport.cdr import msg_definition
+
+                assert typename is not None
+                schema_id = self._writer.register_schema(
+                    typename, "ros2msg", msg_definition(typename).encode()
+                )
+            topic = "/" + key.lstrip("/")
+            if encoding == "json":
+                topic += "/json" if (key, "cdr") in self._zenoh else ""
+            channel_id = self._writer.register_channel(
+                topic, encoding, schema_id, {"zenoh_key": key, "type": typename or ""}
+            )
+            self._zenoh[(key, encoding)] = channel_id
+        self._add(channel_id, to_ns(received), bytes(payload))
+
+    def tick(
+        self,
+        now: float,
+        inputs: GatewayInputs,
+        result: StepResult,
+        predicted_xy: FloatArray | None = None,
+        diagnostics: bool = True,
+    ) -> None:
+        """One control tick: inputs, commands, state, and (optionally) the diagnostics.
+
+        :param predicted_xy: the controller's predicted positions of this tick, (Np, 2) m,
+            when a :class:`~leafgate.replay.recorder.ControllerTap` caught them
+        """
+        t = to_ns(now)
+        ref: tuple[int, int] | None = None
+        if inputs.trajectory is not None:
+            r, obj, new = self._trajectories.refer(inputs.trajectory.value)
+            if new:
+                self._add(
+                    self._channels[TOPIC_TRAJECTORY],
+                    t,
+                    _dumps(encode_trajectory(r, inputs.trajectory.value)),
+                )
+            ref = (r, obj)
+        record = {
+            "now": _float_out(now),
+            "inputs": encode_inputs(inputs, ref),
+            "commands": encode_commands(result.commands),
+            "state": result.diagnostics.state.name,
+            "reply": None if result.reply is None else result.reply.to_dict(),
+        }
+        self._add(self._channels[TOPIC_TICK], t, _dumps(record))
+        if diagnostics:
+            diag = result.diagnostics.to_dict()
+            if predicted_xy is not None:
+                xy = np.asarray(predicted_xy, dtype=np.float64).reshape(-1, 2)
+                diag["predicted_xy"] = [[_float_out(float(a)), _float_out(float(b))] for a, b in xy]
+            self._add(self._channels[TOPIC_DIAGNOSTICS], t, _dumps(diag))
+
+    def flush(self) -> None:
+        """Close the chunk in progress and push it to the stream (a crash keeps it)."""
+        self._writer.flush()
+
+    def finish(self) -> None:
+        """Write the summary and footer: a complete, indexed MCAP file."""
+        self._writer.finish()
+
+
+# --- reading ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class SessionRecord:
+    """One message of a session file."""
+
+    topic: str
+    log_time: int  # ns, gateway clock
+    publish_time: int  # ns
+    data: bytes
+    encoding: str  # "json", "cdr"
+    schema: str  # schema name ("" when none)
+
+    def json(self) -> Any:
+        return json.loads(self.data)
+
+
+class SessionReader:
+    """Reads a session file record by record, tolerating a truncated end.
+
+    >>> # with SessionReader(path) as reader:
+    >>> #     for record in reader.records(): ...
+    >>> #     reader.truncated, reader.config_yaml
+
+    :param path: the ``.mcap`` file
+    :raises ReplayError: the file is missing or not an MCAP file
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._file = self.path.open("rb")
+        except FileNotFoundError:
+            raise ReplayError(f"{self.path}: no such file") from None
+        except OSError as exc:
+            raise ReplayError(f"{self.path}: cannot read: {exc.strerror}") from None
+        if self._file.read(8) != b"\x89MCAP0\r\n":
+            self._file.close()
+            raise ReplayError(f"{self.path}: not an MCAP file")
+        self._file.seek(0)
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.truncated = False  # the file ends before its footer (a crash)
+        self.error = ""  # what stopped the reading early, if anything
+        self.records_read = 0
+
+    @property
+    def config_yaml(self) -> str | None:
+        """The recorded configuration (YAML), once the metadata has been read."""
+        return self.metadata.get(META_CONFIG, {}).get("yaml")
+
+    def config(self, overrides: Mapping[str, Any] | None = None) -> LeafgateConfig:
+        """The recorded configuration (with overrides).
+
+        :raises ReplayError: the session holds no configuration
+        :raises ConfigError: it does not load (names the key)
+        """
+        text = self.config_yaml
+        if text is None:
+            raise ReplayError(f"{self.path}: the session holds no {META_CONFIG} metadata")
+        return config_from_yaml(text, f"{self.path}:{META_CONFIG}", overrides)
+
+    def position(self) -> int:
+        """Bytes of the file consumed so far (for progress bars)."""
+        return self._file.tell()
+
+    def read_metadata(self) -> dict[str, dict[str, str]]:
+        """Read up to the first message: the recorder writes every metadata record before it."""
+        for _ in self.records():
+            break
+        self._file.seek(0)
+        return self.metadata
+
+    def records(self, topics: frozenset[str] | None = None) -> Iterator[SessionRecord]:
+        """Messages in file order (metadata is collected on the way).
+
+        :param topics: only these topics (None: all)
+        """
+        self.truncated = False
+        self.error = ""
+        schemas: dict[int, str] = {}
+        channels: dict[int, tuple[str, str, str]] = {}
+        reader = StreamReader(self._file, validate_crcs=True)
+        try:
+            for record in reader.records:
+                if isinstance(record, Message):
+                    topic, encoding, schema = channels.get(record.channel_id, ("?", "", ""))
+                    if topics is not None and topic not in topics:
+                        continue
+                    self.records_read += 1
+                    yield SessionRecord(
+                        topic, record.log_time, record.publish_time, record.data, encoding, schema
+                    )
+                elif isinstance(record, Schema):
+                    schemas[record.id] = record.name
+                elif isinstance(record, Channel):
+                    channels[record.id] = (
+                        record.topic,
+                        record.message_encoding,
+                        schemas.get(record.schema_id, ""),
+                    )
+                elif isinstance(record, Metadata):
+                    self.metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Footer):
+                    return
+        except Exception as exc:  # a cut record: EndOfFile, struct.error, CRC or zstd errors …
+            self.truncated = True
+            self.error = " ".join((str(exc) or type(exc).__name__).split())
+            return
+        self.truncated = True  # ended without a footer
+        self.error = "no footer"
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> SessionReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,98 @@
+"""Timed playback of a recorded log onto a bus: spacing, speed factor, start offset, ID filter."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import can
+import pytest
+
+from leafgate.errors import ReplayError
+from leafgate.replay.logs import FrameSource
+from leafgate.replay.play import main_play, parse_ids, play_frames
+
+
+def log(path: Path) -> list[can.Message]:
+    frames = [
+        can.Message(
+            timestamp=100.0 + 0.01 * i,
+            arbitration_id=0x0A0 + i % 3,
+            data=bytes([i] * 8),
+            is_extended_id=False,
+        )
+        for i in range(30)
+    ]
+    with can.Logger(path) as writer:
+        for f in frames:
+            writer.on_message_received(f)
+    return frames
+
+
+class FakeClock:
+    """A clock that only moves when the player sleeps."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+        self.sleeps: list[float] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, dt: float) -> None:
+        self.sleeps.append(dt)
+        self.now += dt
+
+
+def test_frames_leave_at_their_recorded_spacing_divided_by_speed() -> None:
+    frames = [can.Message(timestamp=t, arbitration_id=1) for t in (5.0, 5.1, 5.4)]
+    clock = FakeClock()
+    with can.Bus(interface="virtual", channel="play-1") as bus:
+        stats = play_frames(frames, bus, speed=2.0, clock=clock, sleep=clock.sleep)
+    assert stats.sent == 3 and stats.duration == pytest.approx(0.4)
+    assert clock.sleeps == pytest.approx([0.05, 0.15])  # (0.1, 0.3 s) / 2
+
+
+def test_start_offset_and_id_filter_select_frames(tmp_path: Path) -> None:
+    frames = log(tmp_path / "drive.log")
+    with (
+        can.Bus(interface="virtual", channel="play-2") as rx,
+        can.Bus(interface="virtual", channel="play-2") as tx,
+    ):
+        stats = play_frames(
+            FrameSource(tmp_path / "drive.log"), tx, speed=0, start=0.1, ids=parse_ids("0A0,0x0A2")
+        )
+        got = []
+        while (msg := rx.recv(timeout=0.0)) is not None:
+            got.append(msg)
+    expected = [
+        f for f in frames if f.timestamp - 100.0 >= 0.1 - 1e-9 and f.arbitration_id != 0x0A1
+    ]
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [
+        (f.arbitration_id, bytes(f.data)) for f in expected
+    ]
+    assert stats.sent == len(expected) and stats.skipped == len(frames) - len(expected)
+
+
+def test_main_play_sends_a_log_onto_a_virtual_bus(tmp_path: Path) -> None:
+    frames = log(tmp_path / "drive.log")
+    with can.Bus(interface="virtual", channel="play-3") as rx:
+        out = io.StringIO()
+        assert (
+            main_play(
+                tmp_path / "drive.log", interface="virtual", channel="play-3", speed=0, out=out
+            )
+            == 0
+        )
+        got = 0
+        while rx.recv(timeout=0.0) is not None:
+            got += 1
+    assert got == len(frames)
+    assert f"{len(frames)} frames sent" in out.getvalue()
+
+
+def test_bad_ids_and_missing_logs_are_replay_errors(tmp_path: Path) -> None:
+    with pytest.raises(ReplayError, match="not a hexadecimal"):
+        parse_ids("0A0,zz")
+    with pytest.raises(ReplayError, match="no such file"):
+        main_play(tmp_path / "missing.log", interface="virtual", channel="x")
