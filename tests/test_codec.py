@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import can
 import cantools
@@ -15,11 +17,13 @@ from hypothesis import strategies as st
 from leafgate.can import e2e
 from leafgate.can.codec import (
     _DECODERS,
+    _ENCODE_SIGNALS,
     _MPS_PER_RPM,
     CanCodec,
     EncodableMessage,
     EncodeError,
     _compile,
+    _compile_encoder,
 )
 from leafgate.errors import CanCodecError
 from leafgate.messages import (
@@ -543,3 +547,241 @@ def test_failed_encode_does_not_advance_the_alive_counter() -> None:
 def test_non_number_field_raises_encode_error() -> None:
     with pytest.raises(EncodeError, match="not a number"):
         CanCodec().encode(SteerCommand(angle="left"))  # type: ignore[arg-type]
+
+
+# --- the compiled encoder against cantools' strict encode ------------------------------------
+
+E2E_NAMES = ("ALIVE_COUNTER", "CRC")
+ALL_MESSAGES = sorted(_ENCODE_SIGNALS)
+
+
+def dbc_message(name: str) -> cantools.database.can.Message:
+    return (DBW if name.startswith("DBW_") else CAR).get_message_by_name(name)
+
+
+def payload_signals(message: cantools.database.can.Message) -> tuple[str, ...]:
+    """Every signal of a message except the E2E ones, which e2e.apply fills."""
+    return tuple(s.name for s in message.signals if s.name not in E2E_NAMES)
+
+
+def tolerance(sig: cantools.database.can.Signal) -> float:
+    return abs(sig.conversion.scale) * 1e-6  # cantools' slack beyond min/max
+
+
+def near_limits(sig: cantools.database.can.Signal) -> list[float]:
+    """Values packed around a signal's min and max: on them, on cantools' tolerance, one ulp
+    either side of both, half and one LSB beyond, and the value-table codes."""
+    lsb = abs(sig.conversion.scale)
+    out: list[float] = []
+    for bound, outward in ((sig.minimum, -math.inf), (sig.maximum, math.inf)):
+        assert bound is not None
+        edge = bound - tolerance(sig) if outward < 0 else bound + tolerance(sig)
+        for x in (float(bound), edge):
+            out += [x, math.nextafter(x, outward), math.nextafter(x, -outward)]
+        step = lsb if outward > 0 else -lsb
+        out += [bound + step / 2, bound + step, bound - step / 2]
+    return out + [float(code) for code in (sig.conversion.choices or {})]
+
+
+def cantools_payload(
+    message: cantools.database.can.Message, values: dict[str, Any]
+) -> bytes | None:
+    """cantools' strict encode with the E2E signals at 0; None where cantools refuses."""
+    signals = {**values, **{n: 0 for n in E2E_NAMES if n in {s.name for s in message.signals}}}
+    try:
+        return message.encode(signals, scaling=True, padding=False, strict=True)
+    except (cantools.database.EncodeError, ValueError, OverflowError):  # NaN, inf, no fit
+        return None
+
+
+def compiled_payload(
+    message: cantools.database.can.Message, values: dict[str, object]
+) -> bytes | None:
+    names = tuple(values)
+    try:
+        return _compile_encoder(message, names)(*(values[n] for n in names))
+    except EncodeError:
+        return None
+
+
+def neutral(sig: cantools.database.can.Signal) -> float:
+    """A value every signal of the packaged DBCs accepts: 0 clamped into the range."""
+    lo = -math.inf if sig.minimum is None else sig.minimum
+    hi = math.inf if sig.maximum is None else sig.maximum
+    return min(max(0.0, lo), hi)
+
+
+def limit_table() -> list[tuple[str, str, float]]:
+    return [
+        (name, sig.name, value)
+        for name in ALL_MESSAGES
+        for sig in dbc_message(name).signals
+        if sig.name not in E2E_NAMES
+        for value in near_limits(sig)
+    ]
+
+
+@pytest.mark.parametrize(("name", "signal_name", "value"), limit_table())
+def test_compiled_encoder_refuses_exactly_where_cantools_strict_does(
+    name: str, signal_name: str, value: float
+) -> None:
+    message = dbc_message(name)
+    values: dict[str, object] = {
+        n: neutral(message.get_signal_by_name(n)) for n in payload_signals(message)
+    }
+    values[signal_name] = value
+    reference = cantools_payload(message, values)
+    assert compiled_payload(message, values) == reference
+
+
+def raw_to_physical(raw: int, *, scale: float, offset: float, fraction: float) -> float:
+    return (raw + fraction) * scale + offset
+
+
+@st.composite
+def message_values(draw: st.DrawFn, message: cantools.database.can.Message) -> dict[str, object]:
+    """Values for every payload signal: mostly in range (floats, integers, table codes), some
+    packed around the limits, a few out of range or not finite."""
+    values: dict[str, object] = {}
+    for sig in message.signals:
+        if sig.name in E2E_NAMES:
+            continue
+        lo = -20 if sig.minimum is None else sig.minimum  # unbounded: around a small field
+        hi = 20 if sig.maximum is None else sig.maximum
+        lsb = abs(sig.conversion.scale)
+        scale, offset = sig.conversion.scale, sig.conversion.offset
+        raw_lo, raw_hi = sorted(((lo - offset) / scale, (hi - offset) / scale))
+        steps = st.integers(min_value=math.floor(raw_lo), max_value=math.ceil(raw_hi))
+        grid = functools.partial(raw_to_physical, scale=scale, offset=offset, fraction=0.0)
+        between = functools.partial(raw_to_physical, scale=scale, offset=offset, fraction=0.5)
+        values[sig.name] = draw(
+            st.one_of(
+                st.floats(min_value=lo, max_value=hi),
+                # on the raw grid and half-way between: where rounding details show
+                steps.map(grid),
+                steps.map(between),
+                st.integers(min_value=math.ceil(lo), max_value=math.floor(hi)),
+                st.sampled_from(near_limits(sig)) if sig.minimum is not None else st.nothing(),
+                st.floats(min_value=lo - 4 * lsb, max_value=hi + 4 * lsb),
+                st.sampled_from([math.nan, math.inf, -math.inf]),
+            )
+        )
+    return values
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    st.sampled_from(ALL_MESSAGES).flatmap(
+        lambda n: st.tuples(st.just(n), message_values(dbc_message(n)))
+    )
+)
+def test_compiled_encoder_is_byte_identical_to_cantools_strict_encode(
+    case: tuple[str, dict[str, object]],
+) -> None:
+    name, values = case
+    message = dbc_message(name)
+    reference = cantools_payload(message, values)
+    assert compiled_payload(message, values) == reference
+    if reference is not None and name.startswith("DBW_"):  # and so after E2E
+        assert e2e.apply(message.frame_id, reference, 9) == e2e.apply(
+            message.frame_id, _compile_encoder(message, tuple(values))(*values.values()), 9
+        )
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.sampled_from(sorted(FIELDS)).flatmap(
+        lambda key: st.tuples(
+            st.just(key),
+            st.floats(
+                min_value=limits(*key)[0] - 3 * abs(signal(*key).scale),
+                max_value=limits(*key)[1] + 3 * abs(signal(*key).scale),
+            ),
+        )
+    ),
+    st.integers(min_value=0, max_value=15),
+)
+def test_codec_encode_matches_cantools_from_message_to_frame(
+    case: tuple[tuple[str, str], float], counter: int
+) -> None:
+    """The whole path, field mapping, unit conversion and E2E included."""
+    (message, name), dbc_value = case
+    factor, make = FIELDS[(message, name)]
+    value = make(dbc_value * factor)
+    codec = CanCodec()
+    for _ in range(counter):  # bring the alive counter to `counter`
+        codec.encode(make(0.0))
+    try:
+        reference: bytes | None = codec._encode_with_cantools(value, counter)
+    except EncodeError:
+        reference = None
+    try:
+        data: bytes | None = bytes(codec.encode(value).data)
+    except EncodeError:
+        data = None
+    assert data == reference
+
+
+# A DBC with what the leafgate DBCs lack: integer scale with an offset, big-endian signed and
+# little-endian fields in one frame, a signal without a range, a value table reaching beyond
+# the range, and a range wider than the bit field.
+EXOTIC_DBC = """VERSION ""
+BS_:
+BU_: A
+BO_ 1280 EXOTIC: 8 A
+ SG_ INT_SCALED : 0|8@1+ (2,-5) [-5|500] "" A
+ SG_ BE_SIGNED : 15|12@0- (0.25,10) [-500|500] "m" A
+ SG_ UNBOUNDED : 16|4@1- (1,0) [0|0] "" A
+ SG_ CODED : 24|6@1+ (1,0) [0|20] "" A
+ SG_ WIDE : 39|16@0+ (0.5,-1) [-1|40000] "" A
+VAL_ 1280 CODED 63 "not available" 40 "init" ;
+"""
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.data())
+def test_compiled_encoder_matches_cantools_on_exotic_layouts(data: st.DataObject) -> None:
+    db = cantools.database.load_string(EXOTIC_DBC, database_format="dbc", strict=True)
+    assert isinstance(db, cantools.database.can.Database)
+    message = db.get_message_by_name("EXOTIC")
+    values = data.draw(message_values(message))
+    values["CODED"] = data.draw(st.sampled_from([0.0, 20.0, 21.0, 40.0, 63.0, 64.0, 39.6]))
+    assert compiled_payload(message, values) == cantools_payload(message, values)
+
+
+def test_out_of_range_error_names_frame_id_signal_value_and_range() -> None:
+    with pytest.raises(EncodeError) as info:
+        CanCodec().encode(SteerCommand(angle=0.9))
+    assert str(info.value) == (
+        "DBW_STEER_CMD (0x0A0) STEER_ANGLE_CMD: value 0.9 is outside its range [-0.8, 0.8] rad"
+    )
+
+
+def test_numpy_scalars_encode_like_python_numbers() -> None:
+    import numpy as np
+
+    as_numpy = CanCodec().encode(
+        SystemReport(EcuState.READY, False, False, False, False, np.int64(7))  # type: ignore[arg-type]
+    )
+    as_python = CanCodec().encode(SystemReport(EcuState.READY, False, False, False, False, 7))
+    assert as_numpy.data == as_python.data
+    steer = CanCodec().encode(SteerCommand(angle=np.float32(0.25)))  # type: ignore[arg-type]
+    assert steer.data == CanCodec().encode(SteerCommand(angle=0.25)).data
+
+
+def test_dbc_with_a_signal_leafgate_does_not_fill_decodes_but_refuses_to_encode(
+    tmp_path: Path,
+) -> None:
+    source = Path(__file__).parents[1] / "dbc" / "leafgate_dbw.dbc"
+    spare = ' SG_ SPARE : 8|8@1+ (1,0) [0|255] "" DBW_ECU\n'
+    text = source.read_text(encoding="utf-8").replace(
+        " SG_ CLEAR_FAULTS :", spare + " SG_ CLEAR_FAULTS :", 1
+    )
+    path = tmp_path / "spare.dbc"
+    path.write_text(text, encoding="utf-8")
+    codec = CanCodec(dbw_dbc=path)
+    with pytest.raises(EncodeError, match=r"DBW_SYSTEM_CMD \(0x0A2\).*SPARE"):
+        codec.encode(SystemCommand(GatewayState.ENGAGED))
+    frame = CanCodec().encode(SystemCommand(GatewayState.ENGAGED))
+    assert codec.decode(frame).value == SystemCommand(GatewayState.ENGAGED)
+    assert codec.encode(SteerCommand(0.1)).arbitration_id == 0x0A0  # other frames still encode

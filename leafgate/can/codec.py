@@ -15,11 +15,13 @@ converted here.
   did not advance and undecodable content become ``Decoded(valid=False, error=...)`` and are
   counted per ID in :attr:`CanCodec.stats`.
 
-Decoding runs for every received frame and for every frame of a replayed log, so it does not
-go through cantools' generic decoder: at start-up each message's signals are compiled, from
-the bit positions and scales of the cantools database, into one function of shifts and masks
-(``tools/bench_can.py`` measures it against ``cantools.database.Database.decode_message``). A
-test checks it against cantools on random payloads for every message.
+Encoding and decoding run for every frame sent and received (and every frame of a replayed
+log), so neither goes through cantools' generic code: at start-up each message is compiled,
+from the bit positions, scales and ranges of the cantools database, into one decode function
+of shifts and masks and one encode function that range-checks, scales and packs exactly as
+cantools' strict ``Message.encode`` does (``tools/bench_can.py`` measures both against
+cantools). Tests check them against cantools on random payloads and values for every message,
+with values packed around every signal's limits.
 
 >>> from leafgate.messages import SteerCommand
 >>> gw, ecu = CanCodec(), CanCodec()
@@ -37,18 +39,24 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
-from typing import Final, Literal
+from typing import Any, Final, Literal, NoReturn
 
 import can
 import cantools
 import cantools.database
 from cantools.database.can import Database, Signal
 from cantools.database.can import Message as DbcMessage
+from cantools.database.conversion import (
+    BaseConversion,
+    IdentityConversion,
+    LinearIntegerConversion,
+)
 
 from leafgate.can import e2e
 from leafgate.errors import CanCodecError
@@ -202,6 +210,25 @@ def _signal_expression(sig: Signal, total_bits: int) -> str:
     return expr
 
 
+def _signals(message: DbcMessage, names: tuple[str, ...]) -> list[Signal]:
+    """The named signals of a message, in that order.
+
+    :raises CanCodecError: a named signal is missing, or is float or multiplexed
+    """
+    signals = []
+    for name in names:
+        try:
+            sig = message.get_signal_by_name(name)
+        except KeyError:
+            raise CanCodecError(f"{message.name}.{name} is missing from the DBC") from None
+        if sig.is_float or sig.multiplexer_ids or sig.is_multiplexer:
+            raise CanCodecError(
+                f"{message.name}.{name}: float or multiplexed signals are not supported"
+            )
+        signals.append(sig)
+    return signals
+
+
 def _compile(message: DbcMessage, names: tuple[str, ...], build: Callable[..., object]) -> _Decode:
     """Compile ``payload -> build(*values of the named signals)`` for one message.
 
@@ -214,17 +241,7 @@ def _compile(message: DbcMessage, names: tuple[str, ...], build: Callable[..., o
     :raises CanCodecError: a named signal is missing, or is float or multiplexed
     """
     total_bits = 8 * message.length
-    signals = []
-    for name in names:
-        try:
-            sig = message.get_signal_by_name(name)
-        except KeyError:
-            raise CanCodecError(f"{message.name}.{name} is missing from the DBC") from None
-        if sig.is_float or sig.multiplexer_ids or sig.is_multiplexer:
-            raise CanCodecError(
-                f"{message.name}.{name}: float or multiplexed signals are not supported"
-            )
-        signals.append(sig)
+    signals = _signals(message, names)
     lines = ["def decode(data):"]
     if any(sig.byte_order == "little_endian" for sig in signals):
         lines.append("    le = from_bytes(data, 'little')")  # excess bytes only add high bits
@@ -388,84 +405,284 @@ _DECODERS: Final[dict[str, tuple[tuple[str, ...], Callable[..., object]]]] = {
 
 
 # --- messages → signals (encode) --------------------------------------------------------------
+# Each field getter returns the DBC message name and the physical values (DBC units) of the
+# signals _ENCODE_SIGNALS lists for it, in that order. The codec fills the rest: the E2E
+# signals of DBW frames (ALIVE_COUNTER, CRC) and a CAR-CAN frame's rolling COUNTER.
+
+_Fields = tuple[str, tuple[object, ...]]
+
+_ENCODE_SIGNALS: Final[dict[str, tuple[str, ...]]] = {
+    "DBW_STEER_CMD": ("STEER_ANGLE_CMD", "STEER_RATE_LIMIT", "ENABLE", "CLEAR_OVERRIDE"),
+    "DBW_LONG_CMD": ("MODE", "ACCEL_CMD", "SPEED_CMD", "GEAR_REQ", "ENABLE", "CLEAR_OVERRIDE"),
+    "DBW_SYSTEM_CMD": ("GATEWAY_STATE", "CLEAR_FAULTS"),
+    "DBW_STEER_RPT": _DECODERS["DBW_STEER_RPT"][0],
+    "DBW_LONG_RPT": _DECODERS["DBW_LONG_RPT"][0],
+    "DBW_SYSTEM_RPT": _DECODERS["DBW_SYSTEM_RPT"][0],
+    "STEER_ANGLE_SENSOR": ("STEER_ANGLE", "STEER_ANGLE_RATE"),
+    "MOTOR_SPEED": ("MOTOR_REVS",),
+    "WHEEL_SPEEDS_FRONT": ("WHEEL_SPEED_FR", "WHEEL_SPEED_FL"),
+    "WHEEL_SPEEDS_REAR": ("WHEEL_SPEED_RR", "WHEEL_SPEED_RL"),
+    "GEAR_POSITION": ("GEAR_SHIFTER",),
+}
 
 
-def _signals_of(value: object) -> tuple[str, dict[str, float]]:
-    """The DBC message name and physical signal values (DBC units) for a message dataclass."""
-    if isinstance(value, SteerCommand):
-        return "DBW_STEER_CMD", {
-            "STEER_ANGLE_CMD": value.angle,
-            "STEER_RATE_LIMIT": value.rate_limit,
-            "ENABLE": int(value.enable),
-            "CLEAR_OVERRIDE": int(value.clear_override),
-        }
-    if isinstance(value, LongCommand):
-        return "DBW_LONG_CMD", {
-            "ACCEL_CMD": value.accel,
-            "SPEED_CMD": value.speed,
-            "MODE": int(value.mode),
-            "GEAR_REQ": int(value.gear),
-            "ENABLE": int(value.enable),
-            "CLEAR_OVERRIDE": int(value.clear_override),
-        }
-    if isinstance(value, SystemCommand):
-        return "DBW_SYSTEM_CMD", {
-            "GATEWAY_STATE": int(value.state),
-            "CLEAR_FAULTS": int(value.clear_faults),
-        }
-    if isinstance(value, SteerReport):
-        return "DBW_STEER_RPT", {
-            "STEER_ANGLE": value.angle,
-            "STEER_RATE": value.rate,
-            "DRIVER_TORQUE": value.driver_torque,
-            "ENABLED": int(value.enabled),
-            "OVERRIDE": int(value.override),
-            "FAULT": int(value.fault),
-            "CMD_TIMEOUT": int(value.cmd_timeout),
-        }
-    if isinstance(value, LongReport):
-        return "DBW_LONG_RPT", {
-            "SPEED": value.speed,
-            "ACCEL": value.accel,
-            "GEAR": int(value.gear),
-            "BRAKE_PEDAL": value.brake_pedal_pct,
-            "ACCEL_PEDAL": value.accel_pedal_pct,
-            "ENABLED": int(value.enabled),
-            "OVERRIDE": int(value.override),
-            "FAULT": int(value.fault),
-            "CMD_TIMEOUT": int(value.cmd_timeout),
-        }
-    if isinstance(value, SystemReport):
-        return "DBW_SYSTEM_RPT", {
-            "ECU_STATE": int(value.state),
-            "FAULT_CMD_TIMEOUT": int(value.fault_cmd_timeout),
-            "FAULT_BAD_CRC": int(value.fault_bad_crc),
-            "FAULT_BAD_COUNTER": int(value.fault_bad_counter),
-            "FAULT_ACTUATOR": int(value.fault_actuator),
-            "RX_ERROR_COUNT": value.rx_error_count,
-        }
-    if isinstance(value, SteeringWheelAngle):
-        return "STEER_ANGLE_SENSOR", {"STEER_ANGLE": value.angle / _DEG, "STEER_ANGLE_RATE": 0}
-    if isinstance(value, MotorSpeed):
-        return "MOTOR_SPEED", {"MOTOR_REVS": value.speed / _MPS_PER_RPM}
-    if isinstance(value, WheelSpeeds):
-        if value.axle == "front":
-            return "WHEEL_SPEEDS_FRONT", {
-                "WHEEL_SPEED_FR": value.right * _KMH,
-                "WHEEL_SPEED_FL": value.left * _KMH,
-            }
-        if value.axle == "rear":
-            return "WHEEL_SPEEDS_REAR", {
-                "WHEEL_SPEED_RR": value.right * _KMH,
-                "WHEEL_SPEED_RL": value.left * _KMH,
-            }
-        raise EncodeError(f"WheelSpeeds.axle must be 'front' or 'rear', got {value.axle!r}")
-    if isinstance(value, GearPosition):
-        return "GEAR_POSITION", {"GEAR_SHIFTER": int(value.gear)}  # Gear codes 1-4 = lever codes
-    raise EncodeError(f"cannot encode a {type(value).__name__}: no CAN frame carries it")
+def _wheel_speeds_fields(v: WheelSpeeds) -> _Fields:
+    if v.axle == "front":
+        return "WHEEL_SPEEDS_FRONT", (v.right * _KMH, v.left * _KMH)
+    if v.axle == "rear":
+        return "WHEEL_SPEEDS_REAR", (v.right * _KMH, v.left * _KMH)
+    raise EncodeError(f"WheelSpeeds.axle must be 'front' or 'rear', got {v.axle!r}")
+
+
+# Message type → field getter. Flags and enums go in as they are: the compiled encoder takes
+# any integral number (bool and IntEnum included) and range-checks it like any other value.
+_FIELDS: Final[dict[type, Callable[[Any], _Fields]]] = {
+    SteerCommand: lambda v: (
+        "DBW_STEER_CMD",
+        (v.angle, v.rate_limit, v.enable, v.clear_override),
+    ),
+    LongCommand: lambda v: (
+        "DBW_LONG_CMD",
+        (v.mode, v.accel, v.speed, v.gear, v.enable, v.clear_override),
+    ),
+    SystemCommand: lambda v: ("DBW_SYSTEM_CMD", (v.state, v.clear_faults)),
+    SteerReport: lambda v: (
+        "DBW_STEER_RPT",
+        (v.angle, v.rate, v.driver_torque, v.enabled, v.override, v.fault, v.cmd_timeout),
+    ),
+    LongReport: lambda v: (
+        "DBW_LONG_RPT",
+        (
+            v.speed,
+            v.accel,
+            v.gear,
+            v.brake_pedal_pct,
+            v.accel_pedal_pct,
+            v.enabled,
+            v.override,
+            v.fault,
+            v.cmd_timeout,
+        ),
+    ),
+    SystemReport: lambda v: (
+        "DBW_SYSTEM_RPT",
+        (
+            v.state,
+            v.fault_cmd_timeout,
+            v.fault_bad_crc,
+            v.fault_bad_counter,
+            v.fault_actuator,
+            v.rx_error_count,
+        ),
+    ),
+    SteeringWheelAngle: lambda v: ("STEER_ANGLE_SENSOR", (v.angle / _DEG, 0)),
+    MotorSpeed: lambda v: ("MOTOR_SPEED", (v.speed / _MPS_PER_RPM,)),
+    WheelSpeeds: _wheel_speeds_fields,
+    GearPosition: lambda v: ("GEAR_POSITION", (v.gear,)),  # Gear codes 1-4 = lever codes
+}
+
+
+def _fields_of(value: object) -> _Fields:
+    """The DBC message name and the physical values of its signals for a message dataclass.
+
+    :raises EncodeError: no frame carries the type, or a field is not a number
+    """
+    fields = _FIELDS.get(type(value))
+    if fields is None:  # a subclass of a message type, or no message at all
+        fields = next((f for t, f in _FIELDS.items() if isinstance(value, t)), None)
+        if fields is None:
+            raise EncodeError(f"cannot encode a {type(value).__name__}: no CAN frame carries it")
+    try:
+        return fields(value)
+    except TypeError:  # a unit conversion met a field that is not a number
+        raise EncodeError(f"{type(value).__name__}: a field is not a number: {value!r}") from None
+
+
+_Encode = Callable[..., bytes]
+_EXACT_NUMBERS: Final = frozenset({float, int, bool})  # types the compiled code takes as they are
+
+
+class _SignalChecks:
+    """The slow paths of one compiled encoder: conversions and the errors it raises.
+
+    Only called when a value is not a plain ``float``/``int``/``bool``, or fails its range
+    check, so their cost does not count.
+    """
+
+    def __init__(self, message: DbcMessage, signals: list[Signal]) -> None:
+        self.frame = f"{message.name} (0x{message.frame_id:03X})"
+        self.signals = signals
+
+    def number(self, index: int, value: object) -> int | float:
+        """``value`` as a plain int or float (numpy scalars, enums, fractions); else raise."""
+        if isinstance(value, numbers.Integral):
+            return int(value)
+        if isinstance(value, numbers.Real):
+            return float(value)
+        sig = self.signals[index]
+        return self._raise(f"{sig.name}: {value!r} is not a number")
+
+    def in_choices(self, index: int, value: float) -> bool:
+        """True when ``value`` encodes to a raw code of the signal's value table.
+
+        cantools accepts such a value whatever the range says; so does the codec.
+        """
+        sig = self.signals[index]
+        if not math.isfinite(value) or not sig.conversion.choices:
+            return False
+        return sig.conversion.numeric_scaled_to_raw(value) in sig.conversion.choices
+
+    def reject(self, index: int, value: float) -> EncodeError:
+        """The error for a value that failed the range check: not finite, or outside it."""
+        sig = self.signals[index]
+        if not math.isfinite(value):
+            return EncodeError(f"{self.frame} {sig.name}: value {value!r} is not finite")
+        unit = f" {sig.unit}" if sig.unit else ""
+        return EncodeError(
+            f"{self.frame} {sig.name}: value {value!r} is outside its range "
+            f"[{sig.minimum}, {sig.maximum}]{unit}"
+        )
+
+    def reject_raw(self, index: int, value: float, raw: int) -> EncodeError:
+        """The error for a value the DBC's range admits but the bit field cannot hold."""
+        sig = self.signals[index]
+        kind = "signed" if sig.is_signed else "unsigned"
+        return EncodeError(
+            f"{self.frame} {sig.name}: value {value!r} is raw {raw}, which does not fit "
+            f"its {sig.length}-bit {kind} field"
+        )
+
+    def _raise(self, text: str) -> NoReturn:
+        raise EncodeError(f"{self.frame} {text}")
+
+
+def _field_limits(sig: Signal) -> tuple[int, int]:
+    """The raw values a signal's bit field holds."""
+    if sig.is_signed:
+        return -(1 << (sig.length - 1)), (1 << (sig.length - 1)) - 1
+    return 0, (1 << sig.length) - 1
+
+
+def _raw_lines(sig: Signal, v: str, r: str) -> list[str]:
+    """Lines computing the raw value ``r`` of the physical value ``v``, as cantools rounds.
+
+    cantools picks the conversion by the scale and offset (``BaseConversion.factory``): the
+    identity rounds the value; integer scale and offset divide exactly when they can;
+    otherwise ``round((v - offset) / scale)``. Division, not a multiplication by the inverse
+    scale, so that the raw value is the one cantools computes, bit for bit.
+    """
+    conv = BaseConversion.factory(sig.conversion.scale, sig.conversion.offset, None, False)
+    if isinstance(conv, IdentityConversion):
+        return [f"    {r} = round({v})"]
+    x = f"({v} - {conv.offset!r})" if conv.offset != 0 else v
+    if isinstance(conv, LinearIntegerConversion):
+        return [
+            f"    {r} = {x}",
+            f"    q, m = divmod({r}, {conv.scale!r})",
+            f"    {r} = round(q if m == 0 else {r} / {conv.scale!r})",
+        ]
+    return [f"    {r} = round({x} / {conv.scale!r})"]
+
+
+def _compile_encoder(message: DbcMessage, names: tuple[str, ...]) -> _Encode:
+    """Compile ``(*physical values of the named signals) -> payload`` for one message.
+
+    The strict mode of cantools' ``Message.encode``, generated from the DBC like the decoder
+    (:func:`_compile`): per signal, a check that the value is a number within the DBC's
+    physical range (inclusive, with cantools' tolerance of a millionth of the scale; a code of
+    the signal's value table passes too), the raw value rounded as cantools rounds it, and its
+    bits shifted into place. Signals left out are 0. Several times faster than cantools,
+    which looks signals up by name and packs through dicts and bitstruct on every call.
+
+    :raises CanCodecError: a named signal is missing, float, multiplexed or has scale 0
+    :return: a function raising :class:`EncodeError` for a value out of range, not finite or
+        not a number, naming the frame, the signal, the value and the range
+    """
+    total_bits = 8 * message.length
+    signals = _signals(message, names)
+    for sig in signals:
+        if sig.conversion.scale == 0:
+            raise CanCodecError(f"{message.name}.{sig.name} has scale 0")
+    checks = _SignalChecks(message, signals)
+    values = [f"v{i}" for i in range(len(signals))]
+    lines = [f"def encode({', '.join(values)}):"]
+    le_terms, be_terms = [], []
+    for i, (sig, v) in enumerate(zip(signals, values, strict=True)):
+        r = f"r{i}"
+        lines.append(f"    if {v}.__class__ not in exact:")
+        lines.append(f"        {v} = number({i}, {v})")
+        # cantools: an error when value < minimum - |scale| * 1e-6 (or > maximum + ...).
+        # Without a bound, comparing with ±inf still rejects NaN and infinities.
+        tolerance = abs(sig.conversion.scale) * 1e-6
+        lowest = None if sig.minimum is None else sig.minimum - tolerance
+        highest = None if sig.maximum is None else sig.maximum + tolerance
+        low = "-inf <" if lowest is None else f"{lowest!r} <="
+        high = "< inf" if highest is None else f"<= {highest!r}"
+        accept_code = f" and not in_choices({i}, {v})" if sig.conversion.choices else ""
+        lines.append(f"    if not {low} {v} {high}{accept_code}:")
+        lines.append(f"        raise reject({i}, {v})")
+        lines.extend(_raw_lines(sig, v, r))
+        # The range check bounds the raw value; check the field only if the DBC's range (or
+        # its value table) reaches beyond what the bits hold.
+        field_min, field_max = _field_limits(sig)
+        reachable = [int(code) for code in (sig.conversion.choices or {})]
+        if lowest is None or highest is None:
+            reachable.append(field_max + 1)  # unbounded: always check
+        else:  # the conversion is monotonic: the bounds give the extreme raw values
+            for bound in (lowest, highest):
+                reachable.append(int(sig.conversion.numeric_scaled_to_raw(bound)))
+        if not all(field_min <= code <= field_max for code in reachable):
+            lines.append(f"    if not {field_min} <= {r} <= {field_max}:")
+            lines.append(f"        raise reject_raw({i}, {v}, {r})")
+        bits = f"({r} & {(1 << sig.length) - 1})" if sig.is_signed else r  # two's complement
+        if sig.byte_order == "little_endian":
+            le_terms.append(f"{bits} << {sig.start}" if sig.start else bits)
+        else:
+            msb = (sig.start // 8) * 8 + (7 - sig.start % 8)  # as in _signal_expression
+            shift = total_bits - (msb + sig.length)
+            be_terms.append(f"{bits} << {shift}" if shift else bits)
+    n = message.length
+    le = " | ".join(le_terms) or "0"
+    be = " | ".join(be_terms) or "0"
+    if not be_terms:
+        lines.append(f"    return ({le}).to_bytes({n}, 'little')")
+    elif not le_terms:
+        lines.append(f"    return ({be}).to_bytes({n}, 'big')")
+    else:  # both byte orders in one frame: turn the little-endian part around
+        lines.append(f"    le = int.from_bytes(({le}).to_bytes({n}, 'little'), 'big')")
+        lines.append(f"    return (le | {be}).to_bytes({n}, 'big')")
+    namespace: dict[str, object] = {
+        "exact": _EXACT_NUMBERS,
+        "inf": math.inf,
+        "number": checks.number,
+        "in_choices": checks.in_choices,
+        "reject": checks.reject,
+        "reject_raw": checks.reject_raw,
+    }
+    exec(compile("\n".join(lines), f"<dbc encode {message.name}>", "exec"), namespace)
+    return namespace["encode"]  # type: ignore[return-value]
+
+
+def _unencodable(reason: str) -> _Encode:
+    """An encoder for a message this DBC lets leafgate decode but not encode: it raises."""
+
+    def encode(*values: object) -> bytes:
+        raise EncodeError(reason)
+
+    return encode
 
 
 # --- the codec ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class _TxEntry:
+    """Everything encode needs for one message, prepared at start-up."""
+
+    frame_id: int
+    encode: _Encode  # physical values (+ the rolling counter) -> payload, compiled from the DBC
+    e2e: bool  # leafgate DBW frame: alive counter and CRC applied after encoding
+    has_counter: bool  # CAR-CAN frame with a rolling COUNTER signal, passed last to encode
 
 
 @dataclass(frozen=True, slots=True)
@@ -549,7 +766,8 @@ class _Tables:
 
     dbw: Database
     car: Database
-    tx: Mapping[str, DbcMessage]  # DBC name → message, for encoding
+    tx: Mapping[str, DbcMessage]  # DBC name → message
+    encoders: Mapping[str, _TxEntry]  # DBC name → compiled encoder
     rx: Mapping[int, _RxEntry]  # ID → compiled decoder
     ids: Mapping[str, frozenset[int]]  # direction → IDs
 
@@ -562,6 +780,7 @@ def _tables(dbw_key: _SourceKey, car_key: _SourceKey) -> _Tables:
     _require(dbw, dbw_where, _COMMANDS + _REPORTS, e2e_frames=True)
     _require(car, car_where, _CAR, e2e_frames=False)
     tx: dict[str, DbcMessage] = {}
+    encoders: dict[str, _TxEntry] = {}
     rx: dict[int, _RxEntry] = {}
     ids: dict[str, frozenset[int]] = {}
     for direction, db, names in (
@@ -576,17 +795,52 @@ def _tables(dbw_key: _SourceKey, car_key: _SourceKey) -> _Tables:
                 raise CanCodecError(
                     f"{name} and {rx[message.frame_id].name} share ID 0x{message.frame_id:03X}"
                 )
+            has_counter = any(sig.name == "COUNTER" for sig in message.signals)
             tx[name] = message
+            encoders[name] = _TxEntry(
+                frame_id=message.frame_id,
+                encode=_encoder(message, e2e_frame=db is dbw, has_counter=has_counter),
+                e2e=db is dbw,
+                has_counter=has_counter,
+            )
             rx[message.frame_id] = _RxEntry(
                 name=name,
                 length=message.length,
                 e2e=db is dbw,
                 decode=_compile(message, *_DECODERS[name]),
-                has_counter=any(sig.name == "COUNTER" for sig in message.signals),
+                has_counter=has_counter,
             )
             direction_ids.append(message.frame_id)
         ids[direction] = frozenset(direction_ids)
-    return _Tables(dbw, car, MappingProxyType(tx), MappingProxyType(rx), MappingProxyType(ids))
+    return _Tables(
+        dbw,
+        car,
+        MappingProxyType(tx),
+        MappingProxyType(encoders),
+        MappingProxyType(rx),
+        MappingProxyType(ids),
+    )
+
+
+def _encoder(message: DbcMessage, *, e2e_frame: bool, has_counter: bool) -> _Encode:
+    """The compiled encoder of a message, taking the values :data:`_FIELDS` gives.
+
+    Strict as cantools: every signal of the message must be filled, by the field getter or
+    by the codec (E2E signals, rolling COUNTER). A DBC that has other signals, or signals the
+    encoder cannot compile, still decodes; encoding that message raises :class:`EncodeError`.
+    """
+    names = _ENCODE_SIGNALS[message.name] + (("COUNTER",) if has_counter else ())
+    filled = set(names) | (set(_E2E_SIGNALS) if e2e_frame else set())
+    unknown = sorted(sig.name for sig in message.signals if sig.name not in filled)
+    if unknown:
+        return _unencodable(
+            f"{message.name} (0x{message.frame_id:03X}): leafgate fills no value for "
+            f"signal(s) {', '.join(unknown)} of the DBC"
+        )
+    try:
+        return _compile_encoder(message, names)
+    except CanCodecError as exc:
+        return _unencodable(str(exc))
 
 
 class CanCodec:
@@ -608,6 +862,7 @@ class CanCodec:
         tables = _tables(_source_key(dbw_dbc), _source_key(car_dbc))
         self._dbw, self._car = tables.dbw, tables.car
         self._tx, self._rx, self._ids = tables.tx, tables.rx, tables.ids
+        self._encoders = tables.encoders
         self._tx_counters: dict[int, int] = {}  # next alive counter per sent ID
         self._rx_counters = e2e.CounterChecker()
         self._counts: dict[int, list[int]] = {frame_id: [0] * 6 for frame_id in self._rx}
@@ -618,32 +873,21 @@ class CanCodec:
     def encode(self, value: EncodableMessage, timestamp: float = 0.0) -> can.Message:
         """Encode a message dataclass into a frame; DBW frames get their counter and CRC.
 
+        Strict like cantools' ``Message.encode(..., strict=True)``, through an encoder
+        compiled from the DBC at start-up. A failed encode does not use up an alive counter.
+
         :param value: one of the message dataclasses a frame carries
         :param timestamp: s, copied into the frame (the sender's clock)
-        :raises EncodeError: a value is outside its DBC range or not finite, or the type has
-            no frame
+        :raises EncodeError: a value is outside its DBC range, not finite or not a number
+            (the message names the frame, the signal, the value and the range), or the type
+            has no frame
         """
-        name, signals = _signals_of(value)
-        message = self._tx[name]
-        for signal, physical in signals.items():
-            try:
-                finite = math.isfinite(physical)
-            except TypeError:
-                raise EncodeError(f"{name}.{signal}: {physical!r} is not a number") from None
-            if not finite:
-                raise EncodeError(f"{name}.{signal}: value {physical!r} is not finite")
-        frame_id = message.frame_id
-        entry = self._rx[frame_id]
+        name, physical = _fields_of(value)
+        entry = self._encoders[name]
+        frame_id = entry.frame_id
         counter = self._tx_counters.get(frame_id, 0)
-        if entry.e2e:
-            signals["ALIVE_COUNTER"] = 0  # set with the CRC by e2e.apply below
-            signals["CRC"] = 0
-        elif entry.has_counter:  # the sensor's own rolling counter (0x002)
-            signals["COUNTER"] = counter
-        try:
-            data = message.encode(signals, scaling=True, padding=False, strict=True)
-        except cantools.database.EncodeError as exc:
-            raise EncodeError(str(exc)) from None
+        # a CAR-CAN frame's own rolling counter (0x002) goes in as its last signal
+        data = entry.encode(*physical, counter) if entry.has_counter else entry.encode(*physical)
         if entry.e2e:
             data = e2e.apply(frame_id, data, counter)
         if entry.e2e or entry.has_counter:  # only a frame actually produced uses a count
@@ -655,6 +899,27 @@ class CanCodec:
             dlc=len(data),
             data=data,
         )
+
+    def _encode_with_cantools(self, value: EncodableMessage, counter: int = 0) -> bytes:
+        """The payload :meth:`encode` makes, computed by cantools' strict ``Message.encode``.
+
+        The reference the compiled encoder is tested and benchmarked against; it does not
+        touch the alive counters.
+
+        :raises EncodeError: cantools rejects a value
+        """
+        name, physical = _fields_of(value)
+        message, entry = self._tx[name], self._encoders[name]
+        signals: dict[str, Any] = dict(zip(_ENCODE_SIGNALS[name], physical, strict=True))
+        if entry.e2e:
+            signals.update(ALIVE_COUNTER=0, CRC=0)  # set with the CRC by e2e.apply below
+        elif entry.has_counter:
+            signals["COUNTER"] = counter
+        try:
+            data = message.encode(signals, scaling=True, padding=False, strict=True)
+        except (cantools.database.EncodeError, TypeError, ValueError, OverflowError) as exc:
+            raise EncodeError(f"{name}: {exc}") from None
+        return e2e.apply(entry.frame_id, data, counter) if entry.e2e else data
 
     # --- decode ---------------------------------------------------------------------------
 
