@@ -56,6 +56,11 @@ def sim_config(tmp_path: Path) -> Path:
     cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
     cfg["can"]["dbw"]["channel"] = f"239.74.{random.randint(164, 250)}.{random.randint(1, 250)}"
     cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
+    # Four Python processes share two cores here (and in CI), and the simulated ECU publishes
+    # localization from its 1 kHz loop: a scheduling stall of 100 ms is not a localization
+    # failure worth stopping this test for. The thresholds themselves are tested in
+    # test_watchdog.py; this test is about tracking and the protocol across processes.
+    cfg["gateway"]["watchdog"].update({"localization_stop_age": 0.3, "localization_fault_age": 1.0})
     path = tmp_path / "sim.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -126,7 +131,10 @@ def test_s_curve_in_real_time_across_processes(sim_config: Path, tmp_path: Path)
             if diag.get("state") in ("STANDBY", "FAULT"):
                 break
             time.sleep(1.0)
-        assert diag.get("state") == "STANDBY", diag.get("reason")
+        assert diag.get("state") == "STANDBY", (
+            diag.get("reason"),
+            (tmp_path / "gw.log").read_text()[-2000:],
+        )
         assert "trajectory end" in diag.get("reason", "")
 
         daemon.send_signal(signal.SIGTERM)
