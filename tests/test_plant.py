@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -19,7 +20,7 @@ def test_constant_steering_drives_the_kinematic_circle() -> None:
     plant = KinematicPlant(VEHICLE, Pose(0.0, 0.0, 0.0, v))
     radius = VEHICLE.wheelbase / math.tan(delta)
     plant.step(0.02, delta, 0.0, Gear.D)  # steering is instant without delay
-    for _ in range(int(round(math.pi * radius / v / 0.02))):  # half a circle
+    for _ in range(round(math.pi * radius / v / 0.02)):  # half a circle
         plant.step(0.02, delta, 0.0, Gear.D)
     # After half a turn the rear axle is two radii to the left of the start.
     assert plant.y == pytest.approx(2 * radius, abs=0.05)
@@ -73,7 +74,7 @@ def test_steer_lag_plant_lags_and_rate_limits() -> None:
     for _ in range(200):
         plant.step(0.02, 0.5, 0.0, Gear.D)
         angles.append(plant.steer_angle)
-    rates = [(b - a) / 0.02 for a, b in zip(angles, angles[1:], strict=False)]
+    rates = [(b - a) / 0.02 for a, b in itertools.pairwise(angles)]
     assert max(rates) <= 0.2 + 1e-9  # the rate limit binds for a large step
     assert angles[-1] == pytest.approx(0.5, abs=0.02)  # and the lag converges
 
