@@ -138,6 +138,9 @@ class EncodeError(CanCodecError, cantools.database.EncodeError):
     """
 
 
+_STATS_FIELDS = ("frames", "bad_crc", "bad_counter", "wrong_length", "unknown_id", "decode_error")
+
+
 @dataclass(frozen=True)  # no slots: diagnostics serialise it with vars()
 class FrameStats:
     """Receive counters of one CAN ID since the codec was made."""
@@ -148,6 +151,10 @@ class FrameStats:
     wrong_length: int = 0
     unknown_id: int = 0  # frames of an ID no database describes
     decode_error: int = 0  # content that maps to no message value (e.g. gear 6)
+
+    def __add__(self, other: FrameStats) -> FrameStats:
+        """Counters summed field by field (e.g. one ID over several channels or logs)."""
+        return FrameStats(*(getattr(self, f) + getattr(other, f) for f in _STATS_FIELDS))
 
     @property
     def errors(self) -> int:

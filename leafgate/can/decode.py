@@ -100,23 +100,12 @@ def format_summary(stats: dict[int, FrameStats], names: dict[int, str | None]) -
             f"{label:>8}  {name:<20} {s.frames:>8} {s.bad_crc:>8} {s.bad_counter:>8} "
             f"{s.wrong_length:>8} {s.unknown_id:>8} {s.decode_error:>8}"
         )
-        total = _add(total, s)
+        total = total + s
     lines.append(
         f"{'total':>8}  {'':<20} {total.frames:>8} {total.bad_crc:>8} {total.bad_counter:>8} "
         f"{total.wrong_length:>8} {total.unknown_id:>8} {total.decode_error:>8}"
     )
     return lines
-
-
-def _add(a: FrameStats, b: FrameStats) -> FrameStats:
-    return FrameStats(
-        frames=a.frames + b.frames,
-        bad_crc=a.bad_crc + b.bad_crc,
-        bad_counter=a.bad_counter + b.bad_counter,
-        wrong_length=a.wrong_length + b.wrong_length,
-        unknown_id=a.unknown_id + b.unknown_id,
-        decode_error=a.decode_error + b.decode_error,
-    )
 
 
 def decode_log(
@@ -157,7 +146,7 @@ def decode_log(
         for codec in codecs.values():
             for frame_id, s in codec.stats.items():
                 if s.frames:
-                    merged[frame_id] = _add(merged.get(frame_id, FrameStats()), s)
+                    merged[frame_id] = merged.get(frame_id, FrameStats()) + s
                     names[frame_id] = codec.name_of(frame_id)
         out.write(f"# {path.name}: {sum(s.frames for s in merged.values())} frames\n")
         for line in format_summary(merged, names):

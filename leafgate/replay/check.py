@@ -335,7 +335,7 @@ def check_frames(
     for codec in codecs.values():
         for frame_id, s in codec.stats.items():
             if s.frames:
-                merged[frame_id] = _add(merged.get(frame_id, FrameStats()), s)
+                merged[frame_id] = merged.get(frame_id, FrameStats()) + s
                 names[frame_id] = codec.name_of(frame_id)
     skips = {
         (frame_id, index) for index, _, frame_id, _, error in e2e_findings if error == "bad_counter"
@@ -406,17 +406,6 @@ def _measured(report: LongReport | None, limits: SafetyLimits) -> Measured:
     if report is None:
         return Measured(limits.max_speed, Gear.NONE)
     return Measured(report.speed, report.gear)
-
-
-def _add(a: FrameStats, b: FrameStats) -> FrameStats:
-    return FrameStats(
-        frames=a.frames + b.frames,
-        bad_crc=a.bad_crc + b.bad_crc,
-        bad_counter=a.bad_counter + b.bad_counter,
-        wrong_length=a.wrong_length + b.wrong_length,
-        unknown_id=a.unknown_id + b.unknown_id,
-        decode_error=a.decode_error + b.decode_error,
-    )
 
 
 _Gap = tuple[int, int, float, float]  # (id, index of the frame after the gap, start, end)

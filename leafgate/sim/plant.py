@@ -50,6 +50,22 @@ def signed_accel(gear: Gear, accel_cmd: float, speed: float) -> float:
     return -math.copysign(-accel_cmd, speed) if abs(speed) > 0.0 else 0.0
 
 
+def speed_step(gear: Gear, a_rel: float, v0: float, h: float) -> tuple[float, float, float]:
+    """One sub-step of the longitudinal motion: ``(a, v1, h_move)``.
+
+    ``a`` is d(signed speed)/dt, ``v1`` the speed after ``h``, and ``h_move`` how long the car
+    actually moves: braking stops it exactly at rest within the sub-step and never reverses it.
+    """
+    a = signed_accel(gear, a_rel, v0)
+    v1 = v0 + a * h
+    braking_through_zero = (
+        v0 != 0.0 and v1 * v0 < 0.0 and (a_rel <= 0.0 or gear_direction(gear) * v0 < 0)
+    )
+    if braking_through_zero or (v0 == 0.0 and a == 0.0):
+        return a, 0.0, (-v0 / a if a != 0.0 else 0.0)  # integrate up to the stop only
+    return a, v1, h
+
+
 def _bicycle_rhs(x: float, y: float, theta: float, v: float, tan_delta: float, wheelbase: float):
     """Kinematic bicycle about the rear axle (paper eq. 1–6), without the speed equation."""
     return v * math.cos(theta), v * math.sin(theta), v * tan_delta / wheelbase
@@ -171,21 +187,11 @@ class KinematicPlant:
 
     def _advance(self, h: float, a_rel: float) -> None:
         v0 = self.speed
-        a = signed_accel(self.gear, a_rel, v0)
-        v1 = v0 + a * h
-        braking_through_zero = (
-            v0 != 0.0 and v1 * v0 < 0.0 and (a_rel <= 0.0 or gear_direction(self.gear) * v0 < 0)
-        )
-        if braking_through_zero or (v0 == 0.0 and a == 0.0):
-            # Stop exactly at rest within the sub-step: integrate to the zero crossing only.
-            h_move = -v0 / a if a != 0.0 else 0.0
-            a_eff, v1 = a, 0.0
-        else:
-            h_move, a_eff = h, a
+        a, v1, h_move = speed_step(self.gear, a_rel, v0, h)
         tan_delta = math.tan(self.steer_angle)
         if h_move > 0.0:
             self.x, self.y, self.heading = rk4_pose(
-                self.x, self.y, self.heading, v0, a_eff, tan_delta, self.vehicle.wheelbase, h_move
+                self.x, self.y, self.heading, v0, a, tan_delta, self.vehicle.wheelbase, h_move
             )
         self.accel = (v1 - v0) / h
         self.speed = v1
@@ -371,16 +377,7 @@ class DynamicPlant(SteerLagPlant):
 
     def _advance(self, h: float, a_rel: float) -> None:
         v0 = self.speed
-        a = signed_accel(self.gear, a_rel, v0)
-        v1 = v0 + a * h
-        braking_through_zero = (
-            v0 != 0.0 and v1 * v0 < 0.0 and (a_rel <= 0.0 or gear_direction(self.gear) * v0 < 0)
-        )
-        if braking_through_zero or (v0 == 0.0 and a == 0.0):
-            h_move = -v0 / a if a != 0.0 else 0.0  # s, integrate up to the stop only
-            v1 = 0.0
-        else:
-            h_move = h
+        a, v1, h_move = speed_step(self.gear, a_rel, v0, h)
         tan_d = math.tan(self.steer_angle)
         cos_d = math.cos(self.steer_angle)
         r, vy = self.yaw_rate, self._vy
