@@ -422,6 +422,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the raw JSON records")
     p.set_defaults(func=cmd_status)
 
+    p = sub.add_parser(
+        "compare", help="every controller × plant × scenario: report.md, report.json and plots"
+    )
+    from leafgate.sim.compare import add_arguments, cmd_compare
+
+    add_arguments(p)
+    p.set_defaults(func=cmd_compare)
+
     p = sub.add_parser("replay", help="check, play back, re-run and plot recorded drives")
     rsub = p.add_subparsers(dest="replay_command", metavar="ACTION", required=True)
     r = rsub.add_parser(

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from leafgate.config import VehicleConfig
 from leafgate.control import make_controller
+from leafgate.control.baselines import PurePursuit, Stanley
 from leafgate.control.config import ControllerConfig, MpcConfig
 from leafgate.control.mpc import MpcController
 from leafgate.errors import ConfigError
@@ -186,11 +187,14 @@ def test_reset_forgets_the_last_input() -> None:
     assert again.steer_angle == pytest.approx(first.steer_angle, abs=1e-9)
 
 
-def test_make_controller_builds_mpc_and_refuses_other_kinds() -> None:
+def test_make_controller_builds_each_kind() -> None:
     ctrl = make_controller(ControllerConfig(), VehicleConfig(), 0.02)
     assert isinstance(ctrl, MpcController) and ctrl.period == 0.02
-    with pytest.raises(ConfigError, match="stanley"):
-        make_controller(ControllerConfig(kind="stanley"), VehicleConfig(), 0.02)
+    assert isinstance(
+        make_controller(ControllerConfig(kind="stanley"), VehicleConfig(), 0.02), Stanley
+    )
+    pure = make_controller(ControllerConfig(kind="pure-pursuit"), VehicleConfig(), 0.02)
+    assert isinstance(pure, PurePursuit)
 
 
 def test_make_controller_refuses_limits_outside_the_vehicle() -> None:

@@ -45,3 +45,23 @@ def test_lateral_error_is_signed_distance_to_polyline() -> None:
 def test_sign_changes_ignores_deadband() -> None:
     rate = np.array([0.1, 0.2, -0.1, 0.005, -0.005, 0.3, 0.2])
     assert sign_changes(rate, deadband=0.01) == 2
+
+
+def test_projection_follows_a_path_that_doubles_back() -> None:
+    """Forward along y = 0, cusp, then reverse along y = 0.4 back over the same x: the
+    projection must stay on the segment being driven, not jump to the nearer other leg."""
+    xs = np.concatenate([np.arange(0.0, 5.01, 0.5), np.arange(5.0, -0.01, -0.5)])
+    ys = np.concatenate([np.zeros(11), np.linspace(0.0, 0.4, 3), np.full(8, 0.4)])
+    traj = Trajectory(
+        x=xs, y=ys, heading=np.zeros(22), speed=np.concatenate([np.ones(11), -np.ones(11)])
+    )
+    # Out on the first leg 0.25 m to its left (0.15 m from the second leg, which is nearer),
+    # then back along the second leg 0.15 m to its right.
+    x = np.concatenate([np.linspace(0.2, 4.8, 20), np.linspace(4.0, 0.5, 20)])
+    y = np.concatenate([np.full(20, 0.25), np.full(20, 0.25)])
+    speed = np.concatenate([np.full(20, 1.0), np.full(20, -1.0)])
+    err = path_errors(traj, x, y, np.zeros(40), speed)
+    np.testing.assert_allclose(err.lateral[:20], 0.25, atol=1e-9)  # left of the first leg
+    np.testing.assert_allclose(np.abs(err.lateral[25:]), 0.15, atol=1e-9)  # on the second leg
+    np.testing.assert_allclose(err.speed_ref[:20], 1.0)
+    np.testing.assert_allclose(err.speed_ref[25:], -1.0)

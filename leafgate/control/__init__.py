@@ -1,4 +1,4 @@
-"""Path- and speed-tracking controllers: the paper's MPC (and later the baselines).
+"""Path- and speed-tracking controllers: the paper's MPC, Pure Pursuit and Stanley.
 
 >>> from leafgate.config import VehicleConfig
 >>> from leafgate.control.config import ControllerConfig
@@ -13,27 +13,30 @@ import math
 
 from leafgate.config import VehicleConfig
 from leafgate.control.base import Controller
+from leafgate.control.baselines import PurePursuit, PurePursuitConfig, Stanley, StanleyConfig
 from leafgate.control.config import ControllerConfig, MpcConfig
 from leafgate.errors import ConfigError
 
 __all__ = ["Controller", "make_controller"]
 
 
-def _check_inside_vehicle(mpc: MpcConfig, vehicle: VehicleConfig) -> None:
+def _check_inside_vehicle(
+    cfg: MpcConfig | PurePursuitConfig | StanleyConfig, vehicle: VehicleConfig, section: str = "mpc"
+) -> None:
     """The controller's limits must lie inside the vehicle's: the gate is the last word."""
-    if mpc.steer_max > vehicle.max_steer_angle:
+    if cfg.steer_max > vehicle.max_steer_angle:
         raise ConfigError(
-            f"controller.mpc.steer_max ({math.degrees(mpc.steer_max):.1f}°) exceeds "
+            f"controller.{section}.steer_max ({math.degrees(cfg.steer_max):.1f}°) exceeds "
             f"vehicle.max_steer_angle ({math.degrees(vehicle.max_steer_angle):.1f}°)"
         )
-    if mpc.accel_max > vehicle.max_accel:
+    if cfg.accel_max > vehicle.max_accel:
         raise ConfigError(
-            f"controller.mpc.accel_max ({mpc.accel_max} m/s²) exceeds vehicle.max_accel "
+            f"controller.{section}.accel_max ({cfg.accel_max} m/s²) exceeds vehicle.max_accel "
             f"({vehicle.max_accel} m/s²)"
         )
-    if mpc.accel_min < vehicle.min_accel:
+    if cfg.accel_min < vehicle.min_accel:
         raise ConfigError(
-            f"controller.mpc.accel_min ({mpc.accel_min} m/s²) is below vehicle.min_accel "
+            f"controller.{section}.accel_min ({cfg.accel_min} m/s²) is below vehicle.min_accel "
             f"({vehicle.min_accel} m/s²)"
         )
 
@@ -44,7 +47,7 @@ def make_controller(cfg: ControllerConfig, vehicle: VehicleConfig, period: float
     :param cfg: the ``controller:`` section
     :param vehicle: the vehicle section (wheelbase, limits)
     :param period: s, the control tick
-    :raises ConfigError: for a kind not built yet, limits outside the vehicle's, or a bad period
+    :raises ConfigError: for an unknown kind, limits outside the vehicle's, or a bad period
     """
     if not (math.isfinite(period) and period > 0.0):
         raise ConfigError(f"control period must be a positive number of seconds, got {period!r}")
@@ -53,4 +56,12 @@ def make_controller(cfg: ControllerConfig, vehicle: VehicleConfig, period: float
 
         _check_inside_vehicle(cfg.mpc, vehicle)
         return MpcController(cfg.mpc, vehicle, period)
-    raise ConfigError(f"controller.kind: {cfg.kind!r} is not implemented yet (use 'mpc')")
+    if cfg.kind == "pure-pursuit":
+        _check_inside_vehicle(cfg.pure_pursuit, vehicle, "pure_pursuit")
+        return PurePursuit(cfg.pure_pursuit, vehicle, period)
+    if cfg.kind == "stanley":
+        _check_inside_vehicle(cfg.stanley, vehicle, "stanley")
+        return Stanley(cfg.stanley, vehicle, period)
+    raise ConfigError(
+        f"controller.kind: {cfg.kind!r} is not a controller (use mpc, pure-pursuit or stanley)"
+    )

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from leafgate.config import positive
+from leafgate.control.baselines import PurePursuitConfig, StanleyConfig
 
 
 @dataclass(frozen=True)
@@ -23,7 +24,9 @@ class MpcConfig:
     prediction_horizon: int = 30  # Np: 3 s preview at 0.1 s, ≈ 6 m at parking speed
     control_horizon: int = 10  # Nc
     solver: Literal["hildreth", "osqp"] = "hildreth"
-    max_iterations: int = 38  # Hildreth sweeps (the paper's cap)
+    max_iterations: int = 100  # Hildreth sweeps. The paper caps at 38; with the steering
+    # saturated (the last arc of a parking move) warm-started sweeps need up to ≈ 75, and the
+    # gateway stops the car on any unconverged solve
     mode: Literal["acceleration", "velocity"] = "acceleration"
     model: Literal["kinematic", "kinematic_steer_lag"] = "kinematic"
 
@@ -50,8 +53,9 @@ class MpcConfig:
     osqp_tolerance: float = 1e-7  # OSQP eps_abs = eps_rel
 
     # reference and progress
-    min_model_speed: float = 0.5  # m/s, the model is linearised at no less than this speed
-    # in the driving direction, so steering stays effective in a prediction from rest
+    align_tolerance: float = 0.03  # rad (and tan δ), at rest at a segment's start the wheel is
+    # turned to the path's curvature within this before the car drives off (≈ 1.7°: the lateral
+    # error it leaves over the first metre is ≈ 1 cm)
     creep_speed: float = 0.3  # m/s, slowest speed assumed when placing the horizon's points
     search_window: int = 20  # waypoints examined by the forward nearest-point search
     goal_tolerance: float = 0.15  # m, a segment's end counts as reached within this distance
@@ -83,7 +87,7 @@ class MpcConfig:
             "hildreth_tolerance",
             "osqp_tolerance",
             "creep_speed",
-            "min_model_speed",
+            "align_tolerance",
             "search_window",
             "goal_tolerance",
             "stop_speed",
@@ -112,3 +116,5 @@ class MpcConfig:
 class ControllerConfig:
     kind: Literal["mpc", "pure-pursuit", "stanley"] = "mpc"
     mpc: MpcConfig = field(default_factory=MpcConfig)
+    pure_pursuit: PurePursuitConfig = field(default_factory=PurePursuitConfig)
+    stanley: StanleyConfig = field(default_factory=StanleyConfig)

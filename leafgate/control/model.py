@@ -202,3 +202,140 @@ def _lag_index(Np: int, Nc: int) -> npt.NDArray[np.intp]:
     index = np.where(lag >= 0, lag + 1, 0)
     index.setflags(write=False)
     return index
+
+
+# --- time-varying prediction and the steering actuator ----------------------------------------
+
+N_STATES_STEER = 5  # [x, y, v, θ, t]: the kinematic states and the actual t = tan δ
+
+
+def linearise_along(
+    speed: FloatArray, heading: FloatArray, tan_delta: FloatArray, Ts: float, wheelbase: float
+) -> tuple[FloatArray, FloatArray]:
+    """Jacobians of the Euler map at ``Np`` operating points along the horizon (vectorised).
+
+    The entries are those of :func:`linearise`, evaluated at each step's own speed, heading and
+    steering instead of the current ones. Near a stop the planned speed falls towards 0 and so
+    does the effect of steering: a model linearised once at the current (or a floor) speed
+    believes the car keeps turning after it has stopped, and steers too little before a cusp.
+
+    :param speed: (Np,) m/s, signed operating speed of each step
+    :param heading: (Np,) rad, operating heading (in the controller's frame)
+    :param tan_delta: (Np,) operating tan δ
+    :returns: ``(A, B)`` of shapes (Np, 4, 4) and (Np, 4, 2)
+    """
+    n = speed.shape[0]
+    c, s = np.cos(heading), np.sin(heading)
+    zero, one = np.zeros(n), np.ones(n)
+    vs, vc = Ts * speed * s, Ts * speed * c
+    rows = (
+        (one, zero, Ts * c, -vs),
+        (zero, one, Ts * s, vc),
+        (zero, zero, one, zero),
+        (zero, zero, (Ts / wheelbase) * tan_delta, one),
+    )
+    A = np.stack([entry for row in rows for entry in row], axis=1).reshape(n, N_STATES, N_STATES)
+    B = np.stack(
+        (zero, zero, zero, zero, np.full(n, Ts), zero, zero, (Ts / wheelbase) * speed), axis=1
+    ).reshape(n, N_STATES, N_INPUTS)
+    return A, B
+
+
+def steer_lag_factor(Ts: float, tau: float) -> float:
+    """α of the exact zero-order-hold discretisation of ``ṫ = (t_cmd − t)/τ``: ``t⁺ = t + α(t_cmd − t)``."""
+    return 1.0 - math.exp(-Ts / tau)
+
+
+def augment_steer_lag(
+    A: FloatArray, B: FloatArray, alpha: float, Ts: float, speed: FloatArray, wheelbase: float
+) -> tuple[FloatArray, FloatArray]:
+    """Add the steering actuator to stacks of kinematic Jacobians (model ``kinematic_steer_lag``).
+
+    State ``[x, y, v, θ, t]`` with ``t`` the *actual* tan δ, input ``[a, t_cmd]``::
+
+        θ⁺ = θ + Ts v t / L,   t⁺ = t + α (t_cmd − t)
+
+    The kinematic ``∂θ⁺/∂t_cmd`` moves to ``∂θ⁺/∂t`` (the car turns with the wheel it has, not
+    the one it asked for), and the command reaches ``t`` only through the lag.
+
+    :param A: (Np, 4, 4) and ``B`` (Np, 4, 2) from :func:`linearise_along`
+    :param speed: (Np,) m/s, the operating speeds used for ``A`` and ``B``
+    :returns: ``(A5, B5)`` of shapes (Np, 5, 5) and (Np, 5, 2)
+    """
+    n = A.shape[0]
+    A5 = np.zeros((n, N_STATES_STEER, N_STATES_STEER))
+    A5[:, :N_STATES, :N_STATES] = A
+    A5[:, 3, 4] = Ts * speed / wheelbase
+    A5[:, 4, 4] = 1.0 - alpha
+    B5 = np.zeros((n, N_STATES_STEER, N_INPUTS))
+    B5[:, :N_STATES, 0] = B[:, :, 0]
+    B5[:, 4, 1] = alpha
+    return A5, B5
+
+
+def steer_lag_increment(
+    state: FloatArray, u: FloatArray, Ts: float, wheelbase: float, alpha: float
+) -> FloatArray:
+    """One model step's change of ``[x, y, v, θ, t]`` with the input ``u = [a, t_cmd]`` held."""
+    _, _, v, theta, t = state
+    a, t_cmd = u
+    return np.array(
+        [
+            Ts * v * math.cos(theta),
+            Ts * v * math.sin(theta),
+            Ts * a,
+            Ts * v * t / wheelbase,
+            alpha * (t_cmd - t),
+        ]
+    )
+
+
+def prediction_matrices_ltv(
+    A: FloatArray, B: FloatArray, C: FloatArray, Nc: int
+) -> tuple[FloatArray, FloatArray]:
+    """``Y = F [Δx₀; y₀] + S ΔU`` of the augmented model with step-dependent ``Aₖ``, ``Bₖ``.
+
+    The incremental model of eq. 15–19 with Jacobians taken at each step's operating point:
+    ``Δxₖ₊₁ = Aₖ Δxₖ + Bₖ Δuₖ``, ``yₖ₊₁ = yₖ + C Δxₖ₊₁`` (the Jacobian of a difference of two
+    consecutive steps is the one at the later step). With ``Pₘ = Aₘ₋₁ ⋯ A₀`` and
+    ``Qₖ = Σ_{m=1..k} Pₘ``::
+
+        yₖ = y₀ + C Qₖ Δx₀ + Σ_{j<min(k,Nc)} C (Qₖ − Qⱼ) Pⱼ₊₁⁻¹ Bⱼ Δuⱼ
+
+    (every ``Aₖ`` of the bicycle has determinant 1, so the inverses exist). With all ``Aₖ``,
+    ``Bₖ`` equal this is :func:`prediction_matrices`. One loop of ``Np`` 4×4 products, the rest
+    batched.
+
+    :param A: (Np, n, n), ``B``: (Np, n, m), ``C``: (q, n)
+    :returns: ``F`` of shape (Np·q, n+q) and ``S`` of shape (Np·q, Nc·m)
+    """
+    Np, n, _ = A.shape
+    q = C.shape[0]
+    m = B.shape[2]
+    P = np.empty((Np + 1, n, n))
+    P[0] = np.eye(n)
+    P[1:] = A
+    # prefix products P[k] = A[k−1] ⋯ A[0] by a doubling scan: ⌈log₂ Np⌉ batched products
+    # instead of Np sequential ones
+    d = 1
+    while d < Np:
+        P[d + 1 :] = P[d + 1 :] @ P[1 : Np + 1 - d]
+        d *= 2
+    CQ = C @ (np.cumsum(P, axis=0) - np.eye(n))  # C Q[k], Q[k] = Σ_{m=1..k} P[m], Q[0] = 0
+    F = np.empty((Np, q, n + q))
+    F[:, :, :n] = CQ[1:]
+    F[:, :, n:] = np.eye(q)
+    G = np.linalg.solve(P[1 : Nc + 1], B[:Nc])  # (Nc, n, m): P_{j+1}⁻¹ B_j
+    # block (k, j) = C Q_k G_j − C Q_j G_j, k = 1…Np
+    blocks = np.matmul(CQ[1:, None], G[None]) - np.matmul(CQ[:Nc], G)[None]  # (Np, Nc, q, m)
+    blocks[~_ltv_mask(Np, Nc)] = 0.0
+    S = blocks.transpose(0, 2, 1, 3).reshape(Np * q, Nc * m)
+    return F.reshape(Np * q, n + q), S
+
+
+@functools.lru_cache(maxsize=8)
+def _ltv_mask(Np: int, Nc: int) -> npt.NDArray[np.bool_]:
+    """(Np, Nc): True where output k = row + 1 depends on move j (k > j)."""
+    mask = np.arange(Np)[:, None] >= np.arange(Nc)[None, :]
+    mask.setflags(write=False)
+    return mask

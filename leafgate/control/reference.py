@@ -261,15 +261,19 @@ class ReferencePath:
         heading = np.unwrap(traj.heading)
         # signed speed clipped to each segment's direction, zero at each segment's end
         speed = np.zeros(n)
-        time = np.zeros(n)  # s, planned time from the segment's start
+        # s, planned time from the trajectory's start. Cumulative over the segments so that it
+        # increases strictly within each one: consecutive segments share their cusp waypoint,
+        # and restarting the clock there would break the previous segment's time axis.
+        time = np.zeros(n)
         for seg in self.segments:
             sl = slice(seg.start, seg.end + 1)
             mag = np.maximum(seg.direction * traj.speed[sl], 0.0)
             mag[-1] = 0.0
             speed[sl] = seg.direction * mag
             mean = np.maximum(0.5 * (mag[1:] + mag[:-1]), creep_speed)
-            time[seg.start + 1 : seg.end + 1] = np.cumsum(np.diff(self.s[sl]) / mean)
-            time[seg.start] = 0.0
+            time[seg.start + 1 : seg.end + 1] = time[seg.start] + np.cumsum(
+                np.diff(self.s[sl]) / mean
+            )
         self.speed = speed
         self.time = time
         self.values = np.column_stack((traj.x, traj.y, heading))  # (n, 3)

@@ -89,7 +89,9 @@ def trace_from_session(path: str | Path) -> tuple[Trace, Trajectory | None]:
         }.items()
     }
     if trajectory is not None and len(trajectory) >= 2 and arrays["t"].size:
-        speed_ref = path_errors(trajectory, arrays["x"], arrays["y"], arrays["heading"]).speed_ref
+        speed_ref = path_errors(
+            trajectory, arrays["x"], arrays["y"], arrays["heading"], arrays["speed"]
+        ).speed_ref
     else:
         speed_ref = np.full_like(arrays["t"], math.nan)
     trace = Trace(

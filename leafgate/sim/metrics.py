@@ -27,33 +27,70 @@ def wrap_angle(angle: FloatArray | float) -> FloatArray:
     return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def path_errors(traj: Trajectory, x: FloatArray, y: FloatArray, heading: FloatArray) -> PathErrors:
-    """Project each sample onto the nearest segment of the reference polyline.
+PROJECTION_WINDOW = 40  # segments ahead the projection may move per sample (20 m at 0.5 m)
+PROJECTION_SLACK = 2  # segments it may move back (noise around a waypoint)
+DIRECTION_SPEED = 0.05  # m/s, above this the sign of the speed says which way the car drives
 
-    For reversing segments the heading reference is the vehicle heading stored in the
-    trajectory, so the same formula holds in both directions.
+
+def _segment_distances(
+    traj: Trajectory, x: float, y: float, lo: int, hi: int
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Squared distance, projection parameter and error vector to segments ``lo..hi-1``."""
+    ax, ay = traj.x[lo:hi], traj.y[lo:hi]
+    dx, dy = traj.x[lo + 1 : hi + 1] - ax, traj.y[lo + 1 : hi + 1] - ay
+    rx, ry = x - ax, y - ay
+    # A zero-length segment (a repeated point) projects onto its start.
+    t = np.clip((rx * dx + ry * dy) / np.maximum(dx * dx + dy * dy, 1e-12), 0.0, 1.0)
+    ex, ey = rx - t * dx, ry - t * dy
+    return ex * ex + ey * ey, t, ex, ey
+
+
+def path_errors(
+    traj: Trajectory,
+    x: FloatArray,
+    y: FloatArray,
+    heading: FloatArray,
+    speed: FloatArray | None = None,
+) -> PathErrors:
+    """Project each sample onto the reference polyline, following the path in time order.
+
+    The projection starts at the trajectory's first segment (a drive starts there) and then only
+    moves along the path (a little back for noise, up to a window ahead): parking paths double back on
+    themselves at cusps, and a plain nearest-segment search would jump to a segment of the other
+    direction. With ``speed`` given, only segments planned in the vehicle's direction of travel
+    are candidates (the two legs of a cusp have opposite speed signs). For reversing segments
+    the heading reference is the vehicle heading stored in the trajectory, so the same formula
+    holds in both directions.
     """
-    px, py = traj.x, traj.y
-    ax, ay = px[:-1], py[:-1]
-    dx, dy = np.diff(px), np.diff(py)
-    seg_len2 = dx * dx + dy * dy
-    # (samples × segments) projection parameters, clipped to the segments.
-    rx = x[:, None] - ax[None, :]
-    ry = y[:, None] - ay[None, :]
-    t = np.clip((rx * dx + ry * dy) / seg_len2, 0.0, 1.0)
-    ex = rx - t * dx
-    ey = ry - t * dy
-    dist2 = ex * ex + ey * ey
-    k = np.argmin(dist2, axis=1)
-    rows = np.arange(x.shape[0])
-    tk = t[rows, k]
-    cross = dx[k] * ey[rows, k] - dy[k] * ex[rows, k]
-    lateral = np.sign(cross) * np.sqrt(dist2[rows, k])
-    ref_heading = traj.heading[k] + tk * wrap_angle(traj.heading[k + 1] - traj.heading[k])
-    speed_ref = traj.speed[k] + tk * (traj.speed[k + 1] - traj.speed[k])
-    return PathErrors(
-        lateral=lateral, heading=wrap_angle(heading - ref_heading), speed_ref=speed_ref
-    )
+    n_seg = len(traj) - 1
+    seg_dir = np.sign(traj.speed[:-1] + traj.speed[1:])  # planned direction of each segment
+    moving_dir = 0.0
+    lateral = np.empty(x.shape[0])
+    heading_err = np.empty(x.shape[0])
+    speed_ref = np.empty(x.shape[0])
+    k_prev = 0  # a drive starts at the start of its trajectory
+    for i in range(x.shape[0]):
+        lo, hi = max(0, k_prev - PROJECTION_SLACK), min(n_seg, k_prev + PROJECTION_WINDOW)
+        dist2, t, ex, ey = _segment_distances(traj, float(x[i]), float(y[i]), lo, hi)
+        if speed is not None:
+            if abs(speed[i]) > DIRECTION_SPEED:
+                moving_dir = math.copysign(1.0, speed[i])
+            other_way = seg_dir[lo:hi] == -moving_dir
+            if moving_dir != 0.0 and not np.all(other_way):
+                dist2 = np.where(other_way, np.inf, dist2)
+        j = int(np.argmin(dist2))
+        k = lo + j
+        k_prev = k
+        dx, dy = traj.x[k + 1] - traj.x[k], traj.y[k + 1] - traj.y[k]
+        cross = dx * ey[j] - dy * ex[j]
+        lateral[i] = math.copysign(math.sqrt(dist2[j]), cross) if cross != 0 else 0.0
+        tk = t[j]
+        ref_heading = traj.heading[k] + tk * float(
+            wrap_angle(traj.heading[k + 1] - traj.heading[k])
+        )
+        heading_err[i] = float(wrap_angle(heading[i] - ref_heading))
+        speed_ref[i] = traj.speed[k] + tk * (traj.speed[k + 1] - traj.speed[k])
+    return PathErrors(lateral=lateral, heading=heading_err, speed_ref=speed_ref)
 
 
 def sign_changes(rate: FloatArray, deadband: float = STEER_RATE_DEADBAND) -> int:
@@ -72,7 +109,7 @@ def tracking_metrics(
     steer_angle: FloatArray,
 ) -> dict[str, float]:
     """Lateral/heading/speed errors and steering smoothness of a run (true plant states)."""
-    errors = path_errors(traj, x, y, heading)
+    errors = path_errors(traj, x, y, heading, speed)
     steer_rate = np.gradient(steer_angle, t) if t.shape[0] > 1 else np.zeros_like(t)
     final_pos = math.hypot(x[-1] - traj.x[-1], y[-1] - traj.y[-1])
     final_heading = float(abs(wrap_angle(heading[-1] - traj.heading[-1])))

@@ -271,6 +271,6 @@ def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
             "localization_published": feed.published,
         }
     )
-    speed_ref = path_errors(scenario.trajectory, x, y, heading).speed_ref
+    speed_ref = path_errors(scenario.trajectory, x, y, heading, speed).speed_ref
     plot_trace = Trace("mpc, real time", ts, x, y, speed, steer, steer, speed_ref)
     return {"metrics": metrics, "trace": plot_trace, "timeline": timeline}

@@ -148,7 +148,7 @@ def _finish(
     metrics["solve_time_median_s"] = float(np.median(solve))
     metrics["solve_time_p99_s"] = float(np.percentile(solve, 99))
     metrics.update(extra)
-    speed_ref = path_errors(traj, arr["x"], arr["y"], arr["heading"]).speed_ref
+    speed_ref = path_errors(traj, arr["x"], arr["y"], arr["heading"], arr["speed"]).speed_ref
     trace = Trace(
         label=label or f"{config.controller.kind}, {config.sim.plant.kind} plant",
         t=arr["t"],

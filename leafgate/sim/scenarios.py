@@ -115,10 +115,221 @@ def slalom() -> Scenario:
     )
 
 
+# --- parking manoeuvres (reverse, cusps) --------------------------------------------------------
+
+LEAF_LENGTH = 4.45  # m, bumper to bumper
+LEAF_WIDTH = 1.77  # m, body without mirrors
+LEAF_REAR_OVERHANG = 0.80  # m, rear axle to rear bumper
+PARK_CURVATURE = 0.2  # 1/m, tan(δ)/L of the tightest arc planned: R = 5 m at the rear axle,
+# δ ≈ 28.4°, inside the MPC's 30° so it keeps steering margin (the Leaf's 31° gives R ≈ 4.5 m)
+PARK_ACCEL = 0.4  # m/s², planned speed-up and slow-down in a parking move
+CUSP_PAUSE = 4.0  # s per cusp in the time budget: stop, turn the wheel at rest, shift gear
+
+
+@dataclass(frozen=True)
+class Box:
+    """An axis-aligned obstacle (parked car, kerb, wall) in the scenario's frame, m."""
+
+    x_min: float
+    x_max: float
+    y_min: float
+    y_max: float
+
+
+@dataclass(frozen=True)
+class _Piece:
+    """A stretch driven with the steering ramped linearly (a clothoid; an arc when k0 == k1)."""
+
+    length: float  # m, distance travelled
+    k0: float  # 1/m, path curvature tan(δ)/L at its start (sign of δ: left positive)
+    k1: float  # 1/m, at its end
+
+
+@dataclass(frozen=True)
+class _Move:
+    """One direction segment: driven forward (+1) or in reverse (−1) from rest to rest."""
+
+    direction: int
+    pieces: tuple[_Piece, ...]
+    v_max: float  # m/s, speed magnitude cap
+
+
+def _drive_backward(
+    goal: tuple[float, float, float], moves: tuple[_Move, ...], step: float = 0.005
+) -> list[FloatArray]:
+    """Dense ``(x, y, θ)`` of each move in driving order, ending exactly on ``goal``.
+
+    The manoeuvre is integrated backward in time from the goal (each piece driven the other way
+    with its curvature ramp reversed), so the final pose — the one that must be exact — is the
+    integration's start and the start pose follows. ``θ̇ = v tan δ / L``: a reverse move turns
+    the heading the opposite way for the same curvature.
+    """
+    x, y, th = goal
+    dense: list[FloatArray] = []
+    for move in reversed(moves):
+        pts = [(x, y, th)]
+        back = -move.direction  # driving the move backward in time
+        for piece in reversed(move.pieces):
+            n = max(1, math.ceil(piece.length / step))
+            h = piece.length / n
+            for i in range(n):
+                k = piece.k1 + (piece.k0 - piece.k1) * (i + 0.5) / n  # curvature at the midpoint
+                th_mid = th + 0.5 * back * h * k
+                x += back * h * math.cos(th_mid)
+                y += back * h * math.sin(th_mid)
+                th += back * h * k
+                pts.append((x, y, th))
+        dense.append(np.array(pts[::-1]))
+    return dense[::-1]
+
+
+def _maneuver(
+    name: str, description: str, goal: tuple[float, float, float], moves: tuple[_Move, ...]
+) -> Scenario:
+    """Waypoints ≤ SPACING apart on each move (equal spacing within a move), cusps shared.
+
+    Headings are the vehicle's (also in reverse); speeds are signed, exactly 0 at each cusp and
+    at the end; the first waypoint carries the START_SPEED pull in the first move's direction.
+    """
+    xs: list[FloatArray] = []
+    ys: list[FloatArray] = []
+    hs: list[FloatArray] = []
+    vs: list[FloatArray] = []
+    travel_time = 0.0
+    for m, (move, pts) in enumerate(zip(moves, _drive_backward(goal, moves), strict=True)):
+        s_dense = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(pts[:, :2], axis=0).T))))
+        length = float(s_dense[-1])
+        n = max(1, math.ceil(length / SPACING - 1e-9))
+        s = np.linspace(0.0, length, n + 1)
+        up = np.sqrt(START_SPEED**2 + 2.0 * PARK_ACCEL * s)
+        down = np.sqrt(np.maximum(0.0, 2.0 * PARK_ACCEL * (length - s)))
+        speed = np.minimum(np.minimum(up, down), move.v_max)
+        speed[-1] = 0.0  # a cusp or the goal: exactly at rest
+        mean = np.maximum(0.5 * (speed[1:] + speed[:-1]), 0.2)
+        travel_time += float(np.sum(np.diff(s) / mean))
+        first = 0 if m == 0 else 1  # the cusp waypoint already ends the previous move
+        xs.append(np.interp(s, s_dense, pts[:, 0])[first:])
+        ys.append(np.interp(s, s_dense, pts[:, 1])[first:])
+        hs.append(np.interp(s, s_dense, pts[:, 2])[first:])
+        vs.append(move.direction * speed[first:] + 0.0)  # + 0.0: no negative zeros
+    traj = Trajectory(
+        x=np.concatenate(xs),
+        y=np.concatenate(ys),
+        heading=np.concatenate(hs),
+        speed=np.concatenate(vs),
+    )
+    start = Pose(x=float(traj.x[0]), y=float(traj.y[0]), heading=float(traj.heading[0]), speed=0.0)
+    duration = travel_time + CUSP_PAUSE * (len(moves) - 1) + 10.0
+    return Scenario(name, description, traj, start, duration=duration)
+
+
+#: Obstacles of the parking scenarios (for plots and the clearance test), m.
+PARALLEL_SLOT = (
+    Box(-4.5, 0.0, 0.2, 1.97),  # the parked car behind the slot, 0.2 m from the kerb
+    Box(6.0, 10.5, 0.2, 1.97),  # the parked car ahead: the slot is 6.0 m long
+    Box(-5.0, 11.0, -1.0, 0.0),  # the kerb (y < 0)
+)
+PERPENDICULAR_BAY = (
+    Box(-2.135, -0.365, -4.8, -0.35),  # a Leaf parked in the bay to the left, centred
+    Box(2.865, 4.635, -4.8, -0.35),  # and one in the bay to the right
+    Box(-5.0, 11.0, -6.0, -5.0),  # the wall at the back of the 5 m deep bays
+    Box(-5.0, 11.0, 6.5, 7.5),  # the far side of the 6.5 m wide aisle
+)
+OBSTACLES: dict[str, tuple[Box, ...]] = {
+    "parallel-park": PARALLEL_SLOT,
+    "perpendicular-park": PERPENDICULAR_BAY,
+}
+
+
+def parallel_park() -> Scenario:
+    """Reverse into a 6 m slot beside the kerb: reverse S-bend, pull forward, back up; two cusps.
+
+    Geometry (frame of the slot): the kerb line is ``y = 0`` (kerb at ``y < 0``); two parked cars
+    stand 0.2 m from it (``0.2 ≤ y ≤ 1.97``), the one behind ends at ``x = 0``, the one ahead
+    starts at ``x = 6``, so the slot is 6.0 m long, 1.55 m more than the Leaf. The car starts at
+    rest in the lane beside the car ahead (rear axle at ``x ≈ 7.4, y ≈ 3.18``, 0.33 m of side
+    clearance) and ends centred in the slot with its rear axle at ``(1.55, 1.20)``, heading 0
+    (0.32 m from the kerb, 0.75 m to each parked car).
+
+    1. Reverse 6.8 m: straight 0.5 m, ramp to full right curvature (0.2 1/m, R = 5 m) over
+       0.9 m, arc 2.0 m, ramp through zero to full left over 1.8 m, arc 1.6 m. The rear swings
+       in; the car stops 9.7° nose-out with its rear 0.3 m from the car behind.
+    2. Forward 1.15 m with the wheel turned right at rest: arc 0.55 m, ramp to straight 0.6 m;
+       the heading comes back to 0.
+    3. Reverse 0.65 m straight into the centre of the slot.
+
+    The planned footprint keeps ≥ 0.11 m from both parked cars and the kerb (checked by
+    ``tests/test_parking.py``); a one-move S-bend would need about 7 m at this curvature.
+    """
+    k = PARK_CURVATURE
+    moves = (
+        _Move(
+            -1,
+            (
+                _Piece(0.5, 0.0, 0.0),
+                _Piece(0.9, 0.0, -k),
+                _Piece(2.0, -k, -k),
+                _Piece(1.8, -k, k),
+                _Piece(1.6, k, k),
+            ),
+            0.6,
+        ),
+        _Move(+1, (_Piece(0.55, -k, -k), _Piece(0.6, -k, 0.0)), 0.4),
+        _Move(-1, (_Piece(0.65, 0.0, 0.0),), 0.4),
+    )
+    return _maneuver(
+        "parallel-park",
+        "reverse into a 6 m slot beside the kerb (two cusps)",
+        (1.55, 1.20, 0.0),
+        moves,
+    )
+
+
+def perpendicular_park() -> Scenario:
+    """Drive past a 2.5 m wide bay, stop, and reverse into it; one cusp.
+
+    Geometry: the bays open onto an aisle along ``x``; their entrance line is ``y = 0`` and they
+    are 5 m deep (wall at ``y = −5``). The target bay spans ``0 ≤ x ≤ 2.5``; Leafs are parked
+    centred in the bays either side (``−2.135 ≤ x ≤ −0.365`` and ``2.865 ≤ x ≤ 4.635``, front
+    0.35 m inside the entrance). The aisle is 6.5 m wide (far side at ``y = 6.5``).
+
+    1. Forward 10 m along the aisle at ``y ≈ 3.61`` (heading 0), past the bay.
+    2. Reverse 10.74 m: straight 0.5 m, ramp to full right curvature (0.2 1/m) over 1.2 m, arc
+       6.65 m, ramp back to straight over 1.2 m — a quarter turn — then straight 2.0 m into the
+       bay. The goal is the bay's centre line with the rear axle at ``y = −4.0`` (rear bumper
+       0.2 m from the wall), heading +90° (nose out).
+    """
+    k = PARK_CURVATURE
+    ramp = 1.2  # m, curvature ramp (clothoid) length
+    arc = 0.5 * math.pi / k - ramp  # m: the two ramps and the arc turn by exactly 90°
+    moves = (
+        _Move(+1, (_Piece(10.0, 0.0, 0.0),), 1.0),
+        _Move(
+            -1,
+            (
+                _Piece(0.5, 0.0, 0.0),
+                _Piece(ramp, 0.0, -k),
+                _Piece(arc, -k, -k),
+                _Piece(ramp, -k, 0.0),
+                _Piece(2.0, 0.0, 0.0),
+            ),
+            0.6,
+        ),
+    )
+    return _maneuver(
+        "perpendicular-park",
+        "reverse into a 2.5 m wide bay after driving past it (one cusp)",
+        (1.25, -4.0, 0.5 * math.pi),
+        moves,
+    )
+
+
 SCENARIOS: dict[str, Callable[[], Scenario]] = {
     "s-curve": s_curve,
     "straight": straight,
     "slalom": slalom,
+    "parallel-park": parallel_park,
+    "perpendicular-park": perpendicular_park,
 }
 
 

@@ -1,0 +1,452 @@
+"""The classic geometric path trackers the paper compares itself with: Pure Pursuit and Stanley.
+
+Both steer with a geometric law and control speed with a PI loop on the planned speed; both
+drive reverse segments and cusps like the MPC (:mod:`leafgate.control.mpc`): the trajectory is
+split into direction segments (:class:`~leafgate.control.reference.ReferencePath`), each is
+driven to its end, the car stops there, turns the wheel at rest for the next segment and asks
+for the other gear in :attr:`~leafgate.messages.ControlOutput.gear`.
+
+**Reverse.** The kinematic bicycle about the rear axle reversing with speed ``v < 0`` and road
+wheel angle ``δ`` moves exactly like one driving forward with speed ``−v``, heading ``θ + π``
+and wheel angle ``−δ`` (``θ̇ = v tan δ / L = (−v) tan(−δ) / L``). Each law is therefore written
+once for forward driving, in the *travel frame* (heading ``θ + π`` in reverse), and its wheel
+angle is negated in reverse. For Stanley the "front axle" of the travel frame is a virtual point
+one wheelbase behind the rear axle when reversing.
+
+- :class:`PurePursuit` (Coulter 1992): aim at the path point one look-ahead distance ahead,
+  ``Ld = max(Ld_min, k_v |v|)``, and steer onto the circle through it:
+  ``tan δ = L κ = 2 L sin α / Ld``.
+- :class:`Stanley` (Hoffmann, Tomlin, Montemerlo, Thrun 2007): at the front axle,
+  ``δ = ψₑ + atan(k e / (k_soft + |v|))`` — heading error plus cross-track error. The softening
+  speed ``k_soft`` keeps the cross-track gain finite at (and near) standstill.
+
+Both commands pass the same amplitude and rate limits as the MPC's, so the comparison is fair.
+Like the MPC, nothing here raises in the control path: bad inputs give ``converged=False``.
+
+>>> from leafgate.config import VehicleConfig
+>>> pp = PurePursuit(PurePursuitConfig(), VehicleConfig(), period=0.02)
+>>> pp.period
+0.02
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from leafgate.config import VehicleConfig, positive
+from leafgate.control.reference import ReferencePath, Segment, nearest_index, validate
+from leafgate.errors import TrajectoryError
+from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
+
+__all__ = [
+    "PurePursuit",
+    "PurePursuitConfig",
+    "SpeedPi",
+    "Stanley",
+    "StanleyConfig",
+]
+
+
+@dataclass(frozen=True)
+class _TrackerConfig:
+    """What both baselines share: the speed loop, the limits and the stop/cusp handling.
+
+    Limits default to the MPC's (:class:`~leafgate.control.config.MpcConfig`) so every
+    controller works inside the same envelope.
+    """
+
+    speed_kp: float = 1.2  # 1/s, proportional gain of the PI speed loop
+    speed_ki: float = 0.3  # 1/s², integral gain
+    speed_integral_band: float = 0.2  # m/s, integrate only within this speed error (anti-windup)
+    creep_speed: float = 0.3  # m/s, slowest target speed while the segment's end is ahead
+    stop_decel: float = 0.4  # m/s², target speed ≤ √(2 b d) over the distance d to the end
+    accel_min: float = -3.0  # m/s², gear-relative braking limit
+    accel_max: float = 1.5  # m/s², gear-relative drive limit
+    jerk_max: float = 2.0  # m/s³
+    hold_decel: float = 1.0  # m/s², braking request at rest (aligning, finished)
+    steer_max: float = math.radians(30.0)  # rad, road-wheel
+    steer_rate_max: float = 0.5  # rad/s, road-wheel
+    goal_tolerance: float = 0.15  # m, a segment's end counts as reached within this distance
+    stop_speed: float = 0.02  # m/s, "at rest" below this
+    align_tolerance: float = 0.03  # rad, wheel within this of the law's angle before driving off
+    search_window: int = 20  # waypoints examined by the forward nearest-point search
+
+    def __post_init__(self) -> None:
+        positive(
+            self,
+            "speed_kp",
+            "speed_integral_band",
+            "creep_speed",
+            "stop_decel",
+            "accel_max",
+            "jerk_max",
+            "steer_max",
+            "steer_rate_max",
+            "goal_tolerance",
+            "stop_speed",
+            "align_tolerance",
+            "search_window",
+        )
+        for name in ("speed_ki", "hold_decel"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        if not self.accel_min < 0.0:
+            raise ValueError("accel_min must be negative")
+        if not self.steer_max < math.pi / 2:
+            raise ValueError("steer_max must be below 90°")
+
+
+@dataclass(frozen=True)
+class PurePursuitConfig(_TrackerConfig):
+    """Pure Pursuit (``controller.pure_pursuit``): speed-dependent look-ahead."""
+
+    lookahead_min: float = 2.0  # m, look-ahead at (and near) standstill
+    lookahead_gain: float = 1.0  # s, Ld = max(lookahead_min, gain·|v|): ≈ 1 s of travel
+    lookahead_max: float = 8.0  # m
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        positive(self, "lookahead_min", "lookahead_max")
+        if not (math.isfinite(self.lookahead_gain) and self.lookahead_gain >= 0.0):
+            raise ValueError(f"lookahead_gain must be ≥ 0, got {self.lookahead_gain!r}")
+        if self.lookahead_max < self.lookahead_min:
+            raise ValueError("lookahead_max must not be below lookahead_min")
+
+
+@dataclass(frozen=True)
+class StanleyConfig(_TrackerConfig):
+    """Stanley (``controller.stanley``): heading error plus softened cross-track term."""
+
+    gain: float = 1.5  # 1/s, k: cross-track gain (the error decays as ė ≈ −k e at speed)
+    softening: float = 0.5  # m/s, k_soft: atan(k e / (k_soft + |v|)) stays finite at rest
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        positive(self, "gain", "softening")
+
+
+class SpeedPi:
+    """PI speed loop on the speed magnitude in the driving direction, with feed-forward.
+
+    Conditional integration (only within ``band`` of the target, and only while the output is
+    not saturated) keeps a large speed step from winding the integral up.
+
+    :param kp: 1/s
+    :param ki: 1/s²
+    :param band: m/s
+    """
+
+    def __init__(self, kp: float, ki: float, band: float) -> None:
+        self.kp, self.ki, self.band = kp, ki, band
+        self.integral = 0.0  # m/s
+
+    def reset(self) -> None:
+        self.integral = 0.0
+
+    def step(
+        self, dt: float, target: float, speed: float, feedforward: float, lo: float, hi: float
+    ) -> float:
+        """:param target: wanted speed magnitude, m/s
+        :param speed: speed in the driving direction, m/s
+        :param feedforward: acceleration the target itself asks for, m/s²
+        :param lo: lowest allowed output, m/s² (gear-relative)
+        :param hi: highest allowed output, m/s²
+        :returns: gear-relative acceleration, m/s²"""
+        error = target - speed
+        integral = self.integral + error * dt if abs(error) < self.band else self.integral
+        accel = feedforward + self.kp * error + self.ki * integral
+        clamped = min(max(accel, lo), hi)
+        if clamped == accel:
+            self.integral = integral
+        return clamped
+
+
+class _Tracker:
+    """Segments, cusps, stopping, alignment at rest, speed loop and limits of both baselines.
+
+    Subclasses give the steering law, :meth:`_law`, for forward driving in the travel frame.
+    """
+
+    def __init__(self, cfg: _TrackerConfig, vehicle: VehicleConfig, period: float) -> None:
+        if not (math.isfinite(period) and period > 0.0):
+            raise ValueError(f"period must be a positive number of seconds, got {period!r}")
+        self.cfg = cfg
+        self.period = period
+        self.L = vehicle.wheelbase  # m
+        self._speed = SpeedPi(cfg.speed_kp, cfg.speed_ki, cfg.speed_integral_band)
+        self.reset()
+
+    # --- Controller protocol ---
+
+    def reset(self) -> None:
+        """Forget the trajectory, the segment, the last command and the speed integral."""
+        self._traj: Trajectory | None = None
+        self._path: ReferencePath | None = None
+        self._seg = 0
+        self._index = -1
+        self._steer = math.nan  # rad, last commanded angle (NaN: none yet)
+        self._accel = 0.0  # m/s², last signed acceleration command
+        self._aligned = False
+        self._finished = False
+        self._speed.reset()
+
+    def step(self, pose: Pose, steer_angle: float, trajectory: Trajectory) -> ControlOutput:
+        """Compute the command for this tick (never raises on bad data)."""
+        t0 = time.perf_counter()
+        if trajectory is not self._traj:
+            self._set_trajectory(trajectory)
+        path = self._path
+        if path is None:
+            return self._fault("bad-trajectory", 1, t0)
+        seg = path.segments[self._seg]
+        if not all(
+            math.isfinite(v) for v in (pose.x, pose.y, pose.heading, pose.speed, steer_angle)
+        ):
+            return self._fault("non-finite", seg.direction, t0)
+        if math.isnan(self._steer):
+            self._steer = _clip(steer_angle, self.cfg.steer_max)
+
+        cfg = self.cfg
+        traj = path.traj
+        window = seg.end - seg.start + 2 if self._index < 0 else cfg.search_window
+        self._index = nearest_index(
+            traj, pose.x, pose.y, max(self._index, seg.start), window=window, stop=seg.end
+        )
+        at_rest = abs(pose.speed) <= cfg.stop_speed
+        s0 = path.project(seg, self._index, pose.x, pose.y)
+        passed = self._along_end(seg, pose) >= 0.0
+        to_end = math.hypot(traj.x[seg.end] - pose.x, traj.y[seg.end] - pose.y)
+        if at_rest and (to_end <= cfg.goal_tolerance or passed):
+            if self._seg + 1 < len(path.segments):
+                self._seg += 1  # a cusp: the next segment, in the other direction
+                seg = path.segments[self._seg]
+                self._index = seg.start
+                self._aligned = False
+                self._speed.reset()
+                s0 = path.project(seg, self._index, pose.x, pose.y)
+                passed = False
+            else:
+                self._finished = True
+        direction = seg.direction
+        if self._finished:
+            return self._output(
+                self._steer,
+                -direction * cfg.hold_decel,
+                0.0,
+                direction,
+                t0,
+                status="finished",
+                finished=True,
+            )
+
+        # steering: the law in the travel frame, negated in reverse, within the limits
+        law = direction * self._law(path, seg, s0, pose, direction)
+        if not math.isfinite(law):
+            return self._fault("non-finite", direction, t0)
+        target = _clip(law, cfg.steer_max)
+        step = cfg.steer_rate_max * self.period
+        steer = min(max(target, self._steer - step), self._steer + step)
+
+        if at_rest and not self._aligned:
+            if s0 - path.s[seg.start] <= cfg.goal_tolerance and (
+                abs(steer_angle - target) > cfg.align_tolerance
+                or abs(steer - target) > cfg.align_tolerance
+            ):
+                # turn the wheel at rest, brake held, before driving off
+                return self._output(
+                    steer,
+                    self._ramp(-direction * cfg.hold_decel),
+                    0.0,
+                    direction,
+                    t0,
+                    status="aligning",
+                )
+            self._aligned = True
+        elif not at_rest:
+            self._aligned = True
+        if passed:  # beyond the end: brake to rest, the next segment corrects
+            return self._output(
+                steer,
+                self._ramp(-direction * cfg.hold_decel),
+                0.0,
+                direction,
+                t0,
+                status="stopping",
+            )
+
+        # speed: planned speed, at least creeping, and a stopping curve before the end
+        remaining = max(float(path.s[seg.end]) - s0, 0.0)
+        planned = abs(float(path.reference_speed(np.array([s0]))[0]))
+        stop_curve = math.sqrt(2.0 * cfg.stop_decel * remaining)
+        target_speed = min(max(planned, cfg.creep_speed), stop_curve)
+        feedforward = -cfg.stop_decel if stop_curve < max(planned, cfg.creep_speed) else 0.0
+        along = direction * pose.speed
+        a_rel = self._speed.step(
+            self.period, target_speed, along, feedforward, cfg.accel_min, cfg.accel_max
+        )
+        accel = self._ramp(direction * a_rel)
+        return self._output(steer, accel, direction * target_speed, direction, t0)
+
+    # --- the law (subclasses) ---
+
+    def _law(
+        self, path: ReferencePath, seg: Segment, s0: float, pose: Pose, direction: int
+    ) -> float:
+        """Road-wheel angle for forward driving in the travel frame, rad."""
+        raise NotImplementedError
+
+    # --- helpers ---
+
+    def _set_trajectory(self, trajectory: Trajectory) -> None:
+        self._traj = trajectory
+        self._seg = 0
+        self._index = -1
+        self._aligned = False
+        self._finished = False
+        try:
+            validate(trajectory, "trajectory")
+            self._path = ReferencePath(trajectory, self.cfg.creep_speed)
+        except (TrajectoryError, ValueError):
+            self._path = None
+
+    def _along_end(self, seg: Segment, pose: Pose) -> float:
+        """Signed distance of the car beyond the segment's end, in the driving direction, m."""
+        traj = self._traj
+        assert traj is not None
+        e = seg.end
+        h = traj.heading[e]
+        along = (pose.x - traj.x[e]) * math.cos(h) + (pose.y - traj.y[e]) * math.sin(h)
+        return float(seg.direction * along)
+
+    def _ramp(self, accel: float) -> float:
+        """Limit the change of the signed acceleration to the jerk limit."""
+        step = self.cfg.jerk_max * self.period
+        return min(max(accel, self._accel - step), self._accel + step)
+
+    def _output(
+        self,
+        steer: float,
+        accel: float,
+        speed: float,
+        direction: int,
+        t0: float,
+        status: str = "ok",
+        finished: bool = False,
+    ) -> ControlOutput:
+        self._steer, self._accel = steer, accel
+        return ControlOutput(
+            steer_angle=steer,
+            accel=accel,
+            speed=speed,
+            gear=Gear.D if direction > 0 else Gear.R,
+            finished=finished,
+            nearest_index=max(self._index, 0),
+            status=status,
+            solve_time=time.perf_counter() - t0,
+        )
+
+    def _fault(self, status: str, direction: int, t0: float) -> ControlOutput:
+        steer = 0.0 if math.isnan(self._steer) else self._steer
+        return ControlOutput(
+            steer_angle=steer,
+            accel=self._accel,
+            speed=0.0,
+            gear=Gear.D if direction > 0 else Gear.R,
+            converged=False,
+            status=status,
+            solve_time=time.perf_counter() - t0,
+        )
+
+
+def point_on_path(path: ReferencePath, seg: Segment, s: float) -> tuple[float, float, float]:
+    """``(x, y, heading)`` of the segment at arc length ``s``, continued straight past its ends.
+
+    Beyond the end (or before the start) the path is extended along the end's travel direction,
+    so look-ahead points and front-axle projections stay meaningful at a stop point.
+    """
+    s_start, s_end = float(path.s[seg.start]), float(path.s[seg.end])
+    clamped = min(max(s, s_start), s_end)
+    x, y, h = (float(v) for v in path.sample(seg, np.array([clamped]))[0])
+    extra = s - clamped  # m, > 0 past the end, < 0 before the start
+    if extra != 0.0:
+        x += extra * seg.direction * math.cos(h)
+        y += extra * seg.direction * math.sin(h)
+    return x, y, h
+
+
+class PurePursuit(_Tracker):
+    """Pure Pursuit about the rear axle with a speed-dependent look-ahead.
+
+    :param cfg: the ``controller.pure_pursuit`` section
+    :param vehicle: wheelbase
+    :param period: s, time between two calls of :meth:`step`
+    """
+
+    cfg: PurePursuitConfig
+
+    def __init__(self, cfg: PurePursuitConfig, vehicle: VehicleConfig, period: float) -> None:
+        super().__init__(cfg, vehicle, period)
+
+    def _law(
+        self, path: ReferencePath, seg: Segment, s0: float, pose: Pose, direction: int
+    ) -> float:
+        cfg = self.cfg
+        lookahead = min(
+            max(cfg.lookahead_min, cfg.lookahead_gain * abs(pose.speed)), cfg.lookahead_max
+        )
+        tx, ty, _ = point_on_path(path, seg, s0 + lookahead)
+        travel = pose.heading if direction > 0 else pose.heading + math.pi
+        dx, dy = tx - pose.x, ty - pose.y
+        distance = math.hypot(dx, dy)
+        if distance < 1e-6:
+            return 0.0
+        alpha = math.atan2(dy, dx) - travel  # bearing of the target in the travel frame
+        return math.atan(2.0 * self.L * math.sin(alpha) / distance)  # tan δ = L·2 sin α / Ld
+
+
+class Stanley(_Tracker):
+    """Stanley's front-axle law with a softened cross-track term.
+
+    :param cfg: the ``controller.stanley`` section
+    :param vehicle: wheelbase
+    :param period: s, time between two calls of :meth:`step`
+    """
+
+    cfg: StanleyConfig
+
+    def __init__(self, cfg: StanleyConfig, vehicle: VehicleConfig, period: float) -> None:
+        super().__init__(cfg, vehicle, period)
+
+    def _law(
+        self, path: ReferencePath, seg: Segment, s0: float, pose: Pose, direction: int
+    ) -> float:
+        cfg = self.cfg
+        travel = pose.heading if direction > 0 else pose.heading + math.pi
+        # the travel frame's front axle: one wheelbase ahead in the direction of travel
+        fx = pose.x + self.L * math.cos(travel)
+        fy = pose.y + self.L * math.sin(travel)
+        # its projection on the path, by Newton steps from one wheelbase ahead of the rear's
+        s = s0 + self.L
+        for _ in range(3):
+            px, py, h = point_on_path(path, seg, s)
+            tangent = h if direction > 0 else h + math.pi
+            s += (fx - px) * math.cos(tangent) + (fy - py) * math.sin(tangent)
+        px, py, h = point_on_path(path, seg, s)
+        tangent = h if direction > 0 else h + math.pi
+        # cross-track error: the front axle's offset to the left of the path, travel frame
+        error = -(fx - px) * math.sin(tangent) + (fy - py) * math.cos(tangent)
+        heading_error = _wrap(tangent - travel)
+        return heading_error + math.atan2(cfg.gain * -error, cfg.softening + abs(pose.speed))
+
+
+def _clip(value: float, limit: float) -> float:
+    return min(max(value, -limit), limit)
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi

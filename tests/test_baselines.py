@@ -1,0 +1,150 @@
+"""Pure Pursuit and Stanley: the laws, reverse driving, standstill, limits and configuration."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from leafgate.config import VehicleConfig, from_mapping
+from leafgate.control import make_controller
+from leafgate.control.baselines import PurePursuit, PurePursuitConfig, Stanley, StanleyConfig
+from leafgate.control.config import ControllerConfig
+from leafgate.errors import ConfigError
+from leafgate.messages import Gear, Pose, Trajectory
+from leafgate.settings import LeafgateConfig
+from leafgate.sim.runner import run_direct
+from leafgate.sim.scenarios import Scenario, get_scenario
+
+PERIOD = 0.02  # s
+L = VehicleConfig().wheelbase  # m
+
+
+def _line(direction: int, n: int = 41, speed: float = 1.0) -> Trajectory:
+    """A straight line along x with the vehicle heading 0, driven forward (+x) or reversing (−x)."""
+    x = direction * 0.5 * np.arange(n)
+    v = np.full(n, direction * speed)
+    v[-1] = 0.0
+    return Trajectory(x=x, y=np.zeros(n), heading=np.zeros(n), speed=v)
+
+
+def _settled(ctrl: PurePursuit | Stanley, pose: Pose, traj: Trajectory, ticks: int = 200) -> float:
+    """The steering command once the rate limit has let it reach the law's angle (car at rest)."""
+    out = ctrl.step(pose, 0.0, traj)
+    for _ in range(ticks):
+        out = ctrl.step(pose, out.steer_angle, traj)
+    return out.steer_angle
+
+
+def test_pure_pursuit_steers_onto_the_circle_through_the_lookahead_point() -> None:
+    cfg = PurePursuitConfig(lookahead_min=3.0, lookahead_gain=0.0)
+    ctrl = PurePursuit(cfg, VehicleConfig(), PERIOD)
+    offset = -0.4  # m, right of the line
+    angle = _settled(ctrl, Pose(0.0, offset, 0.0, 0.0), _line(+1))
+    # target 3 m along the path from the projection: bearing α, distance d
+    d = math.hypot(3.0, offset)
+    alpha = math.atan2(-offset, 3.0)
+    assert angle == pytest.approx(math.atan(2.0 * L * math.sin(alpha) / d), abs=1e-6)
+    assert angle > 0.0  # left, back towards the line
+
+
+def test_stanley_cross_track_term_is_finite_and_softened_at_standstill() -> None:
+    cfg = StanleyConfig(gain=1.5, softening=0.5)
+    ctrl = Stanley(cfg, VehicleConfig(), PERIOD)
+    offset = 0.1  # m, left of the line: steer right
+    angle = _settled(ctrl, Pose(0.0, offset, 0.0, 0.0), _line(+1))
+    assert angle == pytest.approx(math.atan2(-cfg.gain * offset, cfg.softening), abs=1e-6)
+    assert abs(angle) < cfg.steer_max
+
+
+@pytest.mark.parametrize("kind", [PurePursuit, Stanley])
+def test_reverse_steers_the_mirror_of_forward(kind: type) -> None:
+    """Reversing along −x with the car 0.3 m left of the line is forward driving mirrored:
+    the wheel angle is the negative of the forward one for the mirrored offset."""
+    cfg = PurePursuitConfig() if kind is PurePursuit else StanleyConfig()
+    fwd = _settled(kind(cfg, VehicleConfig(), PERIOD), Pose(0.0, -0.3, 0.0, 0.0), _line(+1))
+    rev = _settled(kind(cfg, VehicleConfig(), PERIOD), Pose(0.0, 0.3, 0.0, 0.0), _line(-1))
+    assert fwd != 0.0
+    assert rev == pytest.approx(-fwd, abs=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["pure-pursuit", "stanley"])
+def test_reverse_line_from_an_offset_converges_in_reverse_gear(kind: str) -> None:
+    traj = _line(-1, n=31)
+    start = Pose(0.0, 0.3, 0.0, 0.0)
+    scenario = Scenario("reverse-line", "reverse 15 m from 0.3 m off", traj, start, 40.0)
+    cfg = LeafgateConfig(controller=ControllerConfig(kind=kind))  # type: ignore[arg-type]
+    result = run_direct(cfg, scenario)
+    assert result.metrics["finished"]
+    assert result.trace.speed.max() <= 0.0  # never forward
+    assert any("gear R" in event for _, event in result.timeline)
+    assert abs(result.trace.y[-1]) < 0.03  # m, back on the line
+    assert result.metrics["final_position_error_m"] < 0.15
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["pure-pursuit", "stanley"])
+def test_parking_commands_stay_within_angle_and_rate_limits(kind: str) -> None:
+    cfg = LeafgateConfig(controller=ControllerConfig(kind=kind))  # type: ignore[arg-type]
+    result = run_direct(cfg, get_scenario("parallel-park"))
+    limits = cfg.controller.pure_pursuit if kind == "pure-pursuit" else cfg.controller.stanley
+    cmd = result.trace.steer_target
+    assert np.max(np.abs(cmd)) <= limits.steer_max + 1e-12
+    assert np.max(np.abs(np.diff(cmd))) <= limits.steer_rate_max * PERIOD + 1e-12
+    assert result.metrics["finished"]  # both cusps driven, stopped at the goal
+
+
+def test_make_controller_builds_both_baselines_from_yaml_sections() -> None:
+    data = {
+        "kind": "stanley",
+        "stanley": {"gain": 2.0, "softening": 1.0},
+        "pure_pursuit": {"lookahead_min": 2.5},
+    }
+    cfg = from_mapping(ControllerConfig, data, "sim.yaml", "controller")
+    ctrl = make_controller(cfg, VehicleConfig(), PERIOD)
+    assert isinstance(ctrl, Stanley) and ctrl.cfg.gain == 2.0
+    ctrl = make_controller(
+        cfg.__class__(kind="pure-pursuit", pure_pursuit=cfg.pure_pursuit), VehicleConfig(), PERIOD
+    )
+    assert isinstance(ctrl, PurePursuit) and ctrl.cfg.lookahead_min == 2.5
+
+
+def test_bad_baseline_config_names_the_key() -> None:
+    with pytest.raises(ConfigError, match=r"controller\.pure_pursuit.*lookahead_min"):
+        from_mapping(
+            ControllerConfig, {"pure_pursuit": {"lookahead_min": -1.0}}, "x.yaml", "controller"
+        )
+    with pytest.raises(ConfigError, match="softening"):
+        from_mapping(ControllerConfig, {"stanley": {"softening": 0.0}}, "x.yaml", "controller")
+    with pytest.raises(ConfigError, match=r"controller\.stanley\.steer_max"):
+        make_controller(
+            ControllerConfig(kind="stanley", stanley=StanleyConfig(steer_max=0.6)),
+            VehicleConfig(),
+            PERIOD,
+        )
+
+
+@pytest.mark.parametrize("kind", [PurePursuit, Stanley])
+def test_bad_inputs_are_a_status_not_an_exception(kind: type) -> None:
+    cfg = PurePursuitConfig() if kind is PurePursuit else StanleyConfig()
+    ctrl = kind(cfg, VehicleConfig(), PERIOD)
+    out = ctrl.step(Pose(math.nan, 0.0, 0.0, 0.0), 0.0, _line(+1))
+    assert not out.converged and out.status == "non-finite"
+    bad = Trajectory(x=[0.0, 0.0, 1.0, 2.0], y=[0.0] * 4, heading=[0.0] * 4, speed=[1.0] * 4)
+    out = kind(cfg, VehicleConfig(), PERIOD).step(Pose(0.0, 0.0, 0.0, 0.0), 0.0, bad)
+    assert not out.converged and out.status == "bad-trajectory"
+
+
+@pytest.mark.parametrize("kind", [PurePursuit, Stanley])
+def test_reverse_segment_asks_for_reverse_and_brakes_at_the_end(kind: type) -> None:
+    cfg = PurePursuitConfig() if kind is PurePursuit else StanleyConfig()
+    ctrl = kind(cfg, VehicleConfig(), PERIOD)
+    traj = _line(-1)
+    out = ctrl.step(Pose(-5.0, 0.0, 0.0, -1.0), 0.0, traj)
+    assert out.gear == Gear.R and out.speed < 0.0
+    out = ctrl.step(Pose(float(traj.x[-1]) - 0.05, 0.0, 0.0, -0.3), 0.0, traj)  # past the end
+    assert out.status == "stopping" and out.accel > 0.0  # d(v)/dt > 0 brakes a reversing car
+    out = ctrl.step(Pose(float(traj.x[-1]), 0.0, 0.0, 0.0), 0.0, traj)
+    assert out.finished and out.gear == Gear.R

@@ -1,0 +1,136 @@
+"""``leafgate compare``: the report of every controller × plant × scenario (a small subset)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+
+from leafgate.errors import ConfigError
+from leafgate.settings import LeafgateConfig
+from leafgate.sim.compare import (
+    CONTROLLERS,
+    TIE,
+    add_arguments,
+    cmd_compare,
+    drive_config,
+    run_compare,
+)
+
+pytestmark = pytest.mark.slow
+
+
+def test_report_holds_the_table_the_numbers_and_the_plots(tmp_path: Path) -> None:
+    report = run_compare(
+        LeafgateConfig(),
+        tmp_path,
+        scenarios=["s-curve"],
+        plants=["dynamic"],
+        controllers=["mpc", "mpc-steer", "stanley"],
+        direct=True,
+        workers=1,
+    )
+    saved = json.loads((tmp_path / "report.json").read_text(encoding="utf-8"))
+    assert saved["runs"] == json.loads(json.dumps(report["runs"]))
+    assert {r["controller"] for r in saved["runs"]} == {"mpc", "mpc-steer", "stanley"}
+    for run in saved["runs"]:
+        for key in (
+            "lateral_error_rms_m",
+            "lateral_error_max_m",
+            "heading_error_max_rad",
+            "final_position_error_m",
+            "steer_rate_rms_radps",
+            "steer_rate_max_radps",
+            "steer_rate_sign_changes",
+            "solve_time_median_s",
+            "solve_time_p99_s",
+        ):
+            assert key in run["metrics"]
+    errors = {r["controller"]: r["metrics"]["lateral_error_max_m"] for r in saved["runs"]}
+    assert saved["best_lateral_max"]["s-curve"]["dynamic"] == min(errors, key=errors.get)
+    text = (tmp_path / "report.md").read_text(encoding="utf-8")
+    assert "## s-curve" in text and "| dynamic | stanley |" in text and "lat. max [m]" in text
+    for name in ("path", "steering", "speed"):
+        assert (tmp_path / "plots" / "s-curve" / "dynamic" / f"{name}.png").stat().st_size > 0
+        # the paper's Figs. 2-4 pair: plain vs steering-aware MPC on the full vehicle plant
+        assert (tmp_path / "paper-fig2-4" / "s-curve" / f"{name}.png").stat().st_size > 0
+    assert "paper-fig2-4/s-curve/steering.png" in text
+
+
+def test_unknown_names_are_config_errors_listing_the_known_ones(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"known: .*stanley"):
+        run_compare(LeafgateConfig(), tmp_path, controllers=["lqr"])
+    with pytest.raises(ConfigError, match="unknown plant 'lgsvl'"):
+        run_compare(LeafgateConfig(), tmp_path, plants=["kinematic,lgsvl"])
+    with pytest.raises(ConfigError, match="scenario"):
+        run_compare(LeafgateConfig(), tmp_path, scenarios=["hairpin"])
+
+
+def test_drive_config_sets_controller_model_and_plant() -> None:
+    cfg = drive_config(LeafgateConfig(), "mpc-steer", "steer-lag")
+    assert cfg.controller.kind == "mpc" and cfg.controller.mpc.model == "kinematic_steer_lag"
+    assert cfg.sim.plant.kind == "steer-lag"
+    assert (
+        drive_config(LeafgateConfig(), "pure-pursuit", "dynamic").controller.kind
+        == (CONTROLLERS["pure-pursuit"][0])
+    )
+
+
+def test_command_line_entry_writes_the_report(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args(
+        [
+            "--out",
+            str(tmp_path),
+            "--scenario",
+            "straight",
+            "--plant",
+            "kinematic",
+            "--controller",
+            "pure-pursuit,stanley",
+            "--direct",
+            "--workers",
+            "1",
+            "--no-plots",
+        ]
+    )
+    assert cmd_compare(args) == 0
+    assert (tmp_path / "report.md").exists() and not (tmp_path / "plots").exists()
+    assert "report.md" in capsys.readouterr().out
+
+
+#: The MPC for each plant: the paper's kinematic model where the wheel follows the command at
+#: once, the steering-aware model where it lags (the plain model oscillates there, see
+#: tests/test_steer_aware_mpc.py).
+MATCHED_MPC = {"kinematic": "mpc", "steer-lag": "mpc-steer", "dynamic": "mpc-steer"}
+
+
+def test_mpc_lateral_error_is_below_both_baselines_on_every_scenario_and_plant(
+    tmp_path: Path,
+) -> None:
+    for plant, mpc in MATCHED_MPC.items():
+        report = run_compare(
+            LeafgateConfig(),
+            tmp_path / plant,
+            plants=[plant],
+            controllers=[mpc, "pure-pursuit", "stanley"],
+            direct=True,
+            workers=2,
+            plots=False,
+        )
+        errors: dict[tuple[str, str], float] = {
+            (r["scenario"], r["controller"]): r["metrics"]["lateral_error_max_m"]
+            for r in report["runs"]
+        }
+        for scenario in report["scenarios"]:
+            mine = errors[(scenario, mpc)]
+            best_baseline = min(errors[(scenario, b)] for b in ("pure-pursuit", "stanley"))
+            if best_baseline <= TIE:  # a straight line: everyone on it, nothing to beat
+                assert mine <= TIE, (scenario, plant)
+            else:
+                assert mine < best_baseline, (scenario, plant, mine, best_baseline)

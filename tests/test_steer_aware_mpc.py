@@ -1,0 +1,173 @@
+"""The steering-aware MPC: the actuator model, dead-time compensation, and what it fixes.
+
+The paper's MPC predicts with the kinematic bicycle; on a car whose wheel follows the command
+with a lag and a dead time it oscillates (the paper's LGSVL result). The steering-aware model
+adds the actuator to the prediction and removes the oscillation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from leafgate.config import VehicleConfig, from_mapping
+from leafgate.control.config import ControllerConfig, MpcConfig
+from leafgate.control.model import (
+    augment_steer_lag,
+    linearise,
+    linearise_along,
+    prediction_matrices,
+    prediction_matrices_ltv,
+    steer_lag_factor,
+    steer_lag_increment,
+)
+from leafgate.control.mpc import MpcController
+from leafgate.errors import ConfigError
+from leafgate.messages import Pose, Trajectory
+from leafgate.settings import LeafgateConfig
+from leafgate.sim.config import PlantConfig, SimConfig
+from leafgate.sim.metrics import sign_changes
+from leafgate.sim.runner import run, run_direct
+from leafgate.sim.scenarios import get_scenario
+
+Ts, L = 0.1, 2.7  # s, m
+PERIOD = 0.02  # s
+
+
+def _config(model: str, plant: str) -> LeafgateConfig:
+    return LeafgateConfig(
+        controller=ControllerConfig(mpc=MpcConfig(model=model)),  # type: ignore[arg-type]
+        sim=SimConfig(plant=PlantConfig(kind=plant)),  # type: ignore[arg-type]
+    )
+
+
+def _curve_sign_changes(traj: Trajectory) -> int:
+    """Reversals of the steering the path itself needs (road-wheel angle of its curvature)."""
+    s = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(traj.x), np.diff(traj.y)))))
+    angle = np.arctan(L * np.gradient(np.unwrap(traj.heading), s))
+    return sign_changes(np.diff(angle), deadband=1e-4)
+
+
+def test_ltv_prediction_equals_the_step_by_step_recursion() -> None:
+    rng = np.random.default_rng(3)
+    Np, Nc = 12, 4
+    A, B = linearise_along(
+        np.linspace(1.5, 0.0, Np), np.linspace(0.0, 0.4, Np), np.full(Np, 0.2), Ts, L
+    )
+    A, B = augment_steer_lag(A, B, steer_lag_factor(Ts, 0.3), Ts, np.linspace(1.5, 0.0, Np), L)
+    C = np.eye(4, 5)
+    F, S = prediction_matrices_ltv(A, B, C, Nc)
+    dx, y = rng.normal(size=5), rng.normal(size=4)
+    dU = rng.normal(size=2 * Nc)
+    expected = []
+    state_dx, out = dx.copy(), y.copy()
+    for k in range(Np):
+        du = dU[2 * k : 2 * k + 2] if k < Nc else np.zeros(2)
+        state_dx = A[k] @ state_dx + B[k] @ du
+        out = out + C @ state_dx
+        expected.append(out.copy())
+    np.testing.assert_allclose(
+        F @ np.concatenate((dx, y)) + S @ dU, np.concatenate(expected), atol=1e-12
+    )
+
+
+def test_ltv_prediction_with_constant_jacobians_is_the_papers() -> None:
+    A, B = linearise(np.array([1.0, 2.0, 1.5, 0.3]), np.array([0.2, 0.1]), Ts, L)
+    F, S = prediction_matrices(A, B, np.eye(4), 30, 10)
+    F2, S2 = prediction_matrices_ltv(
+        np.repeat(A[None], 30, 0), np.repeat(B[None], 30, 0), np.eye(4), 10
+    )
+    np.testing.assert_allclose(F2, F, atol=1e-12)
+    np.testing.assert_allclose(S2, S, atol=1e-12)
+
+
+def test_steer_lag_jacobians_match_finite_differences_of_the_increment() -> None:
+    alpha = steer_lag_factor(Ts, 0.3)
+    x = np.array([0.5, -0.2, 1.2, 0.3, 0.15])
+    u = np.array([0.4, -0.1])
+    A4, B4 = linearise_along(np.array([x[2]]), np.array([x[3]]), np.array([x[4]]), Ts, L)
+    A, B = augment_steer_lag(A4, B4, alpha, Ts, np.array([x[2]]), L)
+
+    def step(x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return x + steer_lag_increment(x, u, Ts, L, alpha)
+
+    eps = 1e-7
+    num_A = np.column_stack(
+        [(step(x + eps * e, u) - step(x - eps * e, u)) / (2 * eps) for e in np.eye(5)]
+    )
+    num_B = np.column_stack(
+        [(step(x, u + eps * e) - step(x, u - eps * e)) / (2 * eps) for e in np.eye(2)]
+    )
+    np.testing.assert_allclose(A[0], num_A, atol=1e-7)
+    np.testing.assert_allclose(B[0], num_B, atol=1e-7)
+
+
+def test_model_is_selected_by_config_and_checked() -> None:
+    cfg = from_mapping(MpcConfig, {"model": "kinematic_steer_lag", "steer_tau": 0.25}, "s.yaml")
+    assert MpcController(cfg, VehicleConfig(), PERIOD).steer_model
+    assert not MpcController(MpcConfig(), VehicleConfig(), PERIOD).steer_model
+    with pytest.raises(ConfigError, match="model"):
+        from_mapping(MpcConfig, {"model": "dynamic"}, "s.yaml")
+
+
+def test_dead_time_is_compensated_over_the_commands_in_flight() -> None:
+    """A wheel commanded hard left a moment ago is predicted to be turning left now, so the
+    controller steers less than one that believes the measured (still straight) wheel."""
+    n = 40
+    traj = Trajectory(
+        x=0.5 * np.arange(n), y=np.zeros(n), heading=np.zeros(n), speed=np.full(n, 2.0)
+    )
+    pose = Pose(5.0, -0.3, 0.0, 2.0)  # right of the line: steer left
+    fast = 5.0  # rad/s: a rate limit that does not bind, so only the prediction differs
+    ctrl = MpcController(
+        MpcConfig(model="kinematic_steer_lag", steer_rate_max=fast), VehicleConfig(), PERIOD
+    )
+    fresh = ctrl.step(pose, 0.0, traj).steer_angle
+    for _ in range(7):  # commands go out, the measured wheel has not moved yet (dead time)
+        last = ctrl.step(pose, 0.0, traj).steer_angle
+    no_comp = MpcController(
+        MpcConfig(model="kinematic_steer_lag", steer_dead_time=0.0, steer_rate_max=fast),
+        VehicleConfig(),
+        PERIOD,
+    )
+    for _ in range(8):
+        plain = no_comp.step(pose, 0.0, traj).steer_angle
+    assert fresh > 0.0 and last > 0.0
+    assert last < plain - 0.003  # rad: it counts on the left turn already on its way
+
+
+@pytest.mark.slow
+def test_plain_mpc_oscillates_on_the_steer_lag_plant_and_the_steering_aware_one_does_not() -> None:
+    scenario = get_scenario("slalom")  # 3 m/s: where the lag matters most
+    curve = _curve_sign_changes(scenario.trajectory)
+    plain = run_direct(_config("kinematic", "steer-lag"), scenario).metrics
+    aware = run_direct(_config("kinematic_steer_lag", "steer-lag"), scenario).metrics
+    assert plain["steer_rate_sign_changes"] > curve + 3  # it oscillates
+    assert aware["steer_rate_sign_changes"] <= curve + 1  # the curve's own, plus the stop
+    assert aware["lateral_error_max_m"] < 0.1
+    assert plain["lateral_error_max_m"] > 3.0 * aware["lateral_error_max_m"]
+
+
+@pytest.mark.slow
+def test_steering_aware_mpc_tracks_the_s_curve_on_the_dynamic_plant_within_10_cm() -> None:
+    result = run(_config("kinematic_steer_lag", "dynamic"), get_scenario("s-curve"))
+    assert result.metrics["lateral_error_max_m"] <= 0.10
+    assert result.metrics["finished"] and result.metrics["solver_not_converged"] == 0
+
+
+def test_steering_aware_output_stays_within_the_limits_when_far_off() -> None:
+    n = 40
+    traj = Trajectory(
+        x=0.5 * np.arange(n), y=np.zeros(n), heading=np.zeros(n), speed=np.full(n, 2.0)
+    )
+    cfg = MpcConfig(model="kinematic_steer_lag")
+    ctrl = MpcController(cfg, VehicleConfig(), PERIOD)
+    prev = None
+    for k in range(50):
+        out = ctrl.step(Pose(1.0 + 0.04 * k, 2.0, 0.5, 2.0), math.radians(10.0), traj)
+        assert abs(out.steer_angle) <= cfg.steer_max + 1e-12
+        if prev is not None:
+            assert abs(out.steer_angle - prev) <= cfg.steer_rate_max * PERIOD + 1e-12
+        prev = out.steer_angle
