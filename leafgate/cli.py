@@ -159,7 +159,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
     )
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
     if not args.no_plots:
-        plot_drive(out, scenario.trajectory, [trace], title=f"— {scenario.name}")
+        from leafgate.sim.scenarios import OBSTACLES
+
+        obstacles = OBSTACLES.get(scenario.name, ())
+        plot_drive(
+            out, scenario.trajectory, [trace], title=f"— {scenario.name}", obstacles=obstacles
+        )
     print(
         f"wrote {out / 'metrics.json'}"
         + ("" if args.no_plots else ", path.png, steering.png, speed.png")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,14 +36,32 @@ def _pyplot():  # imported lazily: matplotlib costs ~0.3 s and the daemon never 
 
 
 def plot_drive(
-    out_dir: Path, traj: Trajectory | None, traces: Sequence[Trace], title: str = ""
+    out_dir: Path,
+    traj: Trajectory | None,
+    traces: Sequence[Trace],
+    title: str = "",
+    obstacles: Sequence[Any] = (),
 ) -> Mapping[str, Path]:
-    """Write path.png, steering.png and speed.png into ``out_dir``; return their paths."""
+    """Write path.png, steering.png and speed.png into ``out_dir``; return their paths.
+
+    :param obstacles: boxes with ``x_min, x_max, y_min, y_max`` (m) drawn grey on the path
+        plot (parked cars, kerb)
+    """
     plt = _pyplot()
     out_dir.mkdir(parents=True, exist_ok=True)
     files: dict[str, Path] = {}
 
     fig, ax = plt.subplots(figsize=(9, 4.5))
+    for box in obstacles:
+        ax.add_patch(
+            plt.Rectangle(
+                (box.x_min, box.y_min),
+                box.x_max - box.x_min,
+                box.y_max - box.y_min,
+                color="0.8",
+                zorder=0,
+            )
+        )
     if traj is not None:
         ax.plot(traj.x, traj.y, "k--", lw=1.2, label="reference")
         ax.plot(traj.x, traj.y, "k.", ms=3)

@@ -321,6 +321,8 @@ def run(
                 if isinstance(value, SteerReport):
                     slots.steer = Stamped(value, now)
                 elif isinstance(value, LongReport):
+                    if slots.long is None or slots.long.value.gear != value.gear:
+                        timeline.append((now, f"gear {value.gear.name}"))
                     slots.long = Stamped(value, now)
                 elif isinstance(value, SystemReport):
                     slots.system = Stamped(value, now)
