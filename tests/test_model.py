@@ -10,12 +10,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from leafgate.control.model import (
+    KinematicPrediction,
     augment,
     derivative,
     euler_step,
+    grouped_by_output,
+    kinematic_first_increment,
     linearise,
+    linearise_along,
     matrix_powers,
     prediction_matrices,
+    prediction_matrices_ltv,
     rk4_step,
 )
 
@@ -138,3 +143,43 @@ def test_prediction_matrices_equal_block_by_block_construction(
             )
     np.testing.assert_allclose(F, F_ref, atol=1e-10)
     np.testing.assert_allclose(S, S_ref, atol=1e-10)
+
+
+# --- the closed-form kinematic prediction ------------------------------------------------------
+
+horizons = st.sampled_from([(30, 10), (7, 3), (5, 5), (1, 1), (12, 1)])
+
+
+@settings(max_examples=40, deadline=None)
+@given(horizons, st.integers(0, 10_000), st.floats(-0.6, 0.6))
+def test_closed_form_kinematic_prediction_equals_the_general_one(
+    sizes: tuple[int, int], seed: int, tan_delta: float
+) -> None:
+    """S and the free response of KinematicPrediction are those of prediction_matrices_ltv."""
+    Np, Nc = sizes
+    rng = np.random.default_rng(seed)
+    speed = rng.uniform(-3.0, 3.0, Np)
+    heading = rng.uniform(-1.0, 1.0, Np)
+    dx0 = rng.normal(size=4)
+    A, B = linearise_along(speed, heading, np.full(Np, tan_delta), Ts, L)
+    F, S = prediction_matrices_ltv(A, B, np.eye(4), Nc)
+    ST, free = KinematicPrediction(Np, Nc, Ts, L)(speed, heading, tan_delta, dx0)
+    np.testing.assert_allclose(ST.T, grouped_by_output(S, Np), atol=1e-12)
+    expected_free = grouped_by_output((F[:, :4] @ dx0)[:, None], Np).ravel()
+    np.testing.assert_allclose(free, expected_free, atol=1e-11)
+
+
+def test_outputs_grouped_by_output_are_a_row_permutation() -> None:
+    S = np.arange(24.0).reshape(6, 4)  # Np = 3 steps of q = 2 outputs
+    grouped = grouped_by_output(S, 3)
+    np.testing.assert_array_equal(grouped, S[[0, 2, 4, 1, 3, 5]])
+
+
+@settings(max_examples=40, deadline=None)
+@given(states, inputs)
+def test_first_increment_inverts_the_jacobian(x: tuple, u: tuple) -> None:
+    state, inp = np.array(x), np.array(u)
+    A, _ = linearise(state, inp, Ts, L)
+    z = Ts * derivative(state, inp, L)
+    dx = kinematic_first_increment(tuple(z), x[2], x[3], u[1], Ts, L)
+    np.testing.assert_allclose(dx, np.linalg.solve(A, z), atol=1e-12)

@@ -112,3 +112,47 @@ def test_osqp_is_updated_in_place_and_tracks_new_data() -> None:
     ref = hildreth(E2, -f, M, gamma * 0.5, max_iter=5000, tol=1e-16)
     assert first.converged and second.converged and ref.converged
     np.testing.assert_allclose(second.x, ref.x, atol=1e-4)
+
+
+def _saturated_qp(seed: int, Nc: int = 10) -> tuple[np.ndarray, ...]:
+    """The MPC's QP far off the path: most rate and some amplitude bounds active together
+    (amplitude rows then depend on rate rows, and Hildreth's positive set holds more than n)."""
+    E, f, M, gamma = _box_qp(seed, Nc)
+    n = 2 * Nc
+    rate = np.array([0.02, 0.01])
+    u_prev = np.array([0.9, -0.95])
+    amp = np.array([1.0, 1.0])
+    gamma = np.concatenate(
+        (np.tile(amp - u_prev, Nc), np.tile(amp + u_prev, Nc), np.tile(rate, 2 * Nc))
+    )
+    return E, f * 50.0 + 5.0 * np.sign(np.arange(n) % 2 - 0.5), M, gamma
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_active_set_certificate_gives_the_exact_optimum(seed: int) -> None:
+    """Hildreth's result on a heavily constrained QP is the optimum (OSQP at 1e-11), also
+    warm-started from the multipliers of a slightly different QP."""
+    E, f, M, gamma = _saturated_qp(seed)
+    exact = OsqpBackend(E, M, eps=1e-11, max_iter=200_000).solve(E, f, gamma)
+    assert exact.converged
+    h = hildreth(E, f, M, gamma, max_iter=2000, tol=1e-10, relaxation=1.5)
+    assert h.converged
+    np.testing.assert_allclose(h.x, exact.x, atol=1e-7)
+    assert np.all(M @ h.x <= gamma + 1e-6)
+    warm = hildreth(E, f * 1.01, M, gamma, max_iter=2000, tol=1e-10, relaxation=1.5, lam0=h.lam)
+    again = OsqpBackend(E, M, eps=1e-11, max_iter=200_000).solve(E, f * 1.01, gamma)
+    assert warm.converged
+    np.testing.assert_allclose(warm.x, again.x, atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_hildreth_with_a_cholesky_factor_is_hildreth_with_the_inverse(seed: int) -> None:
+    from scipy.linalg import lapack
+
+    E, f, M, gamma = _box_qp(seed)
+    chol, info = lapack.dpotrf(E)
+    assert info == 0
+    by_factor = hildreth(E, f, M, gamma, max_iter=2000, chol=chol)
+    by_inverse = hildreth(E, f, M, gamma, max_iter=2000, E_inv=np.linalg.inv(E))
+    assert by_factor.converged == by_inverse.converged
+    np.testing.assert_allclose(by_factor.x, by_inverse.x, atol=1e-9)

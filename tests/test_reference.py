@@ -214,3 +214,55 @@ def test_reverse_segment_speeds_are_negative_and_end_at_zero() -> None:
     assert [s.direction for s in path.segments] == [1, -1]
     assert path.speed[3] == 0.0 and path.speed[-1] == 0.0
     assert np.all(path.speed[4:6] < 0.0)
+
+
+# --- the per-tick queries of ReferencePath ---
+
+
+def _parking_like() -> Trajectory:
+    """A forward arc, a cusp, and a reverse arc (two segments, curved, uneven spacing)."""
+    a = np.linspace(0.0, 1.2, 14)
+    fwd_x, fwd_y = 6 * np.sin(a), 6 * (1 - np.cos(a))
+    b = np.linspace(0.0, 0.9, 11)[1:]
+    rev_x = fwd_x[-1] - 4 * np.sin(b) * np.cos(a[-1])
+    rev_y = fwd_y[-1] - 4 * np.sin(b) * np.sin(a[-1]) + 0.3 * b**2
+    speed = np.concatenate((np.full(13, 1.2), [0.0], np.full(9, -0.6), [0.0]))
+    heading = np.concatenate((a, np.full(10, a[-1])))
+    return Trajectory(
+        x=np.concatenate((fwd_x, rev_x)),
+        y=np.concatenate((fwd_y, rev_y)),
+        heading=heading,
+        speed=speed,
+    )
+
+
+def test_path_nearest_index_is_the_functions() -> None:
+    traj = _parking_like()
+    path = ReferencePath(traj)
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        start = int(rng.integers(0, len(traj)))
+        x, y = traj.x[start] + rng.normal(0, 0.7), traj.y[start] + rng.normal(0, 0.7)
+        window, stop = int(rng.integers(1, 25)), int(rng.integers(0, len(traj)))
+        expected = nearest_index(traj, x, y, start, window=window, stop=stop)
+        assert path.nearest_index(x, y, start, window=window, stop=stop) == expected
+
+
+def test_horizon_is_sample_of_horizon_arclength_and_reference_speed() -> None:
+    """The fused per-tick query returns exactly what the three separate queries return."""
+    traj = _parking_like()
+    path = ReferencePath(traj, creep_speed=0.3)
+    steps = 0.1 * np.arange(1, 31)
+    rng = np.random.default_rng(5)
+    for seg in path.segments:
+        for s0 in np.concatenate(
+            (
+                [path.s[seg.start], path.s[seg.end]],
+                rng.uniform(path.s[seg.start], path.s[seg.end], 40),
+            )
+        ):
+            s_ref = path.horizon_arclength(seg, float(s0), steps)
+            expected = path.sample(seg, np.concatenate(([s0], s_ref)))
+            pts, speed = path.horizon(seg, float(s0), steps)
+            np.testing.assert_array_equal(pts, expected.T)
+            np.testing.assert_array_equal(speed, path.reference_speed(s_ref))

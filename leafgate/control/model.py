@@ -226,19 +226,22 @@ def linearise_along(
     """
     n = speed.shape[0]
     c, s = np.cos(heading), np.sin(heading)
-    zero, one = np.zeros(n), np.ones(n)
-    vs, vc = Ts * speed * s, Ts * speed * c
-    rows = (
-        (one, zero, Ts * c, -vs),
-        (zero, one, Ts * s, vc),
-        (zero, zero, one, zero),
-        (zero, zero, (Ts / wheelbase) * tan_delta, one),
-    )
-    A = np.stack([entry for row in rows for entry in row], axis=1).reshape(n, N_STATES, N_STATES)
-    B = np.stack(
-        (zero, zero, zero, zero, np.full(n, Ts), zero, zero, (Ts / wheelbase) * speed), axis=1
-    ).reshape(n, N_STATES, N_INPUTS)
+    # filled entry by entry into zeros: a dozen small numpy calls instead of stacking sixteen
+    # rows (this runs every control tick)
+    A = np.zeros((n, N_STATES, N_STATES))
+    A[:, _DIAG4, _DIAG4] = 1.0
+    A[:, 0, 2] = Ts * c
+    A[:, 0, 3] = -(Ts * speed * s)
+    A[:, 1, 2] = Ts * s
+    A[:, 1, 3] = Ts * speed * c
+    A[:, 3, 2] = (Ts / wheelbase) * tan_delta
+    B = np.zeros((n, N_STATES, N_INPUTS))
+    B[:, 2, 0] = Ts
+    B[:, 3, 1] = (Ts / wheelbase) * speed
     return A, B
+
+
+_DIAG4 = (0, 1, 2, 3)
 
 
 def steer_lag_factor(Ts: float, tau: float) -> float:
@@ -311,7 +314,6 @@ def prediction_matrices_ltv(
     """
     Np, n, _ = A.shape
     q = C.shape[0]
-    m = B.shape[2]
     P = np.empty((Np + 1, n, n))
     P[0] = np.eye(n)
     P[1:] = A
@@ -325,17 +327,186 @@ def prediction_matrices_ltv(
     F = np.empty((Np, q, n + q))
     F[:, :, :n] = CQ[1:]
     F[:, :, n:] = np.eye(q)
-    G = np.linalg.solve(P[1 : Nc + 1], B[:Nc])  # (Nc, n, m): P_{j+1}⁻¹ B_j
-    # block (k, j) = C Q_k G_j − C Q_j G_j, k = 1…Np
-    blocks = np.matmul(CQ[1:, None], G[None]) - np.matmul(CQ[:Nc], G)[None]  # (Np, Nc, q, m)
-    blocks[~_ltv_mask(Np, Nc)] = 0.0
-    S = blocks.transpose(0, 2, 1, 3).reshape(Np * q, Nc * m)
+    G = np.linalg.solve(P[1 : Nc + 1], B[:Nc]).astype(np.float64, copy=False)  # P_{j+1}⁻¹ B_j
+    S = _ltv_input_blocks(CQ, G.transpose(1, 0, 2))
     return F.reshape(Np * q, n + q), S
 
 
+def _ltv_input_blocks(CQ: FloatArray, G: FloatArray) -> FloatArray:
+    """``S`` from ``C Qₖ`` (k = 0…Np) and ``Gⱼ = Pⱼ₊₁⁻¹ Bⱼ``: block (k, j) = C (Qₖ − Qⱼ) Gⱼ, k > j.
+
+    All products ``C Qₖ Gⱼ`` come from one 2-D matrix product; the subtracted ``C Qⱼ Gⱼ`` are
+    its diagonal blocks, and the blocks with k ≤ j are zeroed by a mask.
+
+    :param CQ: (Np+1, q, n)
+    :param G: (n, Nc, m), the moves side by side
+    :returns: (Np·q, Nc·m)
+    """
+    Np1, q, n = CQ.shape
+    _, Nc, m = G.shape
+    R = (CQ.reshape(Np1 * q, n) @ G.reshape(n, Nc * m)).reshape(Np1, q, Nc, m)
+    j = np.arange(Nc)
+    diag = R[j, :, j, :]  # (Nc, q, m): C Qⱼ Gⱼ
+    S = R[1:] - diag.transpose(1, 0, 2)
+    S *= _ltv_mask(Np1 - 1, Nc)
+    return S.reshape((Np1 - 1) * q, Nc * m)
+
+
 @functools.lru_cache(maxsize=8)
-def _ltv_mask(Np: int, Nc: int) -> npt.NDArray[np.bool_]:
-    """(Np, Nc): True where output k = row + 1 depends on move j (k > j)."""
-    mask = np.arange(Np)[:, None] >= np.arange(Nc)[None, :]
+def _ltv_mask(Np: int, Nc: int) -> FloatArray:
+    """(Np, 1, Nc, 1): 1 where output k = row + 1 depends on move j (k > j), else 0."""
+    mask = (np.arange(Np)[:, None] >= np.arange(Nc)[None, :]).astype(np.float64)
+    mask = mask[:, None, :, None]
     mask.setflags(write=False)
     return mask
+
+
+# --- the kinematic model in closed form --------------------------------------------------------
+
+
+class KinematicPrediction:
+    """The prediction of :func:`prediction_matrices_ltv` for :func:`linearise_along` (``C = I``)
+    in closed form, laid out for the QP.
+
+    For the controller's case: speed and heading vary along the horizon, tan δ is one value for
+    all steps. Built once per horizon (constant weights), then called every tick.
+
+    Every Jacobian of the kinematic bicycle is ``Aₗ = I + Nₗ`` with ``Nₗ`` non-zero only at
+    (0,2) ``aₗ = Ts cos θₗ``, (1,2) ``cₗ = Ts sin θₗ``, (0,3) ``bₗ = −Ts vₗ sin θₗ``, (1,3)
+    ``dₗ = Ts vₗ cos θₗ`` and (3,2) ``e = Ts tan δ / L``. Any product of three such ``N`` is
+    zero, so the prefix product is::
+
+        Pₘ = Aₘ₋₁ ⋯ A₀ = I + Σ_{l<m} Nₗ + Σ_{l<m} Nₗ Σ_{p<l} Nₚ,
+
+    whose second sum is ``e Σ_{l<m} l bₗ`` at (0,2) and ``e Σ_{l<m} l dₗ`` at (1,2): weighted
+    sums over the steps of ``cos θ``, ``sin θ``, ``v sin θ`` and ``v cos θ``, all taken by one
+    product with a constant weight matrix. The inverse the input blocks need is explicit:
+    ``Pₘ⁻¹ e₂ = [P₀₃P₃₂ − P₀₂, P₁₃P₃₂ − P₁₂, 1, −P₃₂]``, ``Pₘ⁻¹ e₃ = [−P₀₃, −P₁₃, 0, 1]``.
+    Block (k, j) of ``S`` is ``Σ_{m=j+1..k} Pₘ Gⱼ`` with ``Gⱼ = Pⱼ₊₁⁻¹ Bⱼ``, and the free
+    response ``F [Δx₀; y₀] − y₀`` is ``Σ_{m≤k} Pₘ Δx₀``: one product of all ``Pₘ`` with the
+    ``Gⱼ`` and ``Δx₀``, a mask, and a cumulative sum over m. No products along the horizon, no
+    solves.
+
+    **Layout.** Rows of the prediction are grouped by output — all ``Np`` steps of the
+    along-track position, then of the lateral offset, speed and heading error (the paper
+    stacks them by step; the QP's ``E`` and ``f`` do not depend on the order). ``S`` is
+    returned transposed, (moves × outputs), as the QP uses it.
+
+    :param Np: prediction horizon, steps
+    :param Nc: control horizon, moves
+    :param Ts: model sample time, s
+    :param wheelbase: L, m
+    """
+
+    def __init__(self, Np: int, Nc: int, Ts: float, wheelbase: float) -> None:
+        self.Np, self.Nc, self.Ts, self.L = Np, Nc, Ts, wheelbase
+        step = np.arange(Np, dtype=np.float64)
+        before = (step[:, None] < step[None, :] + 1.0).astype(np.float64)  # l < m, m = 1…Np
+        # h @ weights: Σ_{l<m} Ts hₗ and Σ_{l<m} Ts l hₗ (Ts folded in here, once)
+        self._weights = np.hstack((Ts * before, Ts * step[:, None] * before))
+        self._m = step + 1.0  # m = 1 … Np
+        # Pₘ transposed and flattened per m: [i, o, m] = Pₘ[o, i]; the identity is constant
+        self._p_identity = np.zeros((N_STATES, N_STATES, Np))
+        for o in range(N_STATES):
+            self._p_identity[o, o] = 1.0
+        # rows: move j's two inputs (row 2j + u), then the free response; columns (o, m).
+        # Move j acts on the outputs k ≥ j + 1 only, i.e. Pₘ with m ≥ j + 1.
+        mask = np.ones((2 * Nc + 1, N_STATES, Np))
+        for j in range(Nc):
+            mask[2 * j : 2 * j + 2, :, :j] = 0.0
+        self._mask = mask.reshape(2 * Nc + 1, N_STATES * Np)
+        self._upper = (step[:, None] <= step[None, :]).astype(np.float64)  # Σ_{m≤k}
+
+    def __call__(
+        self, speed: FloatArray, heading: FloatArray, tan_delta: float, dx0: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """``Sᵀ`` and the free response at the operating points ``(speed[l], heading[l], tan δ)``.
+
+        :param speed: (Np,) m/s, operating speed of each step
+        :param heading: (Np,) rad, operating heading of each step
+        :param tan_delta: operating tan δ of every step
+        :param dx0: (4,) the augmented state's increment ``Δx₀``
+        :returns: ``Sᵀ`` of shape (Nc·2, 4·Np) and ``F [Δx₀; y₀] − y₀`` of shape (4·Np,), both
+            grouped by output (column / entry ``o·Np + k − 1`` is output o at step k)
+        """
+        Np, Nc, Ts = self.Np, self.Nc, self.Ts
+        e = (Ts / self.L) * tan_delta
+        h = np.empty((4, Np))
+        np.cos(heading, out=h[0])
+        np.sin(heading, out=h[1])
+        np.multiply(h[1::-1], speed, out=h[2:])  # v sin θ, v cos θ
+        sums = h @ self._weights  # (4, 2 Np): Σ_{l<m} Ts hₗ, then Σ_{l<m} Ts l hₗ
+
+        # Pₘ for m = 1 … Np, as [i, o, m] = Pₘ[o, i]
+        P = self._p_identity.copy()
+        np.multiply(sums[2, Np:], -e, out=P[2, 0])
+        P[2, 0] += sums[0, :Np]  # P₀₂ = Σ aₗ + e Σ l bₗ
+        np.multiply(sums[3, Np:], e, out=P[2, 1])
+        P[2, 1] += sums[1, :Np]  # P₁₂ = Σ cₗ + e Σ l dₗ
+        np.negative(sums[2, :Np], out=P[3, 0])  # P₀₃ = Σ bₗ
+        P[3, 1] = sums[3, :Np]  # P₁₃ = Σ dₗ
+        np.multiply(self._m, e, out=P[2, 3])  # P₃₂ = e m
+
+        # rows 2j, 2j+1: the columns of Gⱼ = Pⱼ₊₁⁻¹ Bⱼ, Bⱼ = [Ts e₂, (Ts vⱼ / L) e₃]; last: Δx₀
+        p02, p12, p03, p13, p32 = (
+            P[2, 0, :Nc],
+            P[2, 1, :Nc],
+            P[3, 0, :Nc],
+            P[3, 1, :Nc],
+            P[2, 3, :Nc],
+        )
+        g = (Ts / self.L) * speed[:Nc]
+        G = np.empty((2 * Nc + 1, N_STATES))
+        a, s = G[0:-1:2], G[1::2]  # the acceleration and the steering columns of each Gⱼ
+        a[:, 0] = p03 * p32 - p02
+        a[:, 1] = p13 * p32 - p12
+        a[:, 2] = 1.0
+        a[:, 3] = -p32
+        a *= Ts
+        s[:, 0] = p03
+        s[:, 1] = p13
+        s[:, 2] = 0.0
+        s[:, 3] = -1.0
+        s *= -g[:, None]
+        G[-1] = dx0
+
+        # Pₘ Gⱼ for every m and j, kept where m ≥ j + 1, summed over m ≤ k
+        PG = G @ P.reshape(N_STATES, N_STATES * Np)
+        PG *= self._mask
+        # the sum over m ≤ k as a product with a triangle of ones: one BLAS call, where a
+        # cumulative sum along the short rows costs several times more
+        out = (PG.reshape(-1, Np) @ self._upper).reshape(2 * Nc + 1, N_STATES * Np)
+        return out[:-1], out[-1]
+
+
+def grouped_by_output(S: FloatArray, Np: int) -> FloatArray:
+    """Rows of a prediction matrix stacked by step (the paper's order) regrouped by output.
+
+    :param S: (Np·q, …) with row ``(k − 1)·q + o``
+    :returns: the same rows in the order ``o·Np + k − 1`` (a new array)
+    """
+    q = S.shape[0] // Np
+    return S.reshape(Np, q, -1).transpose(1, 0, 2).reshape(S.shape)
+
+
+def kinematic_first_increment(
+    increment: tuple[float, float, float, float],
+    speed: float,
+    heading: float,
+    tan_delta: float,
+    Ts: float,
+    wheelbase: float,
+) -> tuple[float, float, float, float]:
+    """``Δx̃`` with ``A Δx̃ = increment`` for the kinematic Jacobian ``A`` at one operating point.
+
+    ``A = I + N`` with ``N³ = 0``, so ``A⁻¹ = I − N + N²``: a few float operations instead of a
+    4×4 solve.
+    """
+    z0, z1, z2, z3 = increment
+    a = Ts * math.cos(heading)
+    c = Ts * math.sin(heading)
+    b = -(Ts * speed * math.sin(heading))
+    d = Ts * speed * math.cos(heading)
+    e = (Ts / wheelbase) * tan_delta
+    w3 = z3 - e * z2  # θ row: the only entry N feeds back into x and y a second time
+    return (z0 - a * z2 - b * w3, z1 - c * z2 - d * w3, z2, w3)

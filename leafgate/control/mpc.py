@@ -14,6 +14,13 @@ Each control tick:
 4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else Hildreth or
    OSQP — and apply the first move, clipped to the hard limits whatever the solver returned.
 
+**Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: the
+kinematic model's ``S`` and free response come in closed form (:class:`~leafgate.control.
+model.KinematicPrediction`, ``A − I`` is nilpotent), the prediction's rows are grouped by output
+(contiguous rows; ``E`` and ``f`` do not depend on the row order), ``E`` is factored once
+(Cholesky) for the unconstrained optimum and Hildreth, and the reference comes from one query
+(:meth:`~leafgate.control.reference.ReferencePath.horizon`). ``tools/bench_mpc.py`` measures it.
+
 **Two clocks.** The controller runs every ``period`` (0.02 s) but predicts with a model sampled
 every ``sample_time`` Ts (0.1 s), so the preview is long without a large QP. Rate limits are per
 second and are applied on the time that really passes: the first move — the change from the
@@ -63,6 +70,7 @@ import time
 from collections import deque
 
 import numpy as np
+from scipy.linalg import lapack
 
 from leafgate.config import VehicleConfig
 from leafgate.control.config import MpcConfig
@@ -70,8 +78,10 @@ from leafgate.control.model import (
     N_INPUTS,
     N_STATES,
     N_STATES_STEER,
+    KinematicPrediction,
     augment_steer_lag,
-    derivative,
+    grouped_by_output,
+    kinematic_first_increment,
     linearise_along,
     prediction_matrices_ltv,
     rk4_step,
@@ -79,7 +89,7 @@ from leafgate.control.model import (
     steer_lag_increment,
 )
 from leafgate.control.qp import OsqpBackend, QpResult, hildreth
-from leafgate.control.reference import ReferencePath, Segment, nearest_index, validate
+from leafgate.control.reference import ReferencePath, Segment, validate
 from leafgate.errors import TrajectoryError
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
@@ -116,10 +126,14 @@ class MpcController:
         self._alpha_tick = steer_lag_factor(period, cfg.steer_tau)  # per control tick
         self._dead_ticks = round(cfg.steer_dead_time / period) if self.steer_model else 0
         q = np.array([cfg.weight_along, cfg.weight_lateral, cfg.weight_speed, cfg.weight_heading])
-        self.q_bar = np.tile(q, Np)  # diagonal of Q̄, (Np·ny)
+        self.q_bar = np.tile(q, Np)  # diagonal of Q̄, (Np·ny), stacked by step as in the paper
         self.r_bar = np.tile([cfg.weight_accel_change, cfg.weight_steer_change], Nc)
-        self._q2 = 2.0 * self.q_bar
+        self._q_out = np.repeat(q, Np)  # the same weights with the rows grouped by output
+        self._q2 = 2.0 * self._q_out
         self._R2 = np.diag(2.0 * self.r_bar)
+        self._kinematic = None if self.steer_model else KinematicPrediction(Np, Nc, self.Ts, self.L)
+        self._to_path = np.zeros((N_STATES, 3))  # global → path frame, rotation set per tick
+        self._to_path[3, 2] = 1.0  # heading error = reference heading − heading at s0
         self.steps: FloatArray = self.Ts * np.arange(
             1, Np + 1, dtype=np.float64
         )  # s, times of the predicted outputs
@@ -206,6 +220,16 @@ class MpcController:
             validate(trajectory, "trajectory")
             self._path = ReferencePath(trajectory, self.cfg.creep_speed)
             self._bad_trajectory = ""
+            # each segment's end point and heading, as floats for the per-tick checks
+            self._seg_ends = [
+                (
+                    float(trajectory.x[seg.end]),
+                    float(trajectory.y[seg.end]),
+                    math.cos(float(trajectory.heading[seg.end])),
+                    math.sin(float(trajectory.heading[seg.end])),
+                )
+                for seg in self._path.segments
+            ]
         except (TrajectoryError, ValueError) as exc:
             self._path = None
             self._bad_trajectory = str(exc)
@@ -228,24 +252,27 @@ class MpcController:
             self._u_prev = np.array([0.0, math.tan(_clip(steer_angle, cfg.steer_max))])
 
         # 1. reference: nearest waypoint and segment bookkeeping
-        traj = path.traj
         if self._index < 0:
-            self._index = nearest_index(
-                traj, pose.x, pose.y, seg.start, window=seg.end - seg.start + 2, stop=seg.end
+            self._index = path.nearest_index(
+                pose.x, pose.y, seg.start, window=seg.end - seg.start + 2, stop=seg.end
             )
         else:
-            self._index = nearest_index(
-                traj, pose.x, pose.y, self._index, window=cfg.search_window, stop=seg.end
+            self._index = path.nearest_index(
+                pose.x, pose.y, self._index, window=cfg.search_window, stop=seg.end
             )
         at_rest = abs(pose.speed) <= cfg.stop_speed
         passed = self._passed_end(seg, pose)
-        to_end = math.hypot(traj.x[seg.end] - pose.x, traj.y[seg.end] - pose.y)
+        end_x, end_y = self._seg_ends[self._seg][:2]
+        to_end = math.hypot(end_x - pose.x, end_y - pose.y)
         if at_rest and (to_end <= cfg.goal_tolerance or passed):
             if self._seg + 1 < len(path.segments):
                 self._seg += 1  # a cusp: drive the next segment, in the other direction
                 seg = path.segments[self._seg]
                 self._index = seg.start
-                self._u_prev[0] = 0.0
+                # The brake holds the car through the gear change: in the new direction that
+                # hold has the other sign of d(v)/dt. Starting from it keeps every later move
+                # (and the drive-off) inside the jerk bound.
+                self._u_prev[0] = -seg.direction * cfg.hold_decel
                 self._lam = None
                 self._aligned = False
                 passed = False
@@ -257,8 +284,10 @@ class MpcController:
         direction = seg.direction
         a_min, a_max = self._accel_limits(direction)
         u_prev = self._u_prev
-        u_prev[0] = min(max(u_prev[0], a_min), a_max)  # limits flip with the direction
-        u_prev[1] = min(max(u_prev[1], -self.tan_max), self.tan_max)
+        a_prev, t_prev = u_prev.tolist()
+        a_prev = min(max(a_prev, a_min), a_max)  # limits flip with the direction
+        t_prev = min(max(t_prev, -self.tan_max), self.tan_max)
+        u_prev[0], u_prev[1] = a_prev, t_prev
         if passed:
             return self._brake_to_rest(direction, t0)
 
@@ -275,45 +304,58 @@ class MpcController:
             self._aligned = True
         elif not at_rest:
             self._aligned = True  # moving: the segment's start is behind us
-        s_ref = path.horizon_arclength(seg, s0, self.steps)
-        pts = path.sample(seg, np.concatenate(([s0], s_ref)))  # (Np+1, 3): x, y, heading
-        ox, oy, psi0 = (float(v) for v in pts[0])
+        pts, ref_speed = path.horizon(seg, s0, self.steps)  # rows x, y, heading; Np+1 points
+        ox, oy, psi0 = pts[:, 0].tolist()
         c, s = math.cos(psi0), math.sin(psi0)
         dx, dy = gx - ox, gy - oy
         kin = [c * dx + s * dy, -s * dx + c * dy, gv, _wrap(gth - psi0)]
-        state = np.array([*kin, gt] if self.steer_model else kin)
         if cfg.delay_compensation > 0.0 and not self.steer_model:
-            state = rk4_step(state, u_prev, cfg.delay_compensation, self.L)
+            kin = rk4_step(np.array(kin), u_prev, cfg.delay_compensation, self.L).tolist()
+        v0, th0 = kin[2], kin[3]
 
-        rot = np.array([[c, -s], [s, c]])  # local → global; its transpose maps back
-        ref = np.empty((self.Np, self.ny))
-        ref[:, :2] = (pts[1:, :2] - pts[0, :2]) @ rot
-        ref[:, 2] = path.reference_speed(s_ref)
-        ref[:, 3] = pts[1:, 2] - psi0
+        # The prediction's rows are grouped by output (all Np along-track positions, then
+        # lateral offsets, speeds, heading errors): contiguous rows make every numpy call here
+        # cheap, and E and f do not depend on the order of the rows.
+        to_path = self._to_path  # global → path frame; row 2 (speed) stays zero
+        to_path[0, 0] = to_path[1, 1] = c
+        to_path[0, 1] = s
+        to_path[1, 0] = -s
+        ref = to_path @ (pts[:, 1:] - pts[:, :1])  # (4, Np) in the path frame
+        ref[2] = ref_speed
 
         # 2. model: Jacobians along the plan (step 0 at the current state), augment, predict
-        v_op = np.concatenate(([state[2]], ref[:-1, 2]))
-        heading_op = np.concatenate(([state[3]], ref[:-1, 3]))
-        tan_op = np.full(self.Np, float(state[4]) if self.steer_model else float(u_prev[1]))
-        A, B = linearise_along(v_op, heading_op, tan_op, self.Ts, self.L)
-        if self.steer_model:
-            A, B = augment_steer_lag(A, B, self._alpha, self.Ts, v_op, self.L)
-            increment = steer_lag_increment(state, u_prev, self.Ts, self.L, self._alpha)
+        op = np.empty((2, self.Np))  # speed and heading of each step's operating point
+        op[:, 0] = v0, th0
+        op[:, 1:] = ref[2:, :-1]
+        v_op, heading_op = op
+        Ts, L = self.Ts, self.L
+        if self._kinematic is not None:
+            # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
+            increment = (
+                Ts * (v0 * math.cos(th0)),
+                Ts * (v0 * math.sin(th0)),
+                Ts * a_prev,
+                Ts * (v0 * t_prev / L),
+            )
+            dx_k = kinematic_first_increment(increment, v0, th0, t_prev, Ts, L)
+            ST, free = self._kinematic(v_op, heading_op, t_prev, np.array(dx_k))
         else:
-            increment = self.Ts * derivative(state, u_prev, self.L)
-        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc)
-        dx_k = np.linalg.solve(A[0], increment)  # A Δx̃ₖ = the next step's increment
-        x_aug = np.concatenate((dx_k, self.C @ state))
-        err = ref.ravel() - F @ x_aug  # Rs − F x
+            ST, free = self._predict_steer_lag(kin, gt, u_prev, v_op, heading_op)
+        y0 = np.array(kin)[:, None]
+        ref -= y0
+        err = ref.ravel() - free  # Rs − F x
 
         # 3. QP (eq. 31 with Q): E = 2(SᵀQS + R̄), f = −2 SᵀQ (Rs − F x)
-        SQ = S.T * self._q2  # 2 SᵀQ
-        E = SQ @ S
+        SQ = ST * self._q2  # 2 SᵀQ
+        E = SQ @ ST.T
         E += self._R2
-        f = -(SQ @ err)
+        f = SQ @ err
+        np.negative(f, out=f)
         u_lo, u_hi, gamma0 = self._limits[direction]
         gamma = gamma0 + self._gamma_u @ u_prev
-        if not math.isfinite(float(E.sum()) + float(f.sum())):
+        # f is finite only if S and the errors are (a non-finite entry of S reaches every f
+        # it touches, even times a zero weight or error), and then so is E
+        if not math.isfinite(float(f.sum())):
             return self._hold("non-finite", direction, t0)
 
         # 4. solve and apply the first move within the hard limits
@@ -323,30 +365,34 @@ class MpcController:
             self._lam = None
             return self._hold("non-finite", direction, t0)
         # the first move, within amplitude and per-tick rate limits whatever the solver said
-        a_new = float(u_prev[0] + dU[0])
-        tan_new = float(u_prev[1] + dU[1])
+        d_a, d_t = dU[:2].tolist()
+        a_new = a_prev + d_a
+        tan_new = t_prev + d_t
         a_cmd = _clamp(
             a_new,
-            max(float(u_lo[0]), float(u_prev[0]) - self._du_first[0]),
-            min(float(u_hi[0]), float(u_prev[0]) + self._du_first[0]),
+            max(float(u_lo[0]), a_prev - self._du_first[0]),
+            min(float(u_hi[0]), a_prev + self._du_first[0]),
         )
         tan_cmd = _clamp(
             tan_new,
-            max(-self.tan_max, float(u_prev[1]) - self._du_first[1]),
-            min(self.tan_max, float(u_prev[1]) + self._du_first[1]),
+            max(-self.tan_max, t_prev - self._du_first[1]),
+            min(self.tan_max, t_prev + self._du_first[1]),
         )
         clips = int(abs(a_cmd - a_new) > _EPS_CLIP) + int(abs(tan_cmd - tan_new) > _EPS_CLIP)
         self._apply(a_cmd, tan_cmd)
 
-        Y = F @ x_aug + S @ dU
-        e = ref.ravel() - Y
-        cost = float(e @ (self.q_bar * e) + dU @ (self.r_bar * dU))
-        Yr = Y.reshape(self.Np, self.ny)
-        predicted_xy = Yr[:, :2] @ rot.T + pts[0, :2]
+        SdU = dU @ ST
+        e = err - SdU  # Rs − Y
+        cost = float(e @ (self._q_out * e)) + float(dU @ (self.r_bar * dU))
+        Y = free + SdU  # Y − y₀, rows by output
+        Y = Y.reshape(self.ny, self.Np)
+        Y += y0
+        predicted_xy = Y[:2].T @ to_path[:2, :2]  # back to the global frame
+        predicted_xy += pts[:2, 0]
         # velocity mode: the planned speed one speed-loop time constant ahead, so that the
         # vehicle's proportional speed controller reproduces the planned acceleration
         lead = self._speed_lead_index
-        speed_cmd = float(Yr[lead, 2]) + (a_cmd - a_new) * self.Ts * (lead + 1)
+        speed_cmd = float(Y[2, lead]) + (a_cmd - a_new) * self.Ts * (lead + 1)
         if direction * speed_cmd < 0.0:
             speed_cmd = 0.0  # never ask the speed controller to drive the other way
         if not result.converged:
@@ -371,6 +417,30 @@ class MpcController:
             solve_time=time.perf_counter() - t0,
         )
 
+    def _predict_steer_lag(
+        self,
+        kin: list[float],
+        tan_actual: float,
+        u_prev: FloatArray,
+        v_op: FloatArray,
+        heading_op: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """``Sᵀ`` and the free response ``F x − y₀`` of the steering-aware model (rows by output).
+
+        The general time-varying prediction (:func:`~leafgate.control.model.
+        prediction_matrices_ltv`); the lag state makes ``A − I`` non-nilpotent.
+        """
+        Ts, L = self.Ts, self.L
+        state = np.array([*kin, tan_actual])
+        A, B = linearise_along(v_op, heading_op, np.full(self.Np, tan_actual), Ts, L)
+        A, B = augment_steer_lag(A, B, self._alpha, Ts, v_op, L)
+        increment = steer_lag_increment(state, u_prev, Ts, L, self._alpha)
+        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc)
+        dx_k = np.linalg.solve(A[0], increment)  # A Δx̃ₖ = the next step's increment
+        n = A.shape[1]
+        free = (F[:, :n] @ dx_k).reshape(self.Np, self.ny).T.ravel()
+        return grouped_by_output(S, self.Np).T, free
+
     def _apply(self, accel: float, tan_delta: float) -> None:
         """Remember the command sent this tick (and queue it while it is in the dead time)."""
         self._u_prev = np.array([accel, tan_delta])
@@ -379,12 +449,8 @@ class MpcController:
 
     def _passed_end(self, seg: Segment, pose: Pose) -> bool:
         """True when the car is level with or beyond the segment's end in its driving direction."""
-        traj = self._traj
-        assert traj is not None
-        e = seg.end
-        along = (pose.x - traj.x[e]) * math.cos(traj.heading[e]) + (pose.y - traj.y[e]) * math.sin(
-            traj.heading[e]
-        )
+        x, y, cos_h, sin_h = self._seg_ends[self._seg]
+        along = (pose.x - x) * cos_h + (pose.y - y) * sin_h
         return seg.direction * along >= 0.0
 
     def _predict_dead_time(
@@ -432,27 +498,35 @@ class MpcController:
         tan_target = _clip(direction * self.L * float(psi[1] - psi[0]) / span, self.tan_max)
         target = math.atan(tan_target)
         tol = self.cfg.align_tolerance
+        step_a = self._du_first[0]
         if abs(steer_angle - target) <= tol and abs(self._u_prev[1] - tan_target) <= tol:
-            return None
-        step = self._du_first[1]
-        tan_cmd = _clamp(tan_target, self._u_prev[1] - step, self._u_prev[1] + step)
-        self._apply(0.0, tan_cmd)
+            if abs(self._u_prev[0]) <= 1e-9:
+                return None  # wheel there, brake released: the MPC drives off from a = 0
+            # Release the brake hold at the jerk limit with the wheel held still, so the
+            # command stream stays inside the jerk bound and the MPC starts from what was sent.
+            accel = _clamp(0.0, self._u_prev[0] - step_a, self._u_prev[0] + step_a)
+            tan_cmd = float(self._u_prev[1])
+            status = "releasing"
+        else:
+            step = self._du_first[1]
+            tan_cmd = _clamp(tan_target, self._u_prev[1] - step, self._u_prev[1] + step)
+            accel = self._ramp_to_hold(direction)
+            status = "aligning"
+        self._apply(accel, tan_cmd)
         return ControlOutput(
             steer_angle=math.atan(tan_cmd),
-            accel=-direction * self.cfg.hold_decel,
+            accel=accel,
             speed=0.0,
             gear=Gear.D if direction > 0 else Gear.R,
             nearest_index=self._index,
-            status="aligning",
+            status=status,
             solve_time=time.perf_counter() - t0,
         )
 
     def _brake_to_rest(self, direction: int, t0: float) -> ControlOutput:
         """Beyond the segment's end: brake (at the jerk limit) to rest with the wheel held."""
         assert self._u_prev is not None
-        want = -direction * self.cfg.hold_decel
-        step = self._du_first[0]
-        accel = _clamp(want, self._u_prev[0] - step, self._u_prev[0] + step)
+        accel = self._ramp_to_hold(direction)
         self._apply(accel, float(self._u_prev[1]))
         return ControlOutput(
             steer_angle=math.atan(float(self._u_prev[1])),
@@ -465,14 +539,21 @@ class MpcController:
         )
 
     def _solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
-        """Eq. 29 when it satisfies every constraint, else the configured QP backend."""
-        x_unc = np.linalg.solve(E, -f).astype(np.float64, copy=False)
+        """Eq. 29 when it satisfies every constraint, else the configured QP backend.
+
+        ``E`` is factored once (Cholesky); the factor gives the unconstrained optimum and is
+        reused by Hildreth for ``E⁻¹Mᵀ`` on its working set.
+        """
+        chol, x_unc, info = lapack.dposv(E, -f)
+        if info != 0:  # E not positive definite: cannot happen with R̄ > 0 and finite data
+            chol = None
+            x_unc = np.linalg.solve(E, -f)
+        x_unc = np.asarray(x_unc, dtype=np.float64)
         if (self.M @ x_unc <= gamma).all():
             self._lam = None
             return QpResult(x_unc, True, 0, np.zeros(self.M.shape[0]))
         if self._osqp is not None:
             return self._osqp.solve(E, f, gamma)
-        E_inv = np.linalg.inv(E).astype(np.float64, copy=False)
         result = hildreth(
             E,
             f,
@@ -481,19 +562,33 @@ class MpcController:
             max_iter=self.cfg.max_iterations,
             tol=self.cfg.hildreth_tolerance,
             lam0=self._lam,
-            E_inv=E_inv,
             relaxation=self.cfg.hildreth_relaxation,
+            chol=chol,
+            x_unc=x_unc,
         )
         self._lam = result.lam  # a good start next tick even when the cap was hit
         return result
 
+    def _ramp_to_hold(self, direction: int) -> float:
+        """The brake-hold acceleration of this tick, reached at the jerk limit.
+
+        The holds (aligning at rest, braking past a segment's end, finished) go through the
+        same jerk bound as the MPC's own moves, and are recorded as the last applied input, so
+        the next solve starts from what was really sent.
+        """
+        assert self._u_prev is not None
+        step = self._du_first[0]
+        want = -direction * self.cfg.hold_decel
+        return _clamp(want, self._u_prev[0] - step, self._u_prev[0] + step)
+
     def _finish(self, seg: Segment, t0: float) -> ControlOutput:
         """At rest on the final waypoint: hold the brake, keep the wheel where it is."""
         assert self._u_prev is not None
-        self._u_prev[0] = 0.0
+        accel = self._ramp_to_hold(seg.direction)
+        self._u_prev[0] = accel
         return ControlOutput(
             steer_angle=math.atan(float(self._u_prev[1])),
-            accel=-seg.direction * self.cfg.hold_decel,
+            accel=accel,
             speed=0.0,
             gear=Gear.D if seg.direction > 0 else Gear.R,
             finished=True,

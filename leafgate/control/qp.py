@@ -15,6 +15,7 @@ Neither raises on a hard problem: non-convergence is reported in :attr:`QpResult
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 import osqp
 import scipy.sparse as sp
+from scipy.linalg import lapack
 
 from leafgate.messages import FloatArray
 
@@ -51,8 +53,19 @@ def hildreth(
     E_inv: FloatArray | None = None,
     relaxation: float = 1.0,
     feas_tol: float = 1e-6,
+    chol: FloatArray | None = None,
+    x_unc: FloatArray | None = None,
 ) -> QpResult:
     """Hildreth's quadratic programming procedure (Wang, ``QPhild``).
+
+    **Active-set certificate.** Hildreth's sweeps find the active set long before the
+    multipliers on it converge (the tail is linear convergence on a fixed set). So once the
+    set of positive multipliers is the same after two consecutive sweeps, the multipliers on
+    it are computed exactly — ``P_AA λ_A = −d_A``, a solve of the size of the active set —
+    and accepted when they satisfy the KKT conditions (``λ_A ≥ 0``, no constraint violated by
+    more than ``feas_tol``). That point is the optimum the sweeps converge to; it is reported
+    as converged after the sweeps done so far. A set that fails the check is not tried again
+    and the sweeps go on as before.
 
     :param E: Hessian, symmetric positive definite (n×n)
     :param f: linear term (n)
@@ -68,11 +81,15 @@ def hildreth(
         values in (1, 2) often need fewer sweeps
     :param feas_tol: a small λ change only counts as converged when the primal solution also
         violates no constraint by more than this (in the units of ``γ``)
+    :param chol: the upper Cholesky factor ``U`` of ``E = UᵀU`` (LAPACK ``potrf``/``posv``,
+        ``lower=0``) if the caller has it; used for every solve with ``E``
+    :param x_unc: the unconstrained optimum ``−E⁻¹f`` if the caller has it
     :returns: the primal solution, whether the sweeps converged, the number of sweeps and the
         multipliers
     """
-    Ei = np.linalg.inv(E).astype(np.float64, copy=False) if E_inv is None else E_inv
-    x_unc = -(Ei @ f)
+    solve_E = _solver_for(E, E_inv, chol)
+    if x_unc is None:
+        x_unc = -solve_E(f)
     m = M.shape[0]
     excess = M @ x_unc - gamma
     if np.all(excess <= 0.0):
@@ -91,10 +108,11 @@ def hildreth(
     x = x_unc
     sweeps = 0
     converged = False
+    tried: set[tuple[int, ...]] = set()  # active sets whose exact solution failed the check
     while sweeps < max_iter:
         idx = np.flatnonzero(working)
         Mw = M[idx]
-        EiMt = Ei @ Mw.T  # n×|W|
+        EiMt = solve_E(Mw.T)  # n×|W|
         P = Mw @ EiMt
         d = gamma[idx] - Mw @ x_unc  # = γ + M E⁻¹ f on the working set
         # the sweep is sequential by nature: over Python floats it costs far less per element
@@ -107,6 +125,8 @@ def hildreth(
         lam: list[float] = lam_w.tolist()
         w: list[float] = (P @ lam_w).tolist()
         rows = range(k)
+        idx_list: list[int] = idx.tolist()
+        previous: tuple[int, ...] | None = None  # positive set after the last sweep
         while sweeps < max_iter:
             sweeps += 1
             change = 0.0
@@ -132,11 +152,98 @@ def hildreth(
             ):
                 converged = True
                 break
+            positive = [i for i in rows if lam[i] > 0.0]
+            active = tuple(idx_list[i] for i in positive)
+            if active == previous and active not in tried:
+                positive.sort(key=lam.__getitem__, reverse=True)  # the likeliest members first
+                exact = _exact_on_active_set(positive, idx, P, d, EiMt, x_unc, M, gamma, feas_tol)
+                if exact is None:
+                    tried.add(active)
+                else:
+                    x, lam_w = exact
+                    converged = True
+                    break
+            previous = active
         lam_full[idx] = lam_w
         if converged:
             break
         working |= excess > feas_tol
     return QpResult(x, converged, sweeps, lam_full)
+
+
+def _solver_for(
+    E: FloatArray, E_inv: FloatArray | None, chol: FloatArray | None
+) -> Callable[[FloatArray], FloatArray]:
+    """``B ↦ E⁻¹ B`` from what the caller has: ``E⁻¹``, a Cholesky factor, or only ``E``."""
+    if E_inv is not None:
+        inverse = E_inv
+        return lambda B: inverse @ B
+    if chol is None:
+        chol, info = lapack.dpotrf(E)
+        if info != 0:  # not positive definite (or not finite): the general inverse, as always
+            inverse = np.linalg.inv(E).astype(np.float64, copy=False)
+            return lambda B: inverse @ B
+    factor = chol
+
+    def solve(B: FloatArray) -> FloatArray:
+        return np.asarray(lapack.dpotrs(factor, B)[0], dtype=np.float64)
+
+    return solve
+
+
+def _exact_on_active_set(
+    members: list[int],
+    idx: npt.NDArray[np.intp],
+    P: FloatArray,
+    d: FloatArray,
+    EiMt: FloatArray,
+    x_unc: FloatArray,
+    M: FloatArray,
+    gamma: FloatArray,
+    feas_tol: float,
+) -> tuple[FloatArray, FloatArray] | None:
+    """The QP's optimum found from a guess of its active set, or None.
+
+    With the constraints of a set ``A`` held as equalities, ``λ_A = −P_AA⁻¹ d_A`` and
+    ``x = x_unc − E⁻¹M_Aᵀλ_A``; that is the optimum when ``λ_A ≥ 0`` and ``x`` violates no
+    constraint by more than ``feas_tol`` (the KKT conditions). Hildreth's positive set often
+    still holds constraints whose multipliers are on their slow way to zero (more than the
+    ``n`` that can be independent), or lacks one about to enter, so a few active-set
+    corrections are made on the way: a constraint that depends on the ones before it (the
+    Cholesky factorisation of ``P_AA`` reports which) or has the most negative multiplier
+    leaves ``A``; the most violated constraint of the working set enters it.
+
+    :param members: the guess, as positions in the working set ``idx``, likeliest first
+    :returns: ``(x, λ on the working set idx)``
+    """
+    members = members[: EiMt.shape[0]]  # at most n independent constraints
+    for _ in range(_CORRECTIONS + 1):
+        if not members:
+            return None
+        local = np.array(members)
+        _, lam_a, info = lapack.dposv(P[local][:, local], -d[local])
+        if info > 0:  # the leading minor of order info is singular: that member depends on
+            del members[info - 1]  # the ones before it
+            continue
+        worst = int(np.argmin(lam_a))
+        if info != 0 or not lam_a[worst] >= 0.0:  # (the comparison also catches NaN)
+            del members[worst]
+            continue
+        x = x_unc - EiMt[:, local] @ lam_a
+        excess = M @ x - gamma
+        if np.all(excess <= feas_tol):
+            lam_w = np.zeros(idx.shape[0])
+            lam_w[local] = lam_a
+            return x, lam_w
+        row = int(np.argmax(excess))
+        at = int(np.searchsorted(idx, row))
+        if at >= idx.shape[0] or idx[at] != row or at in members:
+            return None  # violated outside the working set: the sweeps take it in first
+        members.append(at)
+    return None
+
+
+_CORRECTIONS = 6  # active-set corrections tried on one guess (each is one small solve)
 
 
 def _csc_full(

@@ -240,6 +240,17 @@ def split_segments(speed: FloatArray) -> list[Segment]:
     ]
 
 
+@dataclass(frozen=True, slots=True)
+class _SegmentArrays:
+    """One segment's slices of the path, for :meth:`ReferencePath.horizon`."""
+
+    s: FloatArray  # m, arc length of the segment's waypoints
+    time: FloatArray  # s, planned time at them
+    speed: FloatArray  # m/s, signed reference speed at them
+    coefs: FloatArray  # (4, 3, intervals): cubic coefficients, power first
+    intervals: int  # waypoint intervals in the segment
+
+
 class ReferencePath:
     """A validated trajectory prepared for fast per-cycle queries.
 
@@ -278,6 +289,12 @@ class ReferencePath:
         self.time = time
         self.values = np.column_stack((traj.x, traj.y, heading))  # (n, 3)
         self._coefs: dict[tuple[int, int], FloatArray] = {}
+        # the per-tick scalar queries (nearest waypoint, projection) run on Python floats:
+        # indexing numpy arrays element by element costs more than the arithmetic
+        self._x: list[float] = traj.x.tolist()
+        self._y: list[float] = traj.y.tolist()
+        self._s: list[float] = self.s.tolist()
+        self._horizon_cache: dict[tuple[int, int], _SegmentArrays] = {}
 
     # --- queries ---
 
@@ -290,8 +307,7 @@ class ReferencePath:
 
     def project(self, seg: Segment, index: int, x: float, y: float) -> float:
         """Arc length of the point's projection on the chords around waypoint ``index``."""
-        s = self.s
-        tx, ty = self.traj.x, self.traj.y
+        s, tx, ty = self._s, self._x, self._y
         i = min(max(index, seg.start), seg.end - 1)
         dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
         t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
@@ -300,7 +316,62 @@ class ReferencePath:
             dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
             t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
         t = min(max(t, 0.0), 1.0)
-        return float(s[i] + t * (s[i + 1] - s[i]))
+        return s[i] + t * (s[i + 1] - s[i])
+
+    def nearest_index(
+        self, x: float, y: float, start: int, window: int = 20, stop: int | None = None
+    ) -> int:
+        """:func:`nearest_index` on this path's trajectory (the same result, on Python floats)."""
+        last = self.n - 1 if stop is None else min(stop, self.n - 1)
+        lo = min(max(start - 1, 0), last)
+        hi = min(lo + window, last + 1)
+        tx, ty = self._x, self._y
+        best, best_d = lo, math.inf
+        for i in range(lo, hi):
+            dx = tx[i] - x
+            dy = ty[i] - y
+            d = dx * dx + dy * dy
+            if d < best_d:  # strict: the first of equal distances, like numpy's argmin
+                best, best_d = i, d
+        return best
+
+    def horizon(self, seg: Segment, s0: float, steps: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The horizon's reference in one call: :meth:`horizon_arclength`, :meth:`sample` at
+        ``s0`` and those arc lengths, and :meth:`reference_speed` there (the same values).
+
+        :param s0: m, arc length of the vehicle's projection, inside the segment
+        :returns: rows ``x, y, heading`` at ``s0`` and at the ``len(steps)`` horizon points,
+            shape (3, len(steps) + 1) — the transpose of :meth:`sample`'s — and the signed
+            reference speed at the horizon points
+        """
+        arrays = self._horizon_cache.get((seg.start, seg.end))
+        if arrays is None:
+            arrays = self._horizon_cache[(seg.start, seg.end)] = self._segment_arrays(seg)
+        s_seg, t_seg = arrays.s, arrays.time
+        sq = np.empty(steps.shape[0] + 1)
+        sq[0] = s0
+        # within the segment already (projection and interpolation both clamp): no clipping
+        sq[1:] = np.interp(np.interp(s0, s_seg, t_seg) + steps, t_seg, s_seg)
+        i = np.searchsorted(s_seg, sq, side="right")
+        np.minimum(i, arrays.intervals, out=i)
+        i -= 1
+        ds = sq - s_seg[i]
+        c = arrays.coefs.take(i, axis=2)  # (4, 3, q): contiguous rows, cheap to broadcast
+        pts = ((c[3] * ds + c[2]) * ds + c[1]) * ds + c[0]  # Horner
+        return pts, np.interp(sq[1:], s_seg, arrays.speed)
+
+    def _segment_arrays(self, seg: Segment) -> _SegmentArrays:
+        coefs = self._coefs.get((seg.start, seg.end))
+        if coefs is None:
+            coefs = self._coefs[(seg.start, seg.end)] = self._cubic_coefficients(seg)
+        sl = slice(seg.start, seg.end + 1)
+        return _SegmentArrays(
+            self.s[sl],
+            self.time[sl],
+            self.speed[sl],
+            np.ascontiguousarray(coefs.transpose(1, 2, 0)),
+            seg.end - seg.start,
+        )
 
     def _cubic_coefficients(self, seg: Segment) -> FloatArray:
         """Per waypoint interval of ``seg``: the cubic through four waypoints, one behind and
