@@ -222,7 +222,7 @@ class SystemCommand:
 # --- controller interface -------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class ControlOutput:
     """What a lateral/longitudinal controller asks for, before the safety gate.
 

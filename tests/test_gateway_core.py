@@ -421,3 +421,57 @@ def test_every_engaged_frame_passes_the_safety_check() -> None:
         assert check(cmds.steer, cmds.long, prev.steer, prev.long, measured, rig.gw.limits) == ()
         checked += 1
     assert checked > 100
+
+
+def test_diagnostics_to_dict_keys_and_controller_figures() -> None:
+    out = ControlOutput(0.0, 0.1, 1.0, iterations=4, solve_time=0.002, clips=1, nearest_index=7)
+    rig = Rig(FakeController(lambda c, p, s: out))
+    rig.engage()
+    d = rig.step().diagnostics.to_dict()
+    assert list(d) == [
+        "time",
+        "state",
+        "reason",
+        "fault",
+        "fault_causes",
+        "engage_phase",
+        "watchdogs",
+        "error_counter",
+        "overruns_in_row",
+        "ecu_state",
+        "controller",
+        "gear_change",
+        "clamps",
+        "clamped",
+        "transitions",
+    ]
+    assert d["controller"] == {
+        "converged": True,
+        "iterations": 4,
+        "solve_time": 0.002,
+        "clips": 1,
+        "cost": None,
+        "nearest_index": 7,
+        "finished": False,
+        "gear": "D",
+        "status": "ok",
+    }
+    assert d["ecu_state"] == "ENGAGED" and d["overruns_in_row"] == 0
+    assert d["watchdogs"]["report_errors"] == {
+        "status": "ok",
+        "age": None,
+        "limit": 5,
+        "reaction": "NONE",
+        "detail": "",
+        "value": 0,
+    }
+
+
+def test_earlier_diagnostics_keep_their_clamp_counts() -> None:
+    rig = Rig(FakeController(cruise(accel=10.0, angle=1.0)))  # clamped every tick
+    rig.engage()
+    first = rig.step().diagnostics
+    counts = dict(first.clamps)
+    later = rig.run(0.2).diagnostics
+    assert first.clamps == counts
+    assert later.clamps["jerk"] > counts["jerk"]

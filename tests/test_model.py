@@ -169,6 +169,22 @@ def test_closed_form_kinematic_prediction_equals_the_general_one(
     np.testing.assert_allclose(free, expected_free, atol=1e-11)
 
 
+def test_kinematic_prediction_results_survive_the_next_call() -> None:
+    """Work buffers are reused between calls; the returned arrays must not be among them."""
+    Np, Nc = 30, 10
+    rng = np.random.default_rng(3)
+    predict = KinematicPrediction(Np, Nc, Ts, L)
+    args = (rng.uniform(0.0, 3.0, Np), rng.uniform(-1.0, 1.0, Np), 0.2, (0.1, -0.2, 0.05, 0.01))
+    ST, free = predict(*args)
+    ST_copy, free_copy = ST.copy(), free.copy()
+    predict(rng.uniform(-3.0, 0.0, Np), rng.uniform(-1.0, 1.0, Np), -0.4, rng.normal(size=4))
+    np.testing.assert_array_equal(ST, ST_copy)
+    np.testing.assert_array_equal(free, free_copy)
+    fresh_ST, fresh_free = KinematicPrediction(Np, Nc, Ts, L)(*args)
+    np.testing.assert_array_equal(ST, fresh_ST)
+    np.testing.assert_array_equal(free, fresh_free)
+
+
 def test_outputs_grouped_by_output_are_a_row_permutation() -> None:
     S = np.arange(24.0).reshape(6, 4)  # Np = 3 steps of q = 2 outputs
     grouped = grouped_by_output(S, 3)

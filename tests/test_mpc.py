@@ -211,3 +211,20 @@ def test_default_limits_sit_inside_the_vehicle_and_the_safety_gate() -> None:
     assert cfg.steer_max < vehicle.max_steer_angle
     assert vehicle.min_accel < cfg.accel_min < 0.0 < cfg.accel_max < vehicle.max_accel
     assert cfg.steer_rate_max <= 0.5  # rad/s: below the gate's 0.6 rad/s at low speed
+
+
+@pytest.mark.parametrize("model", ["kinematic", "kinematic_steer_lag"])
+def test_earlier_outputs_are_not_changed_by_later_steps(model: str) -> None:
+    """The step reuses work buffers; what it returned before must stay as it was."""
+    traj = _curve()
+    ctrl = _controller(model=model)
+    kept = []
+    for k in range(12):
+        i = 5 + k
+        pose = Pose(traj.x[i] + 0.1, traj.y[i] - 0.2, traj.heading[i] + 0.05, 1.4)
+        out = ctrl.step(pose, 0.1 * (-1) ** k, traj)
+        assert out.predicted_xy is not None
+        kept.append((out, out.predicted_xy.copy(), out.steer_angle, out.accel, out.cost))
+    for out, xy, steer, accel, cost in kept:
+        np.testing.assert_array_equal(out.predicted_xy, xy)
+        assert (out.steer_angle, out.accel, out.cost) == (steer, accel, cost)

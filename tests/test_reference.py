@@ -11,6 +11,7 @@ import yaml
 
 from leafgate.control.reference import (
     ReferencePath,
+    _interp_scalar,
     load_trajectory,
     nearest_index,
     split_segments,
@@ -266,3 +267,14 @@ def test_horizon_is_sample_of_horizon_arclength_and_reference_speed() -> None:
             pts, speed = path.horizon(seg, float(s0), steps)
             np.testing.assert_array_equal(pts, expected.T)
             np.testing.assert_array_equal(speed, path.reference_speed(s_ref))
+
+
+def test_scalar_interpolation_is_numpys_bit_for_bit() -> None:
+    """The per-tick scalar lookup gives np.interp's exact value: inside, on and beyond knots."""
+    rng = np.random.default_rng(11)
+    for n in (2, 5, 40):
+        xp = np.cumsum(rng.uniform(0.01, 3.0, n))
+        fp = np.cumsum(rng.uniform(0.0, 2.0, n))
+        queries = np.concatenate((rng.uniform(xp[0] - 1.0, xp[-1] + 1.0, 500), xp))
+        got = [_interp_scalar(float(x), xp.tolist(), fp.tolist()) for x in queries]
+        np.testing.assert_array_equal(got, np.interp(queries, xp, fp))

@@ -448,3 +448,55 @@ def test_limits_from_config_tighten_accel() -> None:
     assert (limits.max_accel, limits.min_accel) == (1.5, -3.0)
     _, long, _ = gate(accel=2.0, last_accel=2.0, limits=replace(limits), mode=LongMode.SPEED)
     assert long.accel == 1.5
+
+
+def test_counts_snapshot_of_an_earlier_tick_is_not_changed_by_later_clamps() -> None:
+    # Diagnostics hold the snapshot instead of a per-tick copy: it must never change afterwards.
+    g = SafetyGate(LIMITS)
+    measured = Measured(0.0, Gear.D)
+    before = g.counts_snapshot()
+    assert before == dict.fromkeys(CLAMP_KINDS, 0) and list(before) == list(CLAMP_KINDS)
+    g.apply(SteerCommand(0.0, enable=True), LongCommand(enable=True), measured)  # no clamp
+    assert g.counts_snapshot() is before  # unchanged counts: no new copy
+    g.apply(SteerCommand(1.0, enable=True), LongCommand(accel=1.0, enable=True), measured)
+    after = g.counts_snapshot()
+    assert before == dict.fromkeys(CLAMP_KINDS, 0)
+    assert after["angle_rate"] == 1 and after["jerk"] == 1 and after == g.counts
+
+
+def test_unclamped_command_passes_with_every_field_unchanged() -> None:
+    steer = SteerCommand(0.001, rate_limit=0.2, enable=True, clear_override=False)
+    long = LongCommand(LongMode.SPEED, accel=0.01, speed=1.0, gear=Gear.D, enable=True)
+    result = apply_limits(
+        steer, long, SteerCommand(0.0), LongCommand(LongMode.SPEED), Measured(1.0, Gear.D), LIMITS
+    )
+    assert result.clamped == ()
+    assert result.steer == steer and result.long == long
+
+
+@pytest.mark.parametrize("rate_limit, sent", [(-0.5, 0.0), (math.nan, 0.0), (0.3, 0.3)])
+def test_steer_rate_limit_is_never_negative_or_non_finite(rate_limit: float, sent: float) -> None:
+    result = apply_limits(
+        SteerCommand(0.0, rate_limit=rate_limit, enable=True),
+        LongCommand(enable=True),
+        SteerCommand(0.0),
+        LongCommand(),
+        Measured(0.0, Gear.D),
+        LIMITS,
+    )
+    assert result.steer.rate_limit == sent
+    assert result.clamped == (("non_finite",) if math.isnan(rate_limit) else ())
+
+
+def test_seed_keeps_the_last_angle_when_the_mirrored_angle_is_not_finite() -> None:
+    g = SafetyGate(LIMITS)
+    g.seed(SteerCommand(0.25), LongCommand())
+    g.seed(SteerCommand(math.nan, clear_override=True), LongCommand())
+    assert g.last_steer == SteerCommand(0.25, clear_override=True)
+
+
+def test_speed_limit_of_replaced_limits_is_their_own() -> None:
+    # The speed interval is cached per SafetyLimits: a replaced copy must not reuse the cache.
+    assert gate(speed_cmd=10.0)[1].speed == LIMITS.max_speed  # fills LIMITS' cache
+    slower = replace(LIMITS, max_speed=1.0)
+    assert gate(speed_cmd=10.0, limits=slower)[1].speed == 1.0

@@ -429,3 +429,16 @@ def test_trajectory_end_while_moving_goes_through_stopping() -> None:
     assert S.STOPPING in states
     rig.run(2.0)
     assert rig.state == S.STANDBY
+
+
+def test_fault_causes_in_diagnostics_follow_causes_added_while_in_fault() -> None:
+    # Diagnostics keep the sorted causes between ticks: a cause added in FAULT must show.
+    rig = Rig()
+    rig.run(0.1)
+    rig.step(bus_errors=1)
+    assert rig.state == S.FAULT and rig.results[-1].diagnostics.fault_causes == ("bus",)
+    rig.step(bad_report_frames=5)
+    assert rig.results[-1].diagnostics.fault_causes == ("bus", "report_errors")
+    rig.run(0.1)
+    assert rig.step(OperatorRequest.RESET).reply is not None
+    assert rig.state == S.STANDBY and rig.results[-1].diagnostics.fault_causes == ()

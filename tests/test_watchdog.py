@@ -13,12 +13,15 @@ from test_gateway_core import PERIOD, FakeController, Rig
 
 from leafgate.gateway.config import GatewayConfig, WatchdogConfig
 from leafgate.gateway.watchdog import (
+    CHECK_ORDER,
+    Check,
     ErrorCounter,
     OverrunWatchdog,
     PoseWatchdog,
     Reaction,
     ReportWatchdog,
     Status,
+    WatchdogReport,
     freshness,
     position_jump,
     update_error_counter,
@@ -301,3 +304,35 @@ def test_thresholds_come_from_config() -> None:
     rig.send["pose"] = False
     t_stop = _first_state(rig, GatewayState.STOPPING, 1.0)
     assert_within_one_period(t_stop - last, 0.3)
+
+
+def test_ok_verdicts_of_counters_follow_the_count() -> None:
+    # The OK verdict is reused while the count stands still: it must change with the count.
+    counter = ErrorCounter(5)
+    first = counter.update(good=0, bad=2)
+    assert first.ok and first.value == 2
+    assert counter.update(good=0, bad=0) is first  # unchanged: the same (immutable) verdict
+    assert counter.update(good=1, bad=0).value == 1
+    overruns = OverrunWatchdog(3)
+    assert overruns.update(False).value == 0
+    assert overruns.update(True).value == 1
+    assert overruns.update(False).value == 0
+
+
+def test_report_get_finds_checks_in_any_order() -> None:
+    checks = (
+        Check("overrun", Status.OK, None, 3, Reaction.NONE, "", 0),
+        Check("localization", Status.STALE, 0.2, 0.1, Reaction.STOP, "stale"),
+    )
+    report = WatchdogReport(checks, None, None, None, None, None)
+    assert report.get("localization") is checks[1] and report.get("overrun") is checks[0]
+    with pytest.raises(KeyError):
+        report.get("trajectory")
+    assert report.failing(Reaction.STOP) == (checks[1],)
+
+
+def test_diagnostics_list_every_watchdog_in_check_order() -> None:
+    rig = Rig()
+    names = [c.name for c in rig.step().diagnostics.watchdogs]
+    assert names == list(CHECK_ORDER)
+    assert rig.step().diagnostics.watchdogs[CHECK_ORDER.index("long_report")].ok

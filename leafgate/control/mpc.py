@@ -151,7 +151,8 @@ class MpcController:
         # γ = γ₀ + G u_prev, with γ₀ per driving direction (the signed accel limits flip)
         tile_eye = np.tile(np.eye(m), (Nc, 1))
         self._gamma_u = np.vstack((-tile_eye, tile_eye, np.zeros((2 * Nc * m, m))))
-        self._limits: dict[int, tuple[FloatArray, FloatArray, FloatArray]] = {}
+        # per direction: u_lo, u_hi, γ₀ and the acceleration limits (a_min, a_max) as floats
+        self._limits: dict[int, tuple[FloatArray, FloatArray, FloatArray, tuple[float, float]]] = {}
         for direction in (1, -1):
             a_min, a_max = self._accel_limits(direction)
             u_lo = np.array([a_min, -self.tan_max])
@@ -159,8 +160,11 @@ class MpcController:
             gamma0 = np.concatenate(
                 (np.tile(u_hi, Nc), -np.tile(u_lo, Nc), self.du_max, self.du_max)
             )
-            self._limits[direction] = (u_lo, u_hi, gamma0)
+            self._limits[direction] = (u_lo, u_hi, gamma0, (a_min, a_max))
 
+        # the multipliers of a feasible unconstrained optimum: all zero, one read-only array
+        self._no_multipliers = np.zeros(self.M.shape[0])
+        self._no_multipliers.setflags(write=False)
         self._osqp: OsqpBackend | None = None
         if cfg.solver == "osqp":
             E0 = np.eye(Nc * m)
@@ -245,8 +249,14 @@ class MpcController:
         if path is None:
             return self._hold("bad-trajectory", 1, t0)
         seg = path.segments[self._seg]
-        state_in = (pose.x, pose.y, pose.speed, pose.heading, steer_angle)
-        if not all(math.isfinite(v) for v in state_in):
+        isfinite = math.isfinite  # a chain of calls: no generator on the hot path
+        if not (
+            isfinite(pose.x)
+            and isfinite(pose.y)
+            and isfinite(pose.speed)
+            and isfinite(pose.heading)
+            and isfinite(steer_angle)
+        ):
             return self._hold("non-finite", seg.direction, t0)
         if self._u_prev is None:
             self._u_prev = np.array([0.0, math.tan(_clip(steer_angle, cfg.steer_max))])
@@ -262,9 +272,7 @@ class MpcController:
             )
         at_rest = abs(pose.speed) <= cfg.stop_speed
         passed = self._passed_end(seg, pose)
-        end_x, end_y = self._seg_ends[self._seg][:2]
-        to_end = math.hypot(end_x - pose.x, end_y - pose.y)
-        if at_rest and (to_end <= cfg.goal_tolerance or passed):
+        if at_rest and (self._to_end(pose) <= cfg.goal_tolerance or passed):
             if self._seg + 1 < len(path.segments):
                 self._seg += 1  # a cusp: drive the next segment, in the other direction
                 seg = path.segments[self._seg]
@@ -282,7 +290,7 @@ class MpcController:
             return self._finish(seg, t0)
 
         direction = seg.direction
-        a_min, a_max = self._accel_limits(direction)
+        _, _, gamma0, (a_min, a_max) = self._limits[direction]
         u_prev = self._u_prev
         a_prev, t_prev = u_prev.tolist()
         a_prev = min(max(a_prev, a_min), a_max)  # limits flip with the direction
@@ -292,7 +300,10 @@ class MpcController:
             return self._brake_to_rest(direction, t0)
 
         # dead time: the state when the command computed now starts to act
-        gx, gy, gv, gth, gt = self._predict_dead_time(pose, steer_angle, direction)
+        if self.steer_model:
+            gx, gy, gv, gth, gt = self._predict_dead_time(pose, steer_angle, direction)
+        else:  # the kinematic model has no actuator state: the measured pose (no call, no tan)
+            gx, gy, gv, gth, gt = pose.x, pose.y, pose.speed, pose.heading, math.nan
 
         # path-aligned frame at the (predicted) vehicle's projection
         s0 = path.project(seg, self._index, gx, gy)
@@ -325,9 +336,10 @@ class MpcController:
 
         # 2. model: Jacobians along the plan (step 0 at the current state), augment, predict
         op = np.empty((2, self.Np))  # speed and heading of each step's operating point
-        op[:, 0] = v0, th0
         op[:, 1:] = ref[2:, :-1]
-        v_op, heading_op = op
+        v_op, heading_op = op[0], op[1]  # indexing: cheaper than unpacking the array
+        v_op[0] = v0
+        heading_op[0] = th0
         Ts, L = self.Ts, self.L
         if self._kinematic is not None:
             # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
@@ -338,7 +350,7 @@ class MpcController:
                 Ts * (v0 * t_prev / L),
             )
             dx_k = kinematic_first_increment(increment, v0, th0, t_prev, Ts, L)
-            ST, free = self._kinematic(v_op, heading_op, t_prev, np.array(dx_k))
+            ST, free = self._kinematic(v_op, heading_op, t_prev, dx_k)
         else:
             ST, free = self._predict_steer_lag(kin, gt, u_prev, v_op, heading_op)
         y0 = np.array(kin)[:, None]
@@ -351,17 +363,17 @@ class MpcController:
         E += self._R2
         f = SQ @ err
         np.negative(f, out=f)
-        u_lo, u_hi, gamma0 = self._limits[direction]
         gamma = gamma0 + self._gamma_u @ u_prev
         # f is finite only if S and the errors are (a non-finite entry of S reaches every f
-        # it touches, even times a zero weight or error), and then so is E
-        if not math.isfinite(float(f.sum())):
+        # it touches, even times a zero weight or error), and then so is E. (np.add.reduce is
+        # what f.sum() calls, without its Python wrapper; np.float64 is a float.)
+        if not isfinite(np.add.reduce(f)):
             return self._hold("non-finite", direction, t0)
 
         # 4. solve and apply the first move within the hard limits
         result = self._solve(E, f, gamma)
         dU = result.x
-        if not math.isfinite(float(dU.sum())):
+        if not isfinite(np.add.reduce(dU)):
             self._lam = None
             return self._hold("non-finite", direction, t0)
         # the first move, within amplitude and per-tick rate limits whatever the solver said
@@ -370,8 +382,8 @@ class MpcController:
         tan_new = t_prev + d_t
         a_cmd = _clamp(
             a_new,
-            max(float(u_lo[0]), a_prev - self._du_first[0]),
-            min(float(u_hi[0]), a_prev + self._du_first[0]),
+            max(a_min, a_prev - self._du_first[0]),
+            min(a_max, a_prev + self._du_first[0]),
         )
         tan_cmd = _clamp(
             tan_new,
@@ -384,8 +396,8 @@ class MpcController:
         SdU = dU @ ST
         e = err - SdU  # Rs − Y
         cost = float(e @ (self._q_out * e)) + float(dU @ (self.r_bar * dU))
-        Y = free + SdU  # Y − y₀, rows by output
-        Y = Y.reshape(self.ny, self.Np)
+        SdU += free  # Y − y₀, rows by output (in place: SdU is not used again)
+        Y = SdU.reshape(self.ny, self.Np)
         Y += y0
         predicted_xy = Y[:2].T @ to_path[:2, :2]  # back to the global frame
         predicted_xy += pts[:2, 0]
@@ -443,9 +455,19 @@ class MpcController:
 
     def _apply(self, accel: float, tan_delta: float) -> None:
         """Remember the command sent this tick (and queue it while it is in the dead time)."""
-        self._u_prev = np.array([accel, tan_delta])
+        u = self._u_prev
+        if u is None:
+            self._u_prev = np.array([accel, tan_delta])
+        else:  # in place: no new array per tick (nothing keeps a reference across ticks)
+            u[0] = accel
+            u[1] = tan_delta
         if self._dead_ticks:
             self._in_flight.append(tan_delta)
+
+    def _to_end(self, pose: Pose) -> float:
+        """Distance to the current segment's end point, m (only needed at rest)."""
+        x, y = self._seg_ends[self._seg][:2]
+        return math.hypot(x - pose.x, y - pose.y)
 
     def _passed_end(self, seg: Segment, pose: Pose) -> bool:
         """True when the car is level with or beyond the segment's end in its driving direction."""
@@ -544,14 +566,13 @@ class MpcController:
         ``E`` is factored once (Cholesky); the factor gives the unconstrained optimum and is
         reused by Hildreth for ``E⁻¹Mᵀ`` on its working set.
         """
-        chol, x_unc, info = lapack.dposv(E, -f)
+        chol, x_unc, info = lapack.dposv(E, -f)  # float64 arrays, as E and f are
         if info != 0:  # E not positive definite: cannot happen with R̄ > 0 and finite data
             chol = None
             x_unc = np.linalg.solve(E, -f)
-        x_unc = np.asarray(x_unc, dtype=np.float64)
         if (self.M @ x_unc <= gamma).all():
             self._lam = None
-            return QpResult(x_unc, True, 0, np.zeros(self.M.shape[0]))
+            return QpResult(x_unc, True, 0, self._no_multipliers)
         if self._osqp is not None:
             return self._osqp.solve(E, f, gamma)
         result = hildreth(

@@ -19,6 +19,7 @@ after the header).
 
 from __future__ import annotations
 
+import bisect
 import csv
 import itertools
 import math
@@ -30,6 +31,11 @@ import yaml
 
 from leafgate.errors import TrajectoryError
 from leafgate.messages import FloatArray, Trajectory
+
+try:  # the compiled loop behind np.interp (float64 only): skips ~1 µs of wrapper checks a call
+    from numpy._core.multiarray import interp as _interp
+except ImportError:  # numpy < 2 keeps it elsewhere; the public function gives the same values
+    _interp = np.interp
 
 FIELDS = ("x", "y", "heading", "speed")
 MIN_POINTS = 4  # the cubic resampling needs four waypoints
@@ -248,7 +254,9 @@ class _SegmentArrays:
     time: FloatArray  # s, planned time at them
     speed: FloatArray  # m/s, signed reference speed at them
     coefs: FloatArray  # (4, 3, intervals): cubic coefficients, power first
-    intervals: int  # waypoint intervals in the segment
+    starts: FloatArray  # m, ``s`` without the last waypoint: where each interval starts
+    s_list: list[float]  # ``s`` and ``time`` as Python floats, for the scalar interpolation
+    time_list: list[float]
 
 
 class ReferencePath:
@@ -351,14 +359,22 @@ class ReferencePath:
         sq = np.empty(steps.shape[0] + 1)
         sq[0] = s0
         # within the segment already (projection and interpolation both clamp): no clipping
-        sq[1:] = np.interp(np.interp(s0, s_seg, t_seg) + steps, t_seg, s_seg)
-        i = np.searchsorted(s_seg, sq, side="right")
-        np.minimum(i, arrays.intervals, out=i)
+        t0 = _interp_scalar(s0, arrays.s_list, arrays.time_list)
+        sq[1:] = _interp(t0 + steps, t_seg, s_seg)
+        # interval i: s_i ≤ s < s_{i+1}, the last one also for s at the segment's end (the
+        # search over the interval starts only caps i there without an extra call)
+        i = np.searchsorted(arrays.starts, sq, side="right")
         i -= 1
         ds = sq - s_seg[i]
         c = arrays.coefs.take(i, axis=2)  # (4, 3, q): contiguous rows, cheap to broadcast
-        pts = ((c[3] * ds + c[2]) * ds + c[1]) * ds + c[0]  # Horner
-        return pts, np.interp(sq[1:], s_seg, arrays.speed)
+        # Horner, ((c₃ ds + c₂) ds + c₁) ds + c₀, in place: no temporaries
+        pts = c[3] * ds
+        pts += c[2]
+        pts *= ds
+        pts += c[1]
+        pts *= ds
+        pts += c[0]
+        return pts, _interp(sq[1:], s_seg, arrays.speed)
 
     def _segment_arrays(self, seg: Segment) -> _SegmentArrays:
         coefs = self._coefs.get((seg.start, seg.end))
@@ -370,7 +386,9 @@ class ReferencePath:
             self.time[sl],
             self.speed[sl],
             np.ascontiguousarray(coefs.transpose(1, 2, 0)),
-            seg.end - seg.start,
+            self.s[seg.start : seg.end],
+            self._s[sl],
+            self.time[sl].tolist(),
         )
 
     def _cubic_coefficients(self, seg: Segment) -> FloatArray:
@@ -444,6 +462,22 @@ def nearest_index(
     dx = traj.x[lo:hi] - x
     dy = traj.y[lo:hi] - y
     return lo + int(np.argmin(dx * dx + dy * dy))
+
+
+def _interp_scalar(x: float, xp: list[float], fp: list[float]) -> float:
+    """``np.interp(x, xp, fp)`` for one finite ``x``, on Python floats.
+
+    The same operations in the same order as numpy's C loop (so the same bits), without the
+    call overhead of ``np.interp`` for a single value (once per control tick).
+    """
+    j = bisect.bisect_right(xp, x) - 1  # xp[j] ≤ x < xp[j + 1]
+    if j < 0:
+        return fp[0]
+    if j >= len(xp) - 1:
+        return fp[-1]
+    if xp[j] == x:
+        return fp[j]
+    return (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) * (x - xp[j]) + fp[j]
 
 
 def wrap_angle(angle: float) -> float:

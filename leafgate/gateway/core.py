@@ -35,13 +35,13 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 from leafgate.config import VehicleConfig
 from leafgate.control.base import Controller
 from leafgate.gateway.config import GatewayConfig
-from leafgate.gateway.safety import CLAMP_KINDS, Measured, SafetyGate, SafetyLimits, gear_sign
+from leafgate.gateway.safety import Measured, SafetyGate, SafetyLimits, gear_sign
 from leafgate.gateway.state import (
     EngagementMachine,
     EngageReply,
@@ -79,6 +79,9 @@ from leafgate.messages import (
 
 _EPS = 1e-9  # s, slack when comparing times built from sums of periods
 
+#: The last valid ECU reports (steer, long, system), read from a tick's WatchdogReport.
+_Reports = tuple[SteerReport | None, LongReport | None, SystemReport | None]
+
 
 @dataclass(frozen=True)
 class GatewayInputs:
@@ -105,9 +108,12 @@ class EngagePhase(enum.Enum):
     ACTIVE = "active"  # the ECU follows the commands
 
 
-@dataclass(frozen=True, slots=True)
-class ControllerFigures:
-    """The controller's figures of one tick (from :class:`~leafgate.messages.ControlOutput`)."""
+class ControllerFigures(NamedTuple):
+    """The controller's figures of one tick (from :class:`~leafgate.messages.ControlOutput`).
+
+    A named tuple rather than a frozen dataclass: one is built every tick the controller runs,
+    and a tuple is built in a fraction of the time.
+    """
 
     converged: bool
     iterations: int
@@ -122,15 +128,15 @@ class ControllerFigures:
     @classmethod
     def of(cls, out: ControlOutput) -> ControllerFigures:
         return cls(
-            converged=out.converged,
-            iterations=out.iterations,
-            solve_time=out.solve_time,
-            clips=out.clips,
-            cost=out.cost,
-            nearest_index=out.nearest_index,
-            finished=out.finished,
-            gear=out.gear,
-            status=out.status,
+            out.converged,
+            out.iterations,
+            out.solve_time,
+            out.clips,
+            out.cost,
+            out.nearest_index,
+            out.finished,
+            out.gear,
+            out.status,
         )
 
 
@@ -192,10 +198,7 @@ class Diagnostics:
             "ecu_state": None if self.ecu_state is None else self.ecu_state.name,
             "controller": None
             if self.controller is None
-            else {
-                k: _json_value(getattr(self.controller, k))
-                for k in ControllerFigures.__dataclass_fields__
-            },
+            else {k: _json_value(getattr(self.controller, k)) for k in ControllerFigures._fields},
             "gear_change": self.gear_change,
             "clamps": dict(self.clamps),
             "clamped": list(self.clamped),
@@ -213,7 +216,8 @@ class StepResult:
 
 
 def _finite_output(out: ControlOutput) -> bool:
-    return all(math.isfinite(v) for v in (out.steer_angle, out.accel, out.speed))
+    isfinite = math.isfinite  # chained, not all(<generator>): once per tick
+    return isfinite(out.steer_angle) and isfinite(out.accel) and isfinite(out.speed)
 
 
 def _ramp(value: float, target: float, step: float) -> float:
@@ -254,6 +258,9 @@ class Gateway:
         self._rest_since: float | None = None  # s, since when |v| is below standstill speed
         self._stop_reason = ""
         self._next_system: float | None = None  # s, when DBW_SYSTEM_CMD is due next
+        # fault_causes of diagnostics, sorted: kept until the machine's (frozen) set changes
+        self._causes_of: frozenset[str] = frozenset()
+        self._causes_sorted: tuple[str, ...] = ()
         self.gate.seed(SteerCommand(angle=0.0), LongCommand(mode=mode))
 
     @property
@@ -282,13 +289,14 @@ class Gateway:
             inputs.bad_report_frames,
             inputs.overrun,
         )
+        reports = self._reports(wd)  # once per tick: several decisions below read the flags
         measured = self._measured(wd)
         standstill = abs(measured.speed) < self.limits.standstill_speed
         at_rest = self._update_rest(now, standstill)
 
-        self._react_to_watchdogs(now, wd, inputs.bus_errors)
-        reply, clear_faults = self._handle_request(now, inputs, wd, at_rest)
-        self._advance_engagement(now, wd)
+        self._react_to_watchdogs(now, wd, reports, inputs.bus_errors)
+        reply, clear_faults = self._handle_request(now, inputs, wd, reports, at_rest)
+        self._advance_engagement(now, reports)
 
         output: ControlOutput | None = None
         steer: SteerCommand
@@ -338,22 +346,23 @@ class Gateway:
 
         system = self._system_command(now, clear_faults)
         if reply is not None:
-            reply = replace(reply, state=m.state)
-        overruns = wd.get("overrun")
+            reply = EngageReply(reply.accepted, m.state, reply.reason)
+        if m.fault_causes is not self._causes_of:  # sort only when the latched causes change
+            self._causes_of, self._causes_sorted = m.fault_causes, tuple(sorted(m.fault_causes))
         diagnostics = Diagnostics(
             time=now,
             state=m.state,
             reason=m.reason,
             fault=m.fault_reason,
-            fault_causes=tuple(sorted(m.fault_causes)),
+            fault_causes=self._causes_sorted,
             engage_phase=self._phase,
             watchdogs=wd.checks,
             error_counter=self.watchdogs.errors.count,
-            overruns_in_row=int(overruns.value or 0),
-            ecu_state=None if wd.system is None else wd.system.value.state,
+            overruns_in_row=self.watchdogs.overrun.in_row,
+            ecu_state=None if reports[2] is None else reports[2].state,
             controller=None if output is None else ControllerFigures.of(output),
             gear_change=gear_change,
-            clamps={k: self.gate.counts[k] for k in CLAMP_KINDS},
+            clamps=self.gate.counts_snapshot(),
             clamped=self.gate.last_clamped,
             transitions=tuple(m.transitions),
         )
@@ -361,7 +370,9 @@ class Gateway:
 
     # -- watchdog reactions ----------------------------------------------------------------------
 
-    def _react_to_watchdogs(self, now: float, wd: WatchdogReport, bus_errors: int) -> None:
+    def _react_to_watchdogs(
+        self, now: float, wd: WatchdogReport, reports: _Reports, bus_errors: int
+    ) -> None:
         m = self.machine
         driving = m.state in (GatewayState.ENGAGED, GatewayState.STOPPING)
         causes: dict[str, str] = {}
@@ -374,7 +385,7 @@ class Gateway:
         if driving:
             for check in wd.failing(Reaction.FAULT):
                 causes.setdefault(check.name, check.detail)
-            steer, long, system = self._reports(wd)
+            steer, long, system = reports
             fault = ecu_fault(steer, long, system)
             if fault is not None:
                 causes["ecu"] = fault
@@ -390,10 +401,10 @@ class Gateway:
             self._fault(now, causes, wd)
             return
         if not driving:
-            if override_active(*self._reports(wd)):
+            if override_active(*reports):
                 self._override_latched = True
             return
-        if self._phase is not EngagePhase.CLEARING_OVERRIDE and override_active(*self._reports(wd)):
+        if self._phase is not EngagePhase.CLEARING_OVERRIDE and override_active(*reports):
             self._override_latched = True
             m.fire(Event.OVERRIDE, now, "driver override reported by the ECU")
             return
@@ -422,7 +433,12 @@ class Gateway:
     # -- operator requests -----------------------------------------------------------------------
 
     def _handle_request(
-        self, now: float, inputs: GatewayInputs, wd: WatchdogReport, at_rest: bool
+        self,
+        now: float,
+        inputs: GatewayInputs,
+        wd: WatchdogReport,
+        reports: _Reports,
+        at_rest: bool,
     ) -> tuple[EngageReply | None, bool]:
         """Answer the pending request; True as second value when CLEAR_FAULTS is to be sent."""
         request = inputs.request
@@ -436,7 +452,7 @@ class Gateway:
             refusal = engage_refusal(state, m.fault_reason, wd, self.config.engage)
             if refusal is not None:
                 return EngageReply(False, state, refusal), False
-            clear = self._override_latched or override_active(*self._reports(wd))
+            clear = self._override_latched or override_active(*reports)
             m.fire(Event.ENGAGE, now, "operator engage")
             self.controller.reset()
             self._phase = EngagePhase.CLEARING_OVERRIDE if clear else EngagePhase.ENABLING
@@ -486,12 +502,12 @@ class Gateway:
 
     # -- engagement hand-shake -------------------------------------------------------------------
 
-    def _advance_engagement(self, now: float, wd: WatchdogReport) -> None:
+    def _advance_engagement(self, now: float, reports: _Reports) -> None:
         m = self.machine
         if m.state not in (GatewayState.ENGAGED, GatewayState.STOPPING):
             return
         timeout = self.config.engage.confirm_timeout
-        steer, long, system = self._reports(wd)
+        steer, long, system = reports
         if self._phase is EngagePhase.CLEARING_OVERRIDE:
             if self._clear_sent and not override_active(steer, long, system):
                 self._override_latched = False
@@ -592,9 +608,7 @@ class Gateway:
     # -- measured state --------------------------------------------------------------------------
 
     @staticmethod
-    def _reports(
-        wd: WatchdogReport,
-    ) -> tuple[SteerReport | None, LongReport | None, SystemReport | None]:
+    def _reports(wd: WatchdogReport) -> _Reports:
         """The last valid reports (also when stale: their flags are the latest we know)."""
         return (
             None if wd.steer is None else wd.steer.value,

@@ -25,7 +25,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Generic, NamedTuple, TypeVar
 
 from leafgate.gateway.config import WatchdogConfig
 from leafgate.messages import (
@@ -64,9 +64,12 @@ class Reaction(enum.IntEnum):
     FAULT = 2
 
 
-@dataclass(frozen=True, slots=True)
-class Check:
-    """The verdict of one watchdog for one tick."""
+class Check(NamedTuple):
+    """The verdict of one watchdog for one tick.
+
+    A named tuple rather than a frozen dataclass: several are built every tick, and a tuple is
+    built in a third of the time. Immutable all the same, so a verdict can be shared.
+    """
 
     name: str
     status: Status
@@ -99,7 +102,9 @@ def freshness(age: float | None, stale_after: float, lost_after: float) -> Statu
 
 def pose_is_valid(pose: Pose) -> bool:
     """A pose is usable when position, heading and speed are finite."""
-    return all(math.isfinite(v) for v in (pose.x, pose.y, pose.heading, pose.speed))
+    # Chained rather than all(<generator>): this runs on every pose, every tick.
+    isfinite = math.isfinite
+    return isfinite(pose.x) and isfinite(pose.y) and isfinite(pose.heading) and isfinite(pose.speed)
 
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
@@ -307,6 +312,7 @@ class ErrorCounter:
     def __init__(self, threshold: int) -> None:
         self.threshold = threshold
         self.count = 0
+        self._ok: Check | None = None  # the last OK verdict, reused while the count is unchanged
 
     def update(self, good: int, bad: int) -> Check:
         """Count this tick's good and bad report frames."""
@@ -321,7 +327,13 @@ class ErrorCounter:
                 f"report frame errors reached {peak} (limit {self.threshold})",
                 peak,
             )
-        return Check(self.name, Status.OK, None, self.threshold, Reaction.NONE, "", self.count)
+        # Checks are frozen, so an unchanged verdict can be shared between ticks (saves building
+        # one per tick on the common path: no errors).
+        if self._ok is None or self._ok.value != self.count:
+            self._ok = Check(
+                self.name, Status.OK, None, self.threshold, Reaction.NONE, "", self.count
+            )
+        return self._ok
 
 
 class OverrunWatchdog:
@@ -332,6 +344,7 @@ class OverrunWatchdog:
     def __init__(self, limit: int) -> None:
         self.limit = limit
         self.in_row = 0
+        self._ok: Check | None = None  # the last OK verdict, reused while in_row is unchanged
 
     def update(self, overrun: bool) -> Check:
         """Count this tick (``overrun``: it started late)."""
@@ -346,7 +359,9 @@ class OverrunWatchdog:
                 f"control loop overran {self.in_row} ticks in a row",
                 self.in_row,
             )
-        return Check(self.name, Status.OK, None, self.limit, Reaction.NONE, "", self.in_row)
+        if self._ok is None or self._ok.value != self.in_row:  # shared like ErrorCounter's
+            self._ok = Check(self.name, Status.OK, None, self.limit, Reaction.NONE, "", self.in_row)
+        return self._ok
 
 
 def override_active(
@@ -374,6 +389,19 @@ def ecu_fault(
     return "ECU reports " + ", ".join(reasons) if reasons else None
 
 
+#: Names of the checks in the order :meth:`Watchdogs.update` reports them.
+CHECK_ORDER: tuple[str, ...] = (
+    "localization",
+    "trajectory",
+    "steer_report",
+    "long_report",
+    "system_report",
+    "report_errors",
+    "overrun",
+)
+_CHECK_INDEX = {name: i for i, name in enumerate(CHECK_ORDER)}
+
+
 @dataclass(frozen=True)
 class WatchdogReport:
     """All watchdogs' checks for one tick and the last valid sample of each input."""
@@ -390,6 +418,10 @@ class WatchdogReport:
 
         :raises KeyError: no such watchdog
         """
+        # Called several times per tick: try the slot Watchdogs.update puts it in first.
+        i = _CHECK_INDEX.get(name)
+        if i is not None and i < len(self.checks) and self.checks[i].name == name:
+            return self.checks[i]
         for c in self.checks:
             if c.name == name:
                 return c
@@ -397,7 +429,7 @@ class WatchdogReport:
 
     def failing(self, at_least: Reaction) -> tuple[Check, ...]:
         """The checks asking for ``at_least`` this severe a reaction."""
-        return tuple(c for c in self.checks if c.reaction >= at_least)
+        return tuple([c for c in self.checks if c.reaction >= at_least])  # list: no generator
 
 
 class Watchdogs:
@@ -435,7 +467,7 @@ class Watchdogs:
         overrun: bool,
     ) -> WatchdogReport:
         """Feed one tick's inputs to every watchdog."""
-        checks = (
+        checks = (  # in CHECK_ORDER
             self.pose.update(now, pose),
             self.trajectory.update(now, trajectory),
             self.steer.update(now, steer),
