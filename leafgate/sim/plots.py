@@ -35,6 +35,19 @@ def _pyplot():  # imported lazily: matplotlib costs ~0.3 s and the daemon never 
     return plt
 
 
+def _finish(plt: Any, fig: Any, ax: Any, path: Path, xlabel: str, ylabel: str, title: str) -> Path:
+    """Label, grid and legend an axis, save its figure as PNG and close it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+    ax.set_title(title.strip())
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def plot_drive(
     out_dir: Path,
     traj: Trajectory | None,
@@ -67,16 +80,8 @@ def plot_drive(
         ax.plot(traj.x, traj.y, "k.", ms=3)
     for tr in traces:
         ax.plot(tr.x, tr.y, lw=1.5, label=f"driven ({tr.label})")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
-    ax.set_title(f"Path {title}".strip())
-    files["path"] = out_dir / "path.png"
-    fig.tight_layout()
-    fig.savefig(files["path"], dpi=110)
-    plt.close(fig)
+    files["path"] = _finish(plt, fig, ax, out_dir / "path.png", "x [m]", "y [m]", f"Path {title}")
 
     fig, ax = plt.subplots(figsize=(9, 4))
     for tr in traces:
@@ -90,27 +95,21 @@ def plot_drive(
             color=line[0].get_color(),
             label=f"actual ({tr.label})",
         )
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("road-wheel angle [deg]")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
-    ax.set_title(f"Steering {title}".strip())
-    files["steering"] = out_dir / "steering.png"
-    fig.tight_layout()
-    fig.savefig(files["steering"], dpi=110)
-    plt.close(fig)
+    files["steering"] = _finish(
+        plt,
+        fig,
+        ax,
+        out_dir / "steering.png",
+        "t [s]",
+        "road-wheel angle [deg]",
+        f"Steering {title}",
+    )
 
     fig, ax = plt.subplots(figsize=(9, 4))
     for tr in traces:
         line = ax.plot(tr.t, tr.speed_ref, lw=1.0, ls="--", label=f"reference ({tr.label})")
         ax.plot(tr.t, tr.speed, lw=1.5, color=line[0].get_color(), label=f"actual ({tr.label})")
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("speed [m/s]")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
-    ax.set_title(f"Speed {title}".strip())
-    files["speed"] = out_dir / "speed.png"
-    fig.tight_layout()
-    fig.savefig(files["speed"], dpi=110)
-    plt.close(fig)
+    files["speed"] = _finish(
+        plt, fig, ax, out_dir / "speed.png", "t [s]", "speed [m/s]", f"Speed {title}"
+    )
     return files
