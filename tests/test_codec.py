@@ -16,15 +16,14 @@ from hypothesis import strategies as st
 
 from leafgate.can import e2e
 from leafgate.can.codec import (
-    _DECODERS,
-    _ENCODE_SIGNALS,
-    _MPS_PER_RPM,
     CanCodec,
     EncodableMessage,
     EncodeError,
     _compile,
     _compile_encoder,
 )
+from leafgate.can.profile import MPS_PER_RPM as _MPS_PER_RPM
+from leafgate.can.profile import load_profile
 from leafgate.errors import CanCodecError
 from leafgate.messages import (
     EcuState,
@@ -495,7 +494,10 @@ def test_decode_never_raises(
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.sampled_from(sorted(_DECODERS)), st.binary(min_size=8, max_size=8))
+@given(
+    st.sampled_from(sorted(f.name for f in load_profile().frames)),
+    st.binary(min_size=8, max_size=8),
+)
 def test_compiled_decoder_matches_cantools_on_random_payloads(name: str, data: bytes) -> None:
     db = DBW if name.startswith("DBW_") else CAR
     message = db.get_message_by_name(name)
@@ -525,7 +527,9 @@ def test_dbc_lacking_a_frame_is_a_codec_error_naming_it(tmp_path: Path) -> None:
     text = source.read_text(encoding="utf-8").replace("DBW_SYSTEM_RPT", "DBW_SYSTEM_REPORT")
     path = tmp_path / "renamed.dbc"
     path.write_text(text, encoding="utf-8")
-    with pytest.raises(CanCodecError, match=r"renamed\.dbc: message DBW_SYSTEM_RPT is missing"):
+    with pytest.raises(
+        CanCodecError, match=r"frame DBW_SYSTEM_RPT is in no DBC of the profile \(.*renamed\.dbc"
+    ):
         CanCodec(dbw_dbc=path)
 
 
@@ -552,7 +556,7 @@ def test_non_number_field_raises_encode_error() -> None:
 # --- the compiled encoder against cantools' strict encode ------------------------------------
 
 E2E_NAMES = ("ALIVE_COUNTER", "CRC")
-ALL_MESSAGES = sorted(_ENCODE_SIGNALS)
+ALL_MESSAGES = sorted(f.name for f in load_profile().frames)
 
 
 def dbc_message(name: str) -> cantools.database.can.Message:

@@ -37,12 +37,13 @@ with values packed around every signal's limits.
 
 from __future__ import annotations
 
-import functools
+import dataclasses
+import enum
 import math
 import numbers
+import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Final, Literal, NoReturn
@@ -59,14 +60,23 @@ from cantools.database.conversion import (
 )
 
 from leafgate.can import e2e
+from leafgate.can.profile import (
+    COMMAND_SOURCES,
+    DEFAULT_PROFILE,
+    LEAF_REDUCTION_RATIO,
+    LEAF_TYRE_RADIUS,
+    REPORT_SOURCES,
+    UNITS,
+    FrameSpec,
+    Profile,
+    SignalMap,
+    base_values,
+    load_profile,
+)
 from leafgate.errors import CanCodecError
 from leafgate.messages import (
-    EcuState,
-    GatewayState,
-    Gear,
     GearPosition,
     LongCommand,
-    LongMode,
     LongReport,
     MotorSpeed,
     SteerCommand,
@@ -78,8 +88,6 @@ from leafgate.messages import (
 )
 
 __all__ = [
-    "CAR_DBC",
-    "DBW_DBC",
     "LEAF_REDUCTION_RATIO",
     "LEAF_TYRE_RADIUS",
     "CanCodec",
@@ -89,16 +97,6 @@ __all__ = [
     "EncodeError",
     "FrameStats",
 ]
-
-DBW_DBC: Final = "data/dbc/leafgate_dbw.dbc"  # inside the leafgate package
-CAR_DBC: Final = "data/dbc/leaf_aze0_car.dbc"
-
-# 0x176 carries motor speed; the vehicle speed follows from the fixed reduction gear and tyre.
-LEAF_REDUCTION_RATIO: Final = 8.1938  # motor revolutions per wheel revolution (AZE0)
-LEAF_TYRE_RADIUS: Final = 0.310  # m, rolling radius of a 205/55 R16 tyre under load
-_MPS_PER_RPM: Final = 2.0 * math.pi / 60.0 * LEAF_TYRE_RADIUS / LEAF_REDUCTION_RATIO  # (m/s)/rpm
-_KMH: Final = 3.6  # (km/h)/(m/s)
-_DEG: Final = math.pi / 180.0  # rad/deg
 
 Direction = Literal["reports", "commands", "car"]
 EncodableMessage = (
@@ -114,16 +112,6 @@ EncodableMessage = (
     | MotorSpeed
 )
 
-# Frames by direction, by DBC name; their IDs come from the databases.
-_COMMANDS: Final = ("DBW_STEER_CMD", "DBW_LONG_CMD", "DBW_SYSTEM_CMD")
-_REPORTS: Final = ("DBW_STEER_RPT", "DBW_LONG_RPT", "DBW_SYSTEM_RPT")
-_CAR: Final = (
-    "STEER_ANGLE_SENSOR",
-    "MOTOR_SPEED",
-    "WHEEL_SPEEDS_FRONT",
-    "WHEEL_SPEEDS_REAR",
-    "GEAR_POSITION",
-)
 _E2E_SIGNALS: Final = {"ALIVE_COUNTER": (48, 4), "CRC": (56, 8)}  # start bit, length (e2e.py)
 _MAX_TRACKED_UNKNOWN_IDS: Final = 1024  # beyond this, unknown IDs are only counted globally
 
@@ -172,7 +160,8 @@ class FrameStats:
 class Decoded:
     """The result of decoding one frame.
 
-    ``value`` is the message dataclass. It is None for unknown IDs, wrong lengths and decode
+    ``value`` is the message dataclass (the first of ``values`` when a frame carries several,
+    e.g. steering and speed in one command frame). It is None for unknown IDs, wrong lengths and decode
     errors; for a bad CRC or counter it is still attached (for logging) when the content
     decodes, but ``valid`` is False and the control path must not use it.
     """
@@ -182,6 +171,7 @@ class Decoded:
     value: object | None
     valid: bool
     error: ErrorKind | None
+    values: tuple[object, ...] = ()  # every message the frame refreshes (``value`` is the first)
 
 
 _COUNTER_OK: Final = e2e.CounterStatus.OK
@@ -190,7 +180,8 @@ _COUNTER_FIRST: Final = e2e.CounterStatus.FIRST
 # Indices into the per-ID counter lists (a list is cheaper to bump than a frozen dataclass).
 _FRAMES, _BAD_CRC, _BAD_COUNTER, _WRONG_LENGTH, _UNKNOWN, _DECODE_ERROR = range(6)
 
-_Decode = Callable[[bytes | bytearray], object]
+_Decode = Callable[[bytes | bytearray, dict[str, dict[str, Any]]], tuple[object, ...]]
+_Getter = Callable[[Mapping[str, object]], tuple[object, ...]]
 
 
 def _signal_expression(sig: Signal, total_bits: int) -> str:
@@ -236,7 +227,9 @@ def _signals(message: DbcMessage, names: tuple[str, ...]) -> list[Signal]:
     return signals
 
 
-def _compile(message: DbcMessage, names: tuple[str, ...], build: Callable[..., object]) -> _Decode:
+def _compile(
+    message: DbcMessage, names: tuple[str, ...], build: Callable[..., object]
+) -> Callable[[bytes | bytearray], object]:
     """Compile ``payload -> build(*values of the named signals)`` for one message.
 
     The function is generated from the DBC's bit positions and scales (as
@@ -259,250 +252,6 @@ def _compile(message: DbcMessage, names: tuple[str, ...], build: Callable[..., o
     namespace: dict[str, object] = {"from_bytes": int.from_bytes, "build": build}
     exec(compile("\n".join(lines), f"<dbc {message.name}>", "exec"), namespace)
     return namespace["decode"]  # type: ignore[return-value]
-
-
-# --- signals → messages (decode) --------------------------------------------------------------
-# Each builder takes the signals its table entry names, in that order, in DBC units.
-
-
-def _steer_cmd(angle: float, rate: float, enable: int, clear: int) -> SteerCommand:
-    return SteerCommand(angle, rate, bool(enable), bool(clear))
-
-
-def _long_cmd(
-    mode: int, accel: float, speed: float, gear: int, enable: int, clear: int
-) -> LongCommand:
-    # LongMode/Gear raise ValueError for codes outside their tables → decode_error
-    return LongCommand(LongMode(mode), accel, speed, Gear(gear), bool(enable), bool(clear))
-
-
-def _system_cmd(state: int, clear_faults: int) -> SystemCommand:
-    return SystemCommand(GatewayState(state), bool(clear_faults))
-
-
-def _steer_rpt(
-    angle: float,
-    rate: float,
-    torque: float,
-    enabled: int,
-    override: int,
-    fault: int,
-    timeout: int,
-) -> SteerReport:
-    return SteerReport(
-        angle, rate, torque, bool(enabled), bool(override), bool(fault), bool(timeout)
-    )
-
-
-def _long_rpt(
-    speed: float,
-    accel: float,
-    gear: int,
-    brake: float,
-    pedal: float,
-    enabled: int,
-    override: int,
-    fault: int,
-    timeout: int,
-) -> LongReport:
-    return LongReport(
-        speed,
-        accel,
-        Gear(gear),
-        brake,
-        pedal,
-        bool(enabled),
-        bool(override),
-        bool(fault),
-        bool(timeout),
-    )
-
-
-def _system_rpt(
-    state: int, timeout: int, bad_crc: int, bad_counter: int, actuator: int, rx_errors: int
-) -> SystemReport:
-    return SystemReport(
-        EcuState(state),
-        bool(timeout),
-        bool(bad_crc),
-        bool(bad_counter),
-        bool(actuator),
-        rx_errors,
-    )
-
-
-def _steering_wheel(angle_deg: float) -> SteeringWheelAngle:
-    return SteeringWheelAngle(angle_deg * _DEG)
-
-
-def _motor_speed(revs_rpm: float) -> MotorSpeed:
-    return MotorSpeed(revs_rpm * _MPS_PER_RPM)
-
-
-def _wheels_front(left_kmh: float, right_kmh: float) -> WheelSpeeds:
-    return WheelSpeeds(left_kmh / _KMH, right_kmh / _KMH, "front")
-
-
-def _wheels_rear(left_kmh: float, right_kmh: float) -> WheelSpeeds:
-    return WheelSpeeds(left_kmh / _KMH, right_kmh / _KMH, "rear")
-
-
-# Gear lever codes of 0x421 (see the DBC): B, the regenerative drive mode, is a forward gear.
-_LEVER_TO_GEAR: Final = {1: Gear.P, 2: Gear.R, 3: Gear.N, 4: Gear.D, 7: Gear.D}
-
-
-def _gear_position(lever: int) -> GearPosition:
-    return GearPosition(_LEVER_TO_GEAR.get(lever, Gear.NONE))
-
-
-# message name → (signals in the builder's argument order, builder)
-_DECODERS: Final[dict[str, tuple[tuple[str, ...], Callable[..., object]]]] = {
-    "DBW_STEER_CMD": (
-        ("STEER_ANGLE_CMD", "STEER_RATE_LIMIT", "ENABLE", "CLEAR_OVERRIDE"),
-        _steer_cmd,
-    ),
-    "DBW_LONG_CMD": (
-        ("MODE", "ACCEL_CMD", "SPEED_CMD", "GEAR_REQ", "ENABLE", "CLEAR_OVERRIDE"),
-        _long_cmd,
-    ),
-    "DBW_SYSTEM_CMD": (("GATEWAY_STATE", "CLEAR_FAULTS"), _system_cmd),
-    "DBW_STEER_RPT": (
-        (
-            "STEER_ANGLE",
-            "STEER_RATE",
-            "DRIVER_TORQUE",
-            "ENABLED",
-            "OVERRIDE",
-            "FAULT",
-            "CMD_TIMEOUT",
-        ),
-        _steer_rpt,
-    ),
-    "DBW_LONG_RPT": (
-        (
-            "SPEED",
-            "ACCEL",
-            "GEAR",
-            "BRAKE_PEDAL",
-            "ACCEL_PEDAL",
-            "ENABLED",
-            "OVERRIDE",
-            "FAULT",
-            "CMD_TIMEOUT",
-        ),
-        _long_rpt,
-    ),
-    "DBW_SYSTEM_RPT": (
-        (
-            "ECU_STATE",
-            "FAULT_CMD_TIMEOUT",
-            "FAULT_BAD_CRC",
-            "FAULT_BAD_COUNTER",
-            "FAULT_ACTUATOR",
-            "RX_ERROR_COUNT",
-        ),
-        _system_rpt,
-    ),
-    "STEER_ANGLE_SENSOR": (("STEER_ANGLE",), _steering_wheel),
-    "MOTOR_SPEED": (("MOTOR_REVS",), _motor_speed),
-    "WHEEL_SPEEDS_FRONT": (("WHEEL_SPEED_FL", "WHEEL_SPEED_FR"), _wheels_front),
-    "WHEEL_SPEEDS_REAR": (("WHEEL_SPEED_RL", "WHEEL_SPEED_RR"), _wheels_rear),
-    "GEAR_POSITION": (("GEAR_SHIFTER",), _gear_position),
-}
-
-
-# --- messages → signals (encode) --------------------------------------------------------------
-# Each field getter returns the DBC message name and the physical values (DBC units) of the
-# signals _ENCODE_SIGNALS lists for it, in that order. The codec fills the rest: the E2E
-# signals of DBW frames (ALIVE_COUNTER, CRC) and a CAR-CAN frame's rolling COUNTER.
-
-_Fields = tuple[str, tuple[object, ...]]
-
-_ENCODE_SIGNALS: Final[dict[str, tuple[str, ...]]] = {
-    "DBW_STEER_CMD": ("STEER_ANGLE_CMD", "STEER_RATE_LIMIT", "ENABLE", "CLEAR_OVERRIDE"),
-    "DBW_LONG_CMD": ("MODE", "ACCEL_CMD", "SPEED_CMD", "GEAR_REQ", "ENABLE", "CLEAR_OVERRIDE"),
-    "DBW_SYSTEM_CMD": ("GATEWAY_STATE", "CLEAR_FAULTS"),
-    "DBW_STEER_RPT": _DECODERS["DBW_STEER_RPT"][0],
-    "DBW_LONG_RPT": _DECODERS["DBW_LONG_RPT"][0],
-    "DBW_SYSTEM_RPT": _DECODERS["DBW_SYSTEM_RPT"][0],
-    "STEER_ANGLE_SENSOR": ("STEER_ANGLE", "STEER_ANGLE_RATE"),
-    "MOTOR_SPEED": ("MOTOR_REVS",),
-    "WHEEL_SPEEDS_FRONT": ("WHEEL_SPEED_FR", "WHEEL_SPEED_FL"),
-    "WHEEL_SPEEDS_REAR": ("WHEEL_SPEED_RR", "WHEEL_SPEED_RL"),
-    "GEAR_POSITION": ("GEAR_SHIFTER",),
-}
-
-
-def _wheel_speeds_fields(v: WheelSpeeds) -> _Fields:
-    if v.axle == "front":
-        return "WHEEL_SPEEDS_FRONT", (v.right * _KMH, v.left * _KMH)
-    if v.axle == "rear":
-        return "WHEEL_SPEEDS_REAR", (v.right * _KMH, v.left * _KMH)
-    raise EncodeError(f"WheelSpeeds.axle must be 'front' or 'rear', got {v.axle!r}")
-
-
-# Message type → field getter. Flags and enums go in as they are: the compiled encoder takes
-# any integral number (bool and IntEnum included) and range-checks it like any other value.
-_FIELDS: Final[dict[type, Callable[[Any], _Fields]]] = {
-    SteerCommand: lambda v: (
-        "DBW_STEER_CMD",
-        (v.angle, v.rate_limit, v.enable, v.clear_override),
-    ),
-    LongCommand: lambda v: (
-        "DBW_LONG_CMD",
-        (v.mode, v.accel, v.speed, v.gear, v.enable, v.clear_override),
-    ),
-    SystemCommand: lambda v: ("DBW_SYSTEM_CMD", (v.state, v.clear_faults)),
-    SteerReport: lambda v: (
-        "DBW_STEER_RPT",
-        (v.angle, v.rate, v.driver_torque, v.enabled, v.override, v.fault, v.cmd_timeout),
-    ),
-    LongReport: lambda v: (
-        "DBW_LONG_RPT",
-        (
-            v.speed,
-            v.accel,
-            v.gear,
-            v.brake_pedal_pct,
-            v.accel_pedal_pct,
-            v.enabled,
-            v.override,
-            v.fault,
-            v.cmd_timeout,
-        ),
-    ),
-    SystemReport: lambda v: (
-        "DBW_SYSTEM_RPT",
-        (
-            v.state,
-            v.fault_cmd_timeout,
-            v.fault_bad_crc,
-            v.fault_bad_counter,
-            v.fault_actuator,
-            v.rx_error_count,
-        ),
-    ),
-    SteeringWheelAngle: lambda v: ("STEER_ANGLE_SENSOR", (v.angle / _DEG, 0)),
-    MotorSpeed: lambda v: ("MOTOR_SPEED", (v.speed / _MPS_PER_RPM,)),
-    WheelSpeeds: _wheel_speeds_fields,
-    GearPosition: lambda v: ("GEAR_POSITION", (v.gear,)),  # Gear codes 1-4 = lever codes
-}
-
-
-def _fields_of(value: object) -> _Fields:
-    """The DBC message name and the physical values of its signals for a message dataclass.
-
-    :raises EncodeError: no frame carries the type, or a field is not a number
-    """
-    fields = _FIELDS.get(type(value))
-    if fields is None:  # a subclass of a message type, or no message at all
-        fields = next((f for t, f in _FIELDS.items() if isinstance(value, t)), None)
-        if fields is None:
-            raise EncodeError(f"cannot encode a {type(value).__name__}: no CAN frame carries it")
-    try:
-        return fields(value)
-    except TypeError:  # a unit conversion met a field that is not a number
-        raise EncodeError(f"{type(value).__name__}: a field is not a number: {value!r}") from None
 
 
 _Encode = Callable[..., bytes]
@@ -679,17 +428,169 @@ def _unencodable(reason: str) -> _Encode:
     return encode
 
 
+# --- the profile, compiled ----------------------------------------------------------------------
+# A profile maps message fields to DBC signals (leafgate.can.profile). At start-up each frame
+# is compiled into one decode function (payload → the message values it carries) and one
+# field getter for the encoder (messages → physical signal values), generated as source like
+# the bit-level code above, so the per-frame cost stays that of a few shifts and a constructor.
+
+
+def _to_si(sig: SignalMap, var: str) -> str:
+    """Expression converting a signal's DBC value ``var`` to SI (before any type conversion)."""
+    expr = var
+    if sig.scale != 1.0:
+        expr = f"({expr} / {sig.scale!r})"
+    suffix = UNITS[sig.unit][1]
+    return f"({expr}{suffix})" if suffix else expr
+
+
+def _typed(field_type: Any, expr: str, conv: str | None) -> str:
+    """``expr`` as a value of ``field_type`` (bool, an enumeration, or a number as it is)."""
+    if conv is not None:
+        return f"{conv}({expr})"
+    if field_type is bool:
+        return f"({expr} != 0)"
+    if isinstance(field_type, type) and issubclass(field_type, enum.Enum):
+        return f"{field_type.__name__}({expr})"  # ValueError outside the table → decode_error
+    return expr
+
+
+def _choice_decoder(sig: SignalMap, enum_type: type[enum.Enum]) -> Callable[[float], object]:
+    assert sig.choices is not None
+    table = {code: enum_type[member] for member, codes in sig.choices.items() for code in codes}
+    unknown = None if sig.unknown is None else enum_type[sig.unknown]
+
+    def convert(code: float) -> object:
+        member = table.get(int(code), unknown)
+        if member is None:
+            raise ValueError(f"{sig.signal}: code {code} is not in the profile's map")
+        return member
+
+    return convert
+
+
+def _compile_decoder(
+    message: DbcMessage, spec: FrameSpec, profile: Profile, shared: frozenset[str]
+) -> _Decode:
+    """Compile ``(payload, latest) -> (values this frame refreshes, ...)`` for one frame.
+
+    A source the frame fills completely, and no other frame touches, is built directly; any
+    other folds the frame's fields into ``latest[source]`` (a dict of the source's fields,
+    kept by the codec) and is built from it when the frame refreshes it.
+    """
+    sources = COMMAND_SOURCES if spec.direction == "command" else REPORT_SOURCES
+    mapped = [sig for sig in spec.signals if sig.source is not None]
+    signals = _signals(message, tuple(sig.signal for sig in mapped))
+    total_bits = 8 * message.length
+    namespace: dict[str, object] = {"from_bytes": int.from_bytes}
+    lines = ["def decode(data, latest):"]
+    if any(sig.byte_order == "little_endian" for sig in signals):
+        lines.append("    le = from_bytes(data, 'little')")  # excess bytes only add high bits
+    if any(sig.byte_order == "big_endian" for sig in signals):
+        lines.append(f"    be = from_bytes(data[:{message.length}], 'big')")
+    # source → attr → expression
+    fields: dict[str, dict[str, str]] = {src: {} for src in spec.sources}
+    for i, (sig_map, sig) in enumerate(zip(mapped, signals, strict=True)):
+        lines.append(f"    s{i} = {_signal_expression(sig, total_bits)}")
+        si = _to_si(sig_map, f"s{i}")
+        for j, (src, attr) in enumerate(((sig_map.source, sig_map.attr), *sig_map.also)):
+            assert src is not None and attr is not None
+            field_type = typing.get_type_hints(sources[src])[attr]
+            conv = None
+            if sig_map.choices is not None:
+                conv = f"conv{i}_{j}"
+                namespace[conv] = _choice_decoder(sig_map, field_type)
+            elif isinstance(field_type, type) and issubclass(field_type, enum.Enum):
+                namespace[field_type.__name__] = field_type
+            fields[src][attr] = _typed(field_type, si, conv)
+    out = []
+    for src, attrs in fields.items():
+        cls = sources[src]
+        namespace[cls.__name__] = cls
+        all_fields = [f.name for f in dataclasses.fields(cls)]
+        complete = set(attrs) == set(all_fields) and src not in shared
+        if complete:
+            args = ", ".join(f"{a}={attrs[a]}" for a in all_fields)
+            if src in spec.refreshes:
+                lines.append(f"    v_{src} = {cls.__name__}({args})")
+                out.append(f"v_{src}")
+            continue
+        lines.append(f"    d_{src} = latest[{src!r}]")
+        for attr, expr in attrs.items():
+            lines.append(f"    d_{src}[{attr!r}] = {expr}")
+        if src in spec.refreshes:
+            lines.append(f"    v_{src} = {cls.__name__}(**d_{src})")
+            out.append(f"v_{src}")
+    lines.append(f"    return ({', '.join(out)}{',' if out else ''})")
+    exec(compile("\n".join(lines), f"<profile {profile.name} {message.name}>", "exec"), namespace)
+    return namespace["decode"]  # type: ignore[return-value]
+
+
+def _compile_getter(spec: FrameSpec, profile: Profile) -> tuple[tuple[str, ...], _Getter]:
+    """The signal names the frame's encoder takes, and ``sources -> their physical values``."""
+    names: list[str] = []
+    exprs: list[str] = []
+    namespace: dict[str, object] = {}
+    for i, sig in enumerate(spec.signals):
+        names.append(sig.signal)
+        if sig.source is None:
+            exprs.append(repr(sig.constant))
+            continue
+        expr = f"src[{sig.source!r}].{sig.attr}"
+        if sig.choices is not None:
+            table = {member: codes[0] for member, codes in sig.choices.items()}
+            namespace[f"codes{i}"] = {
+                m: table[m.name] for m in _enum_of(spec, sig) if m.name in table
+            }
+            expr = f"codes{i}[{expr}]"  # KeyError: a member the car has no code for
+        else:
+            to_dbc = UNITS[sig.unit][0]
+            if to_dbc:
+                expr = f"{expr}{to_dbc}"
+            if sig.scale != 1.0:
+                expr = f"{expr} * {sig.scale!r}"
+        exprs.append(expr)
+    source = f"def values(src):\n    return ({', '.join(exprs)}{',' if exprs else ''})"
+    exec(compile(source, f"<profile {profile.name} {spec.name} fields>", "exec"), namespace)
+    return tuple(names), namespace["values"]  # type: ignore[return-value]
+
+
+def _enum_of(spec: FrameSpec, sig: SignalMap) -> type[enum.Enum]:
+    sources = COMMAND_SOURCES if spec.direction == "command" else REPORT_SOURCES
+    assert sig.source is not None and sig.attr is not None
+    enum_type: type[enum.Enum] = typing.get_type_hints(sources[sig.source])[sig.attr]
+    return enum_type
+
+
+def _counter_reader(message: DbcMessage, name: str) -> Callable[[bytes | bytearray], int]:
+    """Compile ``payload -> raw value of the counter signal``."""
+    sig = _signals(message, (name,))[0]
+    expr = _signal_expression(sig, 8 * message.length)
+    src = "def counter(data):\n"
+    if sig.byte_order == "little_endian":
+        src += "    le = from_bytes(data, 'little')\n"
+    else:
+        src += f"    be = from_bytes(data[:{message.length}], 'big')\n"
+    src += f"    return int({expr})"
+    namespace: dict[str, object] = {"from_bytes": int.from_bytes}
+    exec(compile(src, f"<counter {message.name}>", "exec"), namespace)
+    return namespace["counter"]  # type: ignore[return-value]
+
+
 # --- the codec ----------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True, slots=True)
 class _TxEntry:
-    """Everything encode needs for one message, prepared at start-up."""
+    """Everything encode needs for one frame, prepared at start-up."""
 
+    name: str
     frame_id: int
-    encode: _Encode  # physical values (+ the rolling counter) -> payload, compiled from the DBC
-    e2e: bool  # leafgate DBW frame: alive counter and CRC applied after encoding
-    has_counter: bool  # CAR-CAN frame with a rolling COUNTER signal, passed last to encode
+    names: tuple[str, ...]  # signals the encoder takes (the counter, if any, last)
+    values: _Getter  # sources -> physical values of ``names`` (without the counter)
+    encode: _Encode  # physical values (+ the counter) -> payload, compiled from the DBC
+    e2e: str  # the frame's scheme (leafgate.can.profile.E2E_SCHEMES)
+    sources: tuple[str, ...]
 
 
 @dataclass(frozen=True, slots=True)
@@ -698,27 +599,21 @@ class _RxEntry:
 
     name: str
     length: int  # bytes the DBC defines
-    e2e: bool  # leafgate DBW frame: exact length, CRC and alive counter checked
-    decode: _Decode  # payload -> message dataclass, compiled from the DBC
-    has_counter: bool  # CAR-CAN frame with a rolling COUNTER signal the sender fills
+    exact: bool  # a protected frame: exactly ``length`` bytes (others: at least)
+    e2e: str
+    decode: _Decode  # (payload, latest) -> the values it refreshes
+    counter: Callable[[bytes | bytearray], int] | None  # checked alive counter (nissan-lkas)
+    direction: str
 
 
-def _load_database(path: str | Path | None, default: str) -> tuple[Database, str]:
-    if path is None:
-        resource = resources.files("leafgate") / default
-        where = f"leafgate/{default}"
-        try:
-            text = resource.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise CanCodecError(f"{where}: cannot read the packaged DBC: {exc}") from None
-    else:
-        where = str(path)
-        try:
-            text = Path(path).read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise CanCodecError(f"{where}: no such DBC file") from None
-        except OSError as exc:
-            raise CanCodecError(f"{where}: cannot read: {exc.strerror}") from None
+def _load_database(path: str | Path) -> tuple[Database, str]:
+    where = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CanCodecError(f"{where}: no such DBC file") from None
+    except OSError as exc:
+        raise CanCodecError(f"{where}: cannot read: {exc.strerror}") from None
     try:
         db = cantools.database.load_string(text, database_format="dbc", strict=True)
     except Exception as exc:  # cantools raises several parse error types
@@ -728,38 +623,42 @@ def _load_database(path: str | Path | None, default: str) -> tuple[Database, str
     return db, where
 
 
-def _require(db: Database, where: str, names: tuple[str, ...], *, e2e_frames: bool) -> None:
-    """Check that a database has the frames and signals this codec maps, with E2E in place."""
-    for name in names:
-        try:
-            message = db.get_message_by_name(name)
-        except KeyError:
-            raise CanCodecError(f"{where}: message {name} is missing") from None
-        if message.is_extended_frame:
-            raise CanCodecError(f"{where}: {name} must use a standard 11-bit ID")
-        if not e2e_frames:
-            continue
+def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
+    """A protected frame's DBC must place the counter and checksum where the scheme puts them."""
+    if spec.e2e == "leafgate":
         if message.length != e2e.FRAME_LENGTH:
-            raise CanCodecError(f"{where}: {name} must be {e2e.FRAME_LENGTH} bytes")
+            raise CanCodecError(f"{where}: {message.name} must be {e2e.FRAME_LENGTH} bytes")
         for sig_name, (start, length) in _E2E_SIGNALS.items():
             try:
                 sig = message.get_signal_by_name(sig_name)
             except KeyError:
-                raise CanCodecError(f"{where}: {name}.{sig_name} is missing") from None
+                raise CanCodecError(f"{where}: {message.name}.{sig_name} is missing") from None
             if (sig.start, sig.length, sig.byte_order) != (start, length, "little_endian"):
                 raise CanCodecError(
-                    f"{where}: {name}.{sig_name} must be {length} bits little-endian at "
+                    f"{where}: {message.name}.{sig_name} must be {length} bits little-endian at "
                     f"bit {start}, as leafgate.can.e2e computes it"
                 )
+    for protection in (spec.counter_signal, spec.checksum_signal):
+        if protection is not None and protection not in {s.name for s in message.signals}:
+            raise CanCodecError(f"{where}: {message.name}.{protection} is missing")
+    if spec.e2e == "nissan-lkas":
+        assert spec.checksum_signal is not None
+        sig = message.get_signal_by_name(spec.checksum_signal)
+        byte7 = (sig.length == 8) and (
+            (sig.byte_order == "little_endian" and sig.start == 56)
+            or (sig.byte_order == "big_endian" and sig.start == 63)
+        )
+        if message.length != 8 or not byte7:
+            raise CanCodecError(
+                f"{where}: {message.name}.{spec.checksum_signal} must be byte 7 of an 8-byte frame"
+            )
 
 
-_SourceKey = tuple[str, int, int]  # (path or "", mtime in ns, size in bytes)
+_SourceKey = tuple[str, int, int]  # (path, mtime in ns, size in bytes)
 
 
-def _source_key(path: str | Path | None) -> _SourceKey:
-    """Identify a DBC for the cache: the packaged one, or a file as it is now."""
-    if path is None:
-        return ("", 0, 0)
+def _source_key(path: str | Path) -> _SourceKey:
+    """Identify a DBC file for the cache, as it is now."""
     try:
         st = Path(path).stat()
     except OSError:
@@ -769,135 +668,263 @@ def _source_key(path: str | Path | None) -> _SourceKey:
 
 @dataclass(frozen=True)
 class _Tables:
-    """What a codec needs from its two DBCs; immutable, so codecs share it."""
+    """What a codec needs from its profile and DBCs; immutable, so codecs share it."""
 
-    dbw: Database
-    car: Database
-    tx: Mapping[str, DbcMessage]  # DBC name → message
+    profile: Profile
+    databases: tuple[Database, ...]
+    messages: Mapping[str, DbcMessage]  # DBC name → message (the profile's frames)
     encoders: Mapping[str, _TxEntry]  # DBC name → compiled encoder
     rx: Mapping[int, _RxEntry]  # ID → compiled decoder
     ids: Mapping[str, frozenset[int]]  # direction → IDs
+    by_type: Mapping[type, tuple[str, str]]  # message type → (frame, source) it alone fills
+    shared: Mapping[str, frozenset[str]]  # direction → sources folded from several frames
 
 
-@functools.lru_cache(maxsize=8)
-def _tables(dbw_key: _SourceKey, car_key: _SourceKey) -> _Tables:
-    """Load, check and compile the two DBCs; cached, as parsing takes tens of milliseconds."""
-    dbw, dbw_where = _load_database(dbw_key[0] or None, DBW_DBC)
-    car, car_where = _load_database(car_key[0] or None, CAR_DBC)
-    _require(dbw, dbw_where, _COMMANDS + _REPORTS, e2e_frames=True)
-    _require(car, car_where, _CAR, e2e_frames=False)
-    tx: dict[str, DbcMessage] = {}
+_TABLES: dict[tuple[int, tuple[_SourceKey, ...]], tuple[Profile, _Tables]] = {}
+_TABLES_MAX: Final = 16
+
+
+def _tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
+    """The compiled tables of a profile and its DBCs as they are now; cached, as parsing takes
+    tens of milliseconds (profiles are loaded once each, see ``load_profile``)."""
+    key = (id(profile), keys)
+    hit = _TABLES.get(key)
+    if hit is not None and hit[0] is profile:
+        return hit[1]
+    tables = _compile_tables(profile, keys)
+    if len(_TABLES) >= _TABLES_MAX:
+        _TABLES.pop(next(iter(_TABLES)))
+    _TABLES[key] = (profile, tables)
+    return tables
+
+
+def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
+    """Load, check and compile the profile's DBCs."""
+    loaded = [_load_database(key[0]) for key in keys]
+    found: dict[str, tuple[DbcMessage, str]] = {}
+    for db, where in loaded:
+        for message in db.messages:
+            found.setdefault(message.name, (message, where))
+    messages: dict[str, DbcMessage] = {}
     encoders: dict[str, _TxEntry] = {}
     rx: dict[int, _RxEntry] = {}
-    ids: dict[str, frozenset[int]] = {}
-    for direction, db, names in (
-        ("commands", dbw, _COMMANDS),
-        ("reports", dbw, _REPORTS),
-        ("car", car, _CAR),
-    ):
-        direction_ids = []
-        for name in names:
-            message = db.get_message_by_name(name)
-            if message.frame_id in rx:
-                raise CanCodecError(
-                    f"{name} and {rx[message.frame_id].name} share ID 0x{message.frame_id:03X}"
-                )
-            has_counter = any(sig.name == "COUNTER" for sig in message.signals)
-            tx[name] = message
-            encoders[name] = _TxEntry(
-                frame_id=message.frame_id,
-                encode=_encoder(message, e2e_frame=db is dbw, has_counter=has_counter),
-                e2e=db is dbw,
-                has_counter=has_counter,
+    ids: dict[str, list[int]] = {"commands": [], "reports": [], "car": []}
+    touched: dict[str, dict[str, int]] = {"command": {}, "report": {}}
+    for spec in profile.frames:
+        for src in spec.sources:
+            touched[spec.direction][src] = touched[spec.direction].get(src, 0) + 1
+    shared = {d: frozenset(s for s, n in t.items() if n > 1) for d, t in touched.items()}
+    by_type: dict[type, tuple[str, str]] = {}
+    for spec in profile.frames:
+        if spec.name not in found:
+            raise CanCodecError(
+                f"{profile.where}: frame {spec.name} is in no DBC of the profile "
+                f"({', '.join(where for _, where in loaded)})"
             )
-            rx[message.frame_id] = _RxEntry(
-                name=name,
-                length=message.length,
-                e2e=db is dbw,
-                decode=_compile(message, *_DECODERS[name]),
-                has_counter=has_counter,
+        message, where = found[spec.name]
+        if message.is_extended_frame:
+            raise CanCodecError(f"{where}: {spec.name} must use a standard 11-bit ID")
+        if message.frame_id in rx:
+            raise CanCodecError(
+                f"{spec.name} and {rx[message.frame_id].name} share ID 0x{message.frame_id:03X}"
             )
-            direction_ids.append(message.frame_id)
-        ids[direction] = frozenset(direction_ids)
+        _check_e2e(message, spec, where)
+        messages[spec.name] = message
+        encoders[spec.name] = _tx_entry(message, spec, profile)
+        rx[message.frame_id] = _RxEntry(
+            name=spec.name,
+            length=message.length,
+            exact=spec.e2e in ("leafgate", "nissan-lkas"),
+            e2e=spec.e2e,
+            decode=_compile_decoder(message, spec, profile, shared[spec.direction]),
+            counter=(
+                _counter_reader(message, spec.counter_signal)
+                if spec.e2e == "nissan-lkas" and spec.counter_signal
+                else None
+            ),
+            direction=spec.direction,
+        )
+        direction = (
+            "commands" if spec.direction == "command" else spec.bus.replace("dbw", "reports")
+        )
+        ids[direction].append(message.frame_id)
+        if len(spec.sources) == 1 and spec.sources[0] not in shared[spec.direction]:
+            sources = COMMAND_SOURCES if spec.direction == "command" else REPORT_SOURCES
+            cls = sources[spec.sources[0]]
+            key_type: type = cls
+            if cls is WheelSpeeds:  # two sources of one type: told apart by the axle
+                by_type[(WheelSpeeds, spec.sources[0])] = (spec.name, spec.sources[0])  # type: ignore[index]
+                continue
+            by_type[key_type] = (spec.name, spec.sources[0])
     return _Tables(
-        dbw,
-        car,
-        MappingProxyType(tx),
-        MappingProxyType(encoders),
-        MappingProxyType(rx),
-        MappingProxyType(ids),
+        profile=profile,
+        databases=tuple(db for db, _ in loaded),
+        messages=MappingProxyType(messages),
+        encoders=MappingProxyType(encoders),
+        rx=MappingProxyType(rx),
+        ids=MappingProxyType({d: frozenset(v) for d, v in ids.items()}),
+        by_type=MappingProxyType(by_type),
+        shared=MappingProxyType(shared),
     )
 
 
-def _encoder(message: DbcMessage, *, e2e_frame: bool, has_counter: bool) -> _Encode:
-    """The compiled encoder of a message, taking the values :data:`_FIELDS` gives.
-
-    Strict as cantools: every signal of the message must be filled, by the field getter or
-    by the codec (E2E signals, rolling COUNTER). A DBC that has other signals, or signals the
-    encoder cannot compile, still decodes; encoding that message raises :class:`EncodeError`.
-    """
-    names = _ENCODE_SIGNALS[message.name] + (("COUNTER",) if has_counter else ())
-    filled = set(names) | (set(_E2E_SIGNALS) if e2e_frame else set())
+def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntry:
+    """The compiled encoder of a frame. Strict as cantools: every signal of the message must
+    be filled, by the profile or by the frame's E2E scheme; otherwise encoding it raises."""
+    names, getter = _compile_getter(spec, profile)
+    counter = (spec.counter_signal,) if spec.e2e in ("rolling", "nissan-lkas") else ()
+    filled = set(names) | set(counter)
+    if spec.e2e == "leafgate":
+        filled |= set(_E2E_SIGNALS)
+    if spec.checksum_signal is not None:
+        filled.add(spec.checksum_signal)
     unknown = sorted(sig.name for sig in message.signals if sig.name not in filled)
     if unknown:
-        return _unencodable(
-            f"{message.name} (0x{message.frame_id:03X}): leafgate fills no value for "
+        encode = _unencodable(
+            f"{message.name} (0x{message.frame_id:03X}): the profile fills no value for "
             f"signal(s) {', '.join(unknown)} of the DBC"
         )
-    try:
-        return _compile_encoder(message, names)
-    except CanCodecError as exc:
-        return _unencodable(str(exc))
+    else:
+        try:
+            encode = _compile_encoder(message, names + counter)  # type: ignore[operator]
+        except CanCodecError as exc:
+            encode = _unencodable(str(exc))
+    return _TxEntry(
+        name=spec.name,
+        frame_id=message.frame_id,
+        names=names + counter,  # type: ignore[operator]
+        values=getter,
+        encode=encode,
+        e2e=spec.e2e,
+        sources=spec.sources,
+    )
 
 
 class CanCodec:
-    """Encode leafgate messages into frames and decode frames into messages.
+    """Encode leafgate messages into frames and decode frames into messages, per profile.
 
-    :param dbw_dbc: the drive-by-wire DBC; None for the packaged ``dbc/leafgate_dbw.dbc``
-    :param car_dbc: the Leaf CAR-CAN DBC; None for the packaged ``dbc/leaf_aze0_car.dbc``
-    :raises CanCodecError: a DBC is unreadable, invalid, or lacks a frame or signal leafgate
-        maps (the message names the file and the frame)
+    :param dbw_dbc: replaces the profile's first DBC (``leafgate_dbw.dbc`` in the default
+        profile); None keeps the profile's
+    :param car_dbc: replaces the profile's second DBC (the CAR-CAN one); None keeps it
+    :param profile: the vehicle profile (a :class:`~leafgate.can.profile.Profile` or a
+        name/path for :func:`~leafgate.can.profile.load_profile`); None: ``leafgate-dbw``
+    :raises CanCodecError: a DBC is unreadable, invalid, or lacks a frame or signal the
+        profile maps (the message names the file and the frame)
+    :raises ConfigError: the profile is missing or invalid
 
     One instance per sender/receiver: it owns the alive counters of the frames it encodes and
-    the counter state of the frames it decodes. Decode from one thread; :attr:`stats` may be
-    read from another.
+    the counter state of the frames it decodes (and, for profiles that fill one message from
+    several frames, the fields seen so far). Decode from one thread; :attr:`stats` may be read
+    from another.
     """
 
     def __init__(
-        self, dbw_dbc: str | Path | None = None, car_dbc: str | Path | None = None
+        self,
+        dbw_dbc: str | Path | None = None,
+        car_dbc: str | Path | None = None,
+        profile: Profile | str | None = None,
     ) -> None:
-        tables = _tables(_source_key(dbw_dbc), _source_key(car_dbc))
-        self._dbw, self._car = tables.dbw, tables.car
-        self._tx, self._rx, self._ids = tables.tx, tables.rx, tables.ids
+        if not isinstance(profile, Profile):
+            profile = load_profile(profile or DEFAULT_PROFILE)
+        paths = list(profile.dbc)
+        for index, override in ((0, dbw_dbc), (1, car_dbc)):
+            if override is not None:
+                if index >= len(paths):
+                    raise CanCodecError(
+                        f"{override}: profile {profile.name} has no DBC #{index + 1} to replace"
+                    )
+                paths[index] = str(override)
+        tables = _tables(profile, tuple(_source_key(p) for p in paths))
+        self.profile = profile
+        self._tables = tables
+        self._rx, self._ids = tables.rx, tables.ids
         self._encoders = tables.encoders
         self._tx_counters: dict[int, int] = {}  # next alive counter per sent ID
         self._rx_counters = e2e.CounterChecker()
         self._counts: dict[int, list[int]] = {frame_id: [0] * 6 for frame_id in self._rx}
         self._unknown_total = 0
+        # fields of each source seen so far, for sources several frames fill (per direction)
+        self._latest: dict[str, dict[str, dict[str, Any]]] = {
+            direction: {
+                src: base_values(profile, direction, src)
+                for src in (COMMAND_SOURCES if direction == "command" else REPORT_SOURCES)
+            }
+            for direction in ("command", "report")
+        }
+        self.command_frames: tuple[str, ...] = tuple(
+            spec.name for spec in profile.frames_of("command")
+        )
 
     # --- encode ---------------------------------------------------------------------------
 
     def encode(self, value: EncodableMessage, timestamp: float = 0.0) -> can.Message:
-        """Encode a message dataclass into a frame; DBW frames get their counter and CRC.
+        """Encode a message dataclass into the one frame that carries it alone.
 
         Strict like cantools' ``Message.encode(..., strict=True)``, through an encoder
         compiled from the DBC at start-up. A failed encode does not use up an alive counter.
+        Frames that carry several messages are encoded with :meth:`encode_frame`.
 
         :param value: one of the message dataclasses a frame carries
         :param timestamp: s, copied into the frame (the sender's clock)
         :raises EncodeError: a value is outside its DBC range, not finite or not a number
-            (the message names the frame, the signal, the value and the range), or the type
-            has no frame
+            (the message names the frame, the signal, the value and the range), or no frame
+            of the profile carries the type alone
         """
-        name, physical = _fields_of(value)
-        entry = self._encoders[name]
+        name, source = self._frame_of(value)
+        return self.encode_frame(name, {source: value}, timestamp)
+
+    def _frame_of(self, value: object) -> tuple[str, str]:
+        by_type = self._tables.by_type
+        key: object = type(value)
+        if key is WheelSpeeds:
+            axle = getattr(value, "axle", None)
+            if axle not in ("front", "rear"):
+                raise EncodeError(f"WheelSpeeds.axle must be 'front' or 'rear', got {axle!r}")
+            key = (WheelSpeeds, f"wheels_{axle}")
+        found = by_type.get(key)  # type: ignore[call-overload]
+        if found is None:
+            found = next(
+                (v for t, v in by_type.items() if isinstance(t, type) and isinstance(value, t)),
+                None,
+            )
+            if found is None:
+                raise EncodeError(
+                    f"cannot encode a {type(value).__name__}: no frame of profile "
+                    f"{self.profile.name} carries it alone"
+                )
+        return found
+
+    def encode_frame(
+        self, name: str, sources: Mapping[str, object], timestamp: float = 0.0
+    ) -> can.Message:
+        """Encode one frame of the profile from the messages it draws on.
+
+        :param name: the frame's DBC name (e.g. ``HLC_AUTONOMOUS``)
+        :param sources: source name → message, e.g. ``{"steer": SteerCommand(...),
+            "long": LongCommand(...)}`` (see :mod:`leafgate.can.profile`)
+        :raises EncodeError: a source is missing, a value is out of range or not a number
+        """
+        entry = self._encoders.get(name)
+        if entry is None:
+            raise EncodeError(f"profile {self.profile.name} has no frame {name}")
+        try:
+            physical = entry.values(sources)
+        except KeyError as exc:
+            raise EncodeError(f"{name}: no value for {exc.args[0]!r}") from None
+        except (TypeError, AttributeError) as exc:  # a unit conversion met a non-number
+            raise EncodeError(f"{name}: a field is not a number ({exc})") from None
         frame_id = entry.frame_id
+        scheme = entry.e2e
         counter = self._tx_counters.get(frame_id, 0)
-        # a CAR-CAN frame's own rolling counter (0x002) goes in as its last signal
-        data = entry.encode(*physical, counter) if entry.has_counter else entry.encode(*physical)
-        if entry.e2e:
-            data = e2e.apply(frame_id, data, counter)
-        if entry.e2e or entry.has_counter:  # only a frame actually produced uses a count
+        if scheme == "rolling" or scheme == "nissan-lkas":
+            data = entry.encode(*physical, counter)
+            if scheme == "nissan-lkas":
+                data = data[:7] + bytes((e2e.crc8_nissan_lkas(data[:7]),))
+        else:
+            data = entry.encode(*physical)
+            if scheme == "leafgate":
+                data = e2e.apply(frame_id, data, counter)
+        if scheme != "none":  # only a frame actually produced uses a count
             self._tx_counters[frame_id] = (counter + 1) % e2e.COUNTER_MODULO
         return can.Message(
             timestamp=timestamp,
@@ -915,27 +942,38 @@ class CanCodec:
 
         :raises EncodeError: cantools rejects a value
         """
-        name, physical = _fields_of(value)
-        message, entry = self._tx[name], self._encoders[name]
-        signals: dict[str, Any] = dict(zip(_ENCODE_SIGNALS[name], physical, strict=True))
-        if entry.e2e:
+        name, source = self._frame_of(value)
+        message, entry = self._tables.messages[name], self._encoders[name]
+        try:
+            physical = entry.values({source: value})
+        except (KeyError, TypeError, AttributeError) as exc:
+            raise EncodeError(f"{name}: {exc}") from None
+        signals: dict[str, Any] = dict(zip(entry.names, physical, strict=False))
+        if entry.e2e == "leafgate":
             signals.update(ALIVE_COUNTER=0, CRC=0)  # set with the CRC by e2e.apply below
-        elif entry.has_counter:
-            signals["COUNTER"] = counter
+        elif entry.e2e in ("rolling", "nissan-lkas"):
+            signals[entry.names[-1]] = counter
+        spec = self.profile.frame(name)
+        if spec.checksum_signal is not None:
+            signals[spec.checksum_signal] = 0
         try:
             data = message.encode(signals, scaling=True, padding=False, strict=True)
         except (cantools.database.EncodeError, TypeError, ValueError, OverflowError) as exc:
             raise EncodeError(f"{name}: {exc}") from None
-        return e2e.apply(entry.frame_id, data, counter) if entry.e2e else data
+        if entry.e2e == "leafgate":
+            return e2e.apply(entry.frame_id, data, counter)
+        if entry.e2e == "nissan-lkas":
+            return data[:7] + bytes((e2e.crc8_nissan_lkas(data[:7]),))
+        return data
 
     # --- decode ---------------------------------------------------------------------------
 
     def decode(self, msg: can.Message) -> Decoded:
         """Decode one received frame; never raises.
 
-        Checks, in order: known standard ID (``unknown_id``), length (``wrong_length``: DBW
-        frames exactly 8 bytes; CAR-CAN frames at least the DBC length, as model years differ
-        in trailing bytes), CRC (``bad_crc``), alive counter (``bad_counter``), content
+        Checks, in order: known standard ID (``unknown_id``), length (``wrong_length``:
+        protected frames exactly their DBC length; others at least it, as model years differ
+        in trailing bytes), checksum (``bad_crc``), alive counter (``bad_counter``), content
         (``decode_error``). Every outcome is counted in :attr:`stats`.
         """
         frame_id = msg.arbitration_id
@@ -951,29 +989,41 @@ class CanCodec:
             if (
                 msg.is_error_frame
                 or msg.is_remote_frame
-                or (size != entry.length if entry.e2e else size < entry.length)
+                or (size != entry.length if entry.exact else size < entry.length)
             ):
                 counts[_WRONG_LENGTH] += 1
                 return Decoded(frame_id, entry.name, None, False, "wrong_length")
             error: ErrorKind | None = None
-            if entry.e2e:
+            scheme = entry.e2e
+            if scheme == "leafgate":
                 if data[e2e.CRC_BYTE] != e2e.e2e_crc(frame_id, data):
                     error = "bad_crc"
                 else:
                     status = self._rx_counters.check(frame_id, data[e2e.COUNTER_BYTE] & 0x0F)
                     if status is not _COUNTER_OK and status is not _COUNTER_FIRST:
                         error = "bad_counter"
+            elif scheme == "nissan-lkas" and entry.counter is not None:
+                if data[7] != e2e.crc8_nissan_lkas(bytes(data[:7])):
+                    error = "bad_crc"
+                else:
+                    status = self._rx_counters.check(frame_id, entry.counter(data))
+                    if status is not _COUNTER_OK and status is not _COUNTER_FIRST:
+                        error = "bad_counter"
+            latest = self._latest["command" if entry.direction == "command" else "report"]
+            if error is not None:  # decoded for the log only: fold nothing into the state
+                latest = {src: dict(fields) for src, fields in latest.items()}
             try:
-                value = entry.decode(data)
-            except ValueError:  # a code outside a value table
+                values = entry.decode(data, latest)
+            except (ValueError, KeyError):  # a code outside a value table
                 if error is None:
                     counts[_DECODE_ERROR] += 1
                     return Decoded(frame_id, entry.name, None, False, "decode_error")
-                value = None
+                values = ()
+            value = values[0] if values else None
             if error is None:
-                return Decoded(frame_id, entry.name, value, True, None)
+                return Decoded(frame_id, entry.name, value, True, None, values)
             counts[_BAD_CRC if error == "bad_crc" else _BAD_COUNTER] += 1
-            return Decoded(frame_id, entry.name, value, False, error)
+            return Decoded(frame_id, entry.name, value, False, error, values)
         except Exception:  # never let a malformed frame escape into the loop
             counts[_DECODE_ERROR] += 1
             return Decoded(frame_id, entry.name, None, False, "decode_error")
@@ -1009,8 +1059,8 @@ class CanCodec:
         return self._unknown_total
 
     def receive_ids(self, direction: Direction) -> frozenset[int]:
-        """The IDs one side decodes: ``"reports"`` (the gateway's DBW input), ``"commands"``
-        (the ECU's input) or ``"car"`` (Leaf CAR-CAN feedback)."""
+        """The IDs one side decodes: ``"reports"`` (the gateway's input on the dbw bus),
+        ``"commands"`` (the ECU's input) or ``"car"`` (feedback on the car bus)."""
         try:
             return self._ids[direction]
         except KeyError:
@@ -1021,17 +1071,24 @@ class CanCodec:
     def message(self, frame_id: int) -> DbcMessage | None:
         """The cantools message of a known ID (for tools that print signals), else None."""
         entry = self._rx.get(frame_id)
-        return None if entry is None else self._tx[entry.name]
+        return None if entry is None else self._tables.messages[entry.name]
 
     def name_of(self, frame_id: int) -> str | None:
         """The DBC name of a known ID, else None."""
         entry = self._rx.get(frame_id)
         return None if entry is None else entry.name
 
+    def frame_id(self, name: str) -> int:
+        """The CAN ID of a frame of the profile.
+
+        :raises KeyError: the profile has no such frame
+        """
+        return self._tables.messages[name].frame_id
+
     @property
-    def databases(self) -> tuple[Database, Database]:
-        """The loaded (drive-by-wire, CAR-CAN) cantools databases."""
-        return self._dbw, self._car
+    def databases(self) -> tuple[Database, ...]:
+        """The loaded cantools databases, in the profile's order."""
+        return self._tables.databases
 
 
 def frame_summary(msg: can.Message) -> str:
