@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from pathlib import Path
@@ -29,6 +30,8 @@ import yaml
 from leafgate.errors import ConfigError
 
 T = TypeVar("T")
+
+_PLAIN_KEY = re.compile(r"[\w\-]+")  # keys shown as they are in messages; others as repr
 
 _UNIT_SUFFIXES: dict[str, float] = {
     "_deg": math.pi / 180.0,  # deg → rad
@@ -51,6 +54,9 @@ class VehicleConfig:
     cg_to_front: float = 1.20  # m, centre of gravity to front axle
     cornering_stiffness_front: float = 60000.0  # N/rad, per axle
     cornering_stiffness_rear: float = 70000.0  # N/rad, per axle
+    # The CAN interface: a packaged profile (leafgate-dbw, sze-hlc, leaf-ze1-lkas) or the path
+    # of a profile YAML file (leafgate.can.profile).
+    profile: str = "leafgate-dbw"
 
     def __post_init__(self) -> None:
         _positive(self, "wheelbase", "max_steer_angle", "steering_ratio", "max_accel", "mass")
@@ -66,8 +72,9 @@ def _positive(obj: object, *names: str) -> None:
     """Raise ValueError naming the first field that is not a finite positive number."""
     for name in names:
         value = getattr(obj, name)
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
+        # an int is finite however large (math.isfinite would overflow converting it)
+        if not (value > 0 and (isinstance(value, int) or math.isfinite(value))):
+            raise ValueError(f"{name} must be a positive number, got {_show(value)}")
 
 
 def positive(obj: object, *names: str) -> None:
@@ -101,7 +108,8 @@ def from_mapping(cls: type[T], data: Any, source: str, where: str = "") -> T:
                 if key.endswith(suffix) and key[: -len(suffix)] in fields:
                     name, scale = key[: -len(suffix)], factor
                     break
-        dotted = f"{where}.{key}" if where else key
+        shown = key if _PLAIN_KEY.fullmatch(key) else repr(key)  # "" or "a: b" stay readable
+        dotted = f"{where}.{shown}" if where else shown
         if name not in fields or not fields[name].init:
             known = ", ".join(sorted(f for f in fields if fields[f].init))
             raise ConfigError(f"{source}: {dotted}: unknown key (known here: {known})")
@@ -113,7 +121,7 @@ def from_mapping(cls: type[T], data: Any, source: str, where: str = "") -> T:
         kwargs[name] = value
     try:
         return cls(**kwargs)
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:
         raise ConfigError(f"{source}: {where or '<top level>'}: {exc}") from None
 
 
@@ -123,6 +131,14 @@ def _scale(value: Any, factor: float, source: str, dotted: str) -> Any:
     if isinstance(value, tuple) and all(isinstance(v, float) for v in value):
         return tuple(v * factor for v in value)
     raise ConfigError(f"{source}: {dotted}: a unit suffix needs a number or a list of numbers")
+
+
+def _int_as_float(value: int) -> float:
+    """``value`` as a float; inf when it is too large for one (YAML integers are unbounded)."""
+    try:
+        return float(value)
+    except OverflowError:
+        return math.inf
 
 
 def _show(value: Any) -> str:
@@ -161,7 +177,7 @@ def _convert(tp: Any, value: Any, source: str, dotted: str) -> Any:
         raise ConfigError(f"{source}: {dotted}: expected an integer, got {_show(value)}")
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            if not math.isfinite(value):
+            if not math.isfinite(value if isinstance(value, float) else _int_as_float(value)):
                 raise ConfigError(
                     f"{source}: {dotted}: expected a finite number, got {_show(value)}"
                 )
@@ -205,18 +221,109 @@ def load_yaml(path: str | Path) -> Any:
     """Read a YAML file, turning I/O and syntax errors into one-line ConfigErrors."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such file") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
     try:
-        return yaml.safe_load(text)
+        text = utf8_text(data)
+        return safe_load_yaml(text)
+    except ValueError as exc:  # not UTF-8
+        raise ConfigError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}: {yaml_error_text(exc, text)}") from None
+
+
+# --- reading YAML and text files safely (shared with the trajectory loader) ---------------------
+
+MAX_YAML_DEPTH = 100  # nesting levels; deeper input is refused before PyYAML recurses that deep
+
+
+class _SafeLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with every failure a ``MarkedYAMLError`` carrying a line.
+
+    PyYAML lets some bad scalars out as plain ``ValueError``/``AttributeError`` (``!!int x``,
+    a timestamp ``2001-13-45``) and recurses once per nesting level (``[[[[…`` ends in
+    ``RecursionError``); here both become YAML errors at the node where they happen.
+    """
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+
+    def fetch_flow_collection_start(self, token_class: Any) -> None:
+        # Refused while scanning: PyYAML's scanner is quadratic in the flow nesting depth
+        # (seconds for a 100 kB line of "["), long before the composer would see the depth.
+        if self.flow_level >= MAX_YAML_DEPTH:
+            raise yaml.scanner.ScannerError(
+                None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", self.get_mark()
+            )
+        super().fetch_flow_collection_start(token_class)
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                mark = self.peek_event().start_mark
+                raise yaml.composer.ComposerError(
+                    None, None, f"nested deeper than {MAX_YAML_DEPTH} levels", mark
+                )
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_object(self, node: Any, deep: bool = False) -> Any:
+        try:
+            return super().construct_object(node, deep)
+        except yaml.YAMLError:
+            raise
+        except (ValueError, TypeError, AttributeError, OverflowError) as exc:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"bad {node.tag} value {_show(node.value)}: {exc}", node.start_mark
+            ) from None
+
+
+def safe_load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that raises only ``yaml.YAMLError`` (see :func:`yaml_error_text`)."""
+    loader = _SafeLoader(text)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
+def yaml_error_text(exc: yaml.YAMLError, text: str) -> str:
+    """``"invalid YAML at line L, column C: problem"`` for an error of :func:`safe_load_yaml`."""
+    mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+    if mark is not None:
+        line, column = mark.line + 1, mark.column + 1
+    elif isinstance(exc, yaml.reader.ReaderError):  # a character YAML does not allow
+        line = text.count("\n", 0, exc.position) + 1
+        column = exc.position - (text.rfind("\n", 0, exc.position) + 1) + 1
+    else:
+        return f"invalid YAML: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+    if isinstance(exc, yaml.reader.ReaderError):
+        code = exc.character if isinstance(exc.character, int) else ord(exc.character)
+        problem = f"character U+{code:04X} is not allowed"
+    else:
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ConfigError(f"{path}: invalid YAML{at}: {problem}") from None
+    return f"invalid YAML at line {line}, column {column}: {problem}"
+
+
+def utf8_text(data: bytes) -> str:
+    """Decode a file's bytes as UTF-8 (a leading BOM is dropped).
+
+    :raises ValueError: ``"not UTF-8 at line L, column C (byte 0xNN)"``, counted in bytes
+    """
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ValueError(
+            f"not UTF-8 at line {line}, column {column} (byte 0x{data[exc.start]:02x})"
+        ) from None
 
 
 # The top-level config is assembled in leafgate.settings to keep this module free of imports

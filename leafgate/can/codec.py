@@ -854,8 +854,34 @@ class CanCodec:
         self.command_frames: tuple[str, ...] = tuple(
             spec.name for spec in profile.frames_of("command")
         )
+        self.last_errors: list[str] = []  # why frames were left out of the last encode_commands
+
+    @classmethod
+    def for_config(cls, cfg: Any) -> CanCodec:
+        """The codec of a deployment config (a ``LeafgateConfig``): its profile and DBCs."""
+        return cls(cfg.can.dbw_dbc, cfg.can.car_dbc, cfg.profile)
 
     # --- encode ---------------------------------------------------------------------------
+
+    def encode_commands(self, commands: Any, timestamp: float = 0.0) -> list[can.Message]:
+        """The profile's command frames for one tick's :class:`~leafgate.messages.Commands`.
+
+        A frame drawing on ``system`` is sent only when the tick has a system command (it has
+        its own, slower period). A frame that cannot be encoded is left out and its error
+        appended to :attr:`last_errors` (the loop counts them; it never raises).
+        """
+        sources = {"steer": commands.steer, "long": commands.long, "system": commands.system}
+        frames = []
+        errors = self.last_errors
+        errors.clear()
+        for name in self.command_frames:
+            if commands.system is None and "system" in self._encoders[name].sources:
+                continue
+            try:
+                frames.append(self.encode_frame(name, sources, timestamp))
+            except EncodeError as exc:
+                errors.append(str(exc))
+        return frames
 
     def encode(self, value: EncodableMessage, timestamp: float = 0.0) -> can.Message:
         """Encode a message dataclass into the one frame that carries it alone.

@@ -30,6 +30,7 @@ __all__ = [
     "apply",
     "counter_of",
     "crc8_j1850",
+    "crc8_nissan_lkas",
     "e2e_crc",
     "verify",
 ]
@@ -84,6 +85,32 @@ def e2e_crc(frame_id: int, data: bytes | bytearray) -> int:
     :param data: the frame's payload, at least 7 bytes (byte 7 is ignored)
     """
     return crc8_j1850(data[:CRC_BYTE], init=_register_after_data_id(frame_id))
+
+
+def crc8_nissan_lkas(data: bytes | bytearray) -> int:
+    """The checksum in byte 7 of the 2018+ Leaf's ProPILOT steering frame 0x169 ``LKAS``.
+
+    CRC-8 with polynomial 0x1D over bytes 0–6, not reflected, xor-out 0xFF. Sources write
+    its initial value as 0x00 in the ``crcmod`` convention, where the initial value is the
+    CRC of an empty message (the register xor-ed with the xor-out): the shift register
+    itself starts at 0xFF. So this is the plain CRC-8 SAE J1850 of bytes 0–6, the same
+    computation as opendbc's ``opendbc.car.nissan.nissancan.nissan_checksum``. No data ID
+    is mixed in (unlike leafgate's own :func:`e2e_crc`).
+
+    :param data: the frame's payload, at least 7 bytes (byte 7 is ignored)
+    :return: the value of byte 7
+    :raises ValueError: if ``data`` is shorter than 7 bytes
+
+    Angle +10.00 deg, MAX_TORQUE 1 Nm, LKA_ACTIVE 1, counter 5 (tests/test_vehicle_dbc.py):
+
+    >>> hex(crc8_nissan_lkas(bytes.fromhex("7ef40080648015")))
+    '0xc4'
+    >>> crc8_nissan_lkas(bytes(8)) == crc8_j1850(bytes(7))  # byte 7 is not covered
+    True
+    """
+    if len(data) < CRC_BYTE:
+        raise ValueError(f"LKAS checksum covers bytes 0-6, got {len(data)} bytes")
+    return crc8_j1850(data[:CRC_BYTE])
 
 
 def apply(frame_id: int, data: bytes | bytearray, counter: int) -> bytes:

@@ -25,7 +25,8 @@ class WatchdogConfig:
     trajectory_max_age: float | None = 1.0
     steer_report_period: float = 0.010  # s, DBW_STEER_RPT
     long_report_period: float = 0.020  # s, DBW_LONG_RPT
-    system_report_period: float = 0.100  # s, DBW_SYSTEM_RPT
+    # s, DBW_SYSTEM_RPT; None: the vehicle profile has no ECU state report (nothing to watch)
+    system_report_period: float | None = 0.100
     report_timeout_periods: float = 3.0  # report periods; an older report → FAULT
     max_report_errors: int = 5  # bad-frame counter (+1 bad, −1 good, floor 0) at which → FAULT
     max_overruns: int = 3  # consecutive late control ticks → FAULT
@@ -38,13 +39,14 @@ class WatchdogConfig:
             "localization_max_jump",
             "steer_report_period",
             "long_report_period",
-            "system_report_period",
             "report_timeout_periods",
             "max_report_errors",
             "max_overruns",
         )
         if self.trajectory_max_age is not None:
             positive(self, "trajectory_max_age")
+        if self.system_report_period is not None:
+            positive(self, "system_report_period")
         if self.localization_fault_age < self.localization_stop_age:
             raise ValueError("localization_fault_age must not be below localization_stop_age")
 
@@ -58,6 +60,9 @@ class EngageConfig:
     # s, time the ECU has to clear a latched override and then to report ENABLED after the
     # ENABLE 0→1 edge (system reports come every 100 ms, so a few of them)
     confirm_timeout: float = 0.5
+    # Trajectories with reverse segments may be engaged on (False when the vehicle profile
+    # cannot request a gear).
+    allow_reverse: bool = True
 
     def __post_init__(self) -> None:
         positive(self, "max_distance", "max_heading_error", "confirm_timeout")

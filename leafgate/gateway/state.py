@@ -150,13 +150,16 @@ def engage_refusal(
     # Engage needs fresh samples, and the watchdogs keep the last valid one of each.
     assert watchdogs.pose is not None and watchdogs.trajectory is not None
     assert watchdogs.steer is not None and watchdogs.long is not None
-    assert watchdogs.system is not None
-    steer, long, system = watchdogs.steer.value, watchdogs.long.value, watchdogs.system.value
+    steer, long = watchdogs.steer.value, watchdogs.long.value
+    # A vehicle without an ECU state report (a profile without one) has no system sample.
+    system = None if watchdogs.system is None else watchdogs.system.value
     fault = ecu_fault(steer, long, system)
     if fault is not None:
         return f"{fault}; reset first"
-    if system.state not in (EcuState.READY, EcuState.OVERRIDE):
+    if system is not None and system.state not in (EcuState.READY, EcuState.OVERRIDE):
         return f"ECU not ready (state {system.state.name})"
+    if not config.allow_reverse and bool((watchdogs.trajectory.value.speed < 0.0).any()):
+        return "the trajectory has reverse segments and this vehicle cannot request a gear"
     distance, heading_error = path_deviation(watchdogs.pose.value, watchdogs.trajectory.value)
     if distance > config.max_distance:
         return f"vehicle {distance:.2f} m from the trajectory (limit {config.max_distance:g} m)"

@@ -261,17 +261,25 @@ class ReportWatchdog(_SlotWatchdog[T]):
     """One ECU report: FAULT when older than ``periods`` report periods.
 
     :param name: diagnostics name (``steer_report`` …)
-    :param period: the report's period, s
+    :param period: the report's period, s; None when the vehicle sends no such report (the
+        check is then always OK and says so)
     :param periods: how many periods may pass without a report
     """
 
-    def __init__(self, name: str, period: float, periods: float) -> None:
+    def __init__(self, name: str, period: float | None, periods: float) -> None:
         super().__init__()
         self.name = name
-        self.timeout = period * periods  # s
+        self.timeout = math.inf if period is None else period * periods  # s
+        self._absent = (
+            Check(name, Status.OK, None, math.inf, Reaction.NONE, "not sent by this vehicle")
+            if period is None
+            else None
+        )
 
     def update(self, now: float, sample: Stamped[T] | None) -> Check:
         """Feed this tick's slot content and judge it."""
+        if self._absent is not None:
+            return self._absent
         self._take(sample)
         if self.last is None:
             status = self._missing_status()

@@ -28,6 +28,12 @@ Semantics (defaults from :class:`~leafgate.sim.config.EcuConfig`):
 - Not engaged, the car is in the driver's hands: the steering angle is held where it was and
   the driver brakes to rest at ``driver_decel``.
 
+The frames are those of the vehicle profile of the ECU's codec (``vehicle.profile``): with
+``sze-hlc`` the ECU is the research Leaf's low-level controller (steering and target speed in
+one frame, no counter or checksum, no state report); with ``leaf-ze1-lkas`` it is the ZE1's
+steering (EPS) only, and a simulated driver holds the planned speed while the lane-keeping is
+active (:meth:`SimulatedEcu.set_driver_path`).
+
 Report frames carry the plant's measured values (road-wheel angle and rate, signed speed,
 acceleration, gear, driver torque, pedals, flags, received-error count), and the Leaf CAR-CAN
 frames are emitted too so simulated and real logs look alike.
@@ -62,6 +68,7 @@ from leafgate.messages import (
     SteerReport,
     SystemCommand,
     SystemReport,
+    Trajectory,
     WheelSpeeds,
 )
 from leafgate.sim.config import EcuConfig
@@ -72,7 +79,6 @@ if TYPE_CHECKING:
 
 __all__ = [
     "INJECTION_KINDS",
-    "REPORT_FRAMES",
     "EcuCounters",
     "Injection",
     "InjectionError",
@@ -85,20 +91,6 @@ __all__ = [
 class InjectionError(LeafgateError, ValueError):
     """An injected driver action or fault is unknown or has bad parameters."""
 
-
-# Report frames: the ECU's name for each and its DBC message. Their periods are the DBC's
-# GenMsgCycleTime (DBW 10/20/100 ms; CAR-CAN 0x002 10 ms, 0x284/0x285 20 ms, 0x421 100 ms,
-# 0x176 10 ms), with these fallbacks, s, for a DBC without the attribute.
-REPORT_FRAMES: Mapping[str, tuple[str, float]] = {
-    "steer": ("DBW_STEER_RPT", 0.010),
-    "long": ("DBW_LONG_RPT", 0.020),
-    "system": ("DBW_SYSTEM_RPT", 0.100),
-    "steering_wheel": ("STEER_ANGLE_SENSOR", 0.010),
-    "wheels_front": ("WHEEL_SPEEDS_FRONT", 0.020),
-    "wheels_rear": ("WHEEL_SPEEDS_REAR", 0.020),
-    "gear": ("GEAR_POSITION", 0.100),
-    "motor": ("MOTOR_SPEED", 0.010),
-}
 
 # Injectable driver actions and faults: kind → its parameters with their defaults.
 INJECTION_KINDS: Mapping[str, Mapping[str, float]] = {
@@ -182,8 +174,16 @@ class SimulatedEcu:
         self.plant = plant
         self.codec = codec if codec is not None else CanCodec()
         self.counters = EcuCounters()
+        profile = self.codec.profile
         self._command_ids = self.codec.receive_ids("commands")
-        self._report_ids = self.codec.receive_ids("reports")
+        # frames whose counter and CRC the E2E injections break (leafgate's own protection)
+        self._report_ids = frozenset(
+            self.codec.frame_id(f.name) for f in profile.frames_of("report") if f.e2e == "leafgate"
+        )
+        # Lateral-only vehicles take no longitudinal command: a simulated driver drives.
+        self._needs_long = profile.capabilities.longitudinal
+        self._driver_path: Trajectory | None = None
+        self._driver_index = 0
         self._speed_ctl = SpeedController(
             kp=config.speed_kp,
             ki=config.speed_ki,
@@ -213,7 +213,9 @@ class SimulatedEcu:
         # injections and report schedule
         self._injections: list[Injection] = []
         self._report_base: float | None = None  # s, time of the first reports() call
-        self.report_periods = _report_periods(self.codec)  # s, per report name
+        self.report_periods = {  # s, per report frame of the profile
+            f.name: f.period for f in profile.frames_of("report")
+        }
         self._report_index = dict.fromkeys(self.report_periods, 0)  # next due: base + index·period
         self._last_counter: dict[int, int] = {}  # alive counter last sent, per report ID
 
@@ -230,17 +232,16 @@ class SimulatedEcu:
         if not decoded.valid:
             self._count_invalid(decoded.error)
             return
-        value = decoded.value
-        if isinstance(value, SteerCommand):
-            self._steer, self._steer_rx = value, now
-            self._clear_override_req |= value.clear_override
-        elif isinstance(value, LongCommand):
-            self._long, self._long_rx = value, now
-            self._clear_override_req |= value.clear_override
-        elif isinstance(value, SystemCommand):
-            self._clear_faults_req |= value.clear_faults
-        else:  # a valid frame of a command ID always decodes to one of the above
-            self.counters.other_invalid += 1
+        for value in decoded.values:  # a frame may carry steering and speed together
+            if isinstance(value, SteerCommand):
+                self._steer, self._steer_rx = value, now
+                self._clear_override_req |= value.clear_override
+            elif isinstance(value, LongCommand):
+                self._long, self._long_rx = value, now
+                self._clear_override_req |= value.clear_override
+            elif isinstance(value, SystemCommand):
+                self._clear_faults_req |= value.clear_faults
+        if not decoded.values:  # a frame that only folds into a later one
             return
         if self._first_rx is None:
             self._first_rx = now
@@ -296,6 +297,31 @@ class SimulatedEcu:
                 return inj
         return None
 
+    def set_driver_path(self, path: Trajectory | None) -> None:
+        """The plan the simulated driver follows the speed of (lateral-only vehicles).
+
+        While the steering is engaged the driver holds the planned speed at the car's nearest
+        point of ``path`` (looking 0.5 s ahead, as a driver anticipates a stop); otherwise,
+        and without a path, the driver brakes to rest.
+        """
+        self._driver_path = path
+        self._driver_index = 0
+
+    def _driver_speed(self) -> float:
+        """The speed the simulated driver aims for now, m/s (magnitude)."""
+        path = self._driver_path
+        if path is None or not self._engaged:
+            return 0.0
+        x, y = self.plant.x, self.plant.y
+        lo = self._driver_index
+        hi = min(lo + 50, len(path.x))  # a forward window: the driver does not jump back
+        d2 = (path.x[lo:hi] - x) ** 2 + (path.y[lo:hi] - y) ** 2
+        self._driver_index = lo + int(d2.argmin())
+        step = float(math.hypot(path.x[1] - path.x[0], path.y[1] - path.y[0])) or 0.1
+        ahead = int(abs(self.plant.speed) * 0.5 / step) + 1
+        i = min(self._driver_index + ahead, len(path.x) - 1)
+        return abs(float(path.speed[i]))
+
     def driver_torque(self, now: float) -> float:
         """Steering-wheel torque applied by the (simulated) driver at ``now``, N·m."""
         inj = self._active(now, "override-torque")
@@ -317,9 +343,14 @@ class SimulatedEcu:
             return EcuState.OVERRIDE
         if self._engaged:
             return EcuState.ENGAGED
-        if self._steer is not None and self._long is not None and not self._cmd_timeout:
+        if self._steer is not None and self._long_ok and not self._cmd_timeout:
             return EcuState.READY
         return EcuState.NOT_READY
+
+    @property
+    def _long_ok(self) -> bool:
+        """A longitudinal command has arrived, or the vehicle takes none."""
+        return self._long is not None or not self._needs_long
 
     @property
     def engaged(self) -> bool:
@@ -353,8 +384,10 @@ class SimulatedEcu:
         if self._first_rx is not None:
             steer_age = now - (self._steer_rx if self._steer is not None else self._first_rx)
             long_age = now - (self._long_rx if self._long is not None else self._first_rx)
+            if not self._needs_long:
+                long_age = 0.0
             timed_out = max(steer_age, long_age) > cfg.cmd_timeout
-            fresh = not timed_out and self._steer is not None and self._long is not None
+            fresh = not timed_out and self._steer is not None and self._long_ok
             if timed_out and not self._cmd_timeout:
                 self.counters.timeouts += 1
                 self._fault_bits["cmd_timeout"] = True
@@ -398,7 +431,8 @@ class SimulatedEcu:
 
         # Engagement: an edge of ENABLE while the commands are fresh.
         steer, long = self._steer, self._long
-        enable = fresh and steer is not None and long is not None and steer.enable and long.enable
+        long_enable = long.enable if long is not None else not self._needs_long
+        enable = fresh and steer is not None and steer.enable and long_enable
         edge = self._prev_enable is False and enable
         self._prev_enable = enable if fresh else None
         if self._engaged and not enable:
@@ -409,12 +443,16 @@ class SimulatedEcu:
             self._mode = None
             self.counters.engagements += 1
 
-        if self._engaged and steer is not None and long is not None:
+        if self._engaged and steer is not None and (long is not None or not self._needs_long):
             steer_target = min(
                 max(steer.angle, -self.vehicle.max_steer_angle), self.vehicle.max_steer_angle
             )
             rate = steer.rate_limit if steer.rate_limit > 0.0 else cfg.default_steer_rate
-            accel = self._longitudinal(long, dt, speed)
+            if long is not None and self._needs_long:
+                accel = self._longitudinal(long, dt, speed)
+            else:  # the simulated driver holds the planned speed
+                along_gear = gear_direction(self.plant.gear) * speed  # m/s
+                accel = self._speed_ctl.step(dt, self._driver_speed(), along_gear)
         else:
             steer_target, rate = self._held_angle, cfg.default_steer_rate
             accel = -(cfg.timeout_decel if self._timeout_stop else cfg.driver_decel)
@@ -527,7 +565,7 @@ class SimulatedEcu:
         frames = []
         for name in due:
             try:
-                msg = self.codec.encode(values[name], timestamp=now)
+                msg = self.codec.encode_frame(name, values, timestamp=now)
             except LeafgateError:  # out-of-range values: count, never raise in the loop
                 self.counters.encode_errors += 1
                 continue
@@ -549,17 +587,6 @@ class SimulatedEcu:
             data = bytes(broken)
         msg.data = bytearray(data)
         return msg
-
-
-def _report_periods(codec: CanCodec) -> dict[str, float]:
-    """Period of each report frame, s, from the DBCs' GenMsgCycleTime (ms)."""
-    messages = {m.name: m for db in codec.databases for m in db.messages}
-    periods = {}
-    for name, (dbc_name, fallback) in REPORT_FRAMES.items():
-        message = messages.get(dbc_name)
-        cycle_ms = message.cycle_time if message is not None else None
-        periods[name] = cycle_ms / 1000.0 if cycle_ms else fallback
-    return periods
 
 
 def _clip(value: float, limit: float) -> float:
@@ -612,7 +639,7 @@ def run_ecu_realtime(
     stop = stop if stop is not None else threading.Event()
     ecu_cfg = config.sim.ecu
     plant = make_plant(config.sim.plant, config.vehicle, start or Pose(0.0, 0.0, 0.0, 0.0))
-    codec = CanCodec(config.can.dbw_dbc, config.can.car_dbc)
+    codec = CanCodec.for_config(config)
     ecu = SimulatedEcu(ecu_cfg, plant, config.vehicle, codec)
     car_ids = codec.receive_ids("car")
     dbw_bus = open_bus(config.can.dbw, codec.receive_ids("commands"))

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import can
 import numpy as np
 
-from leafgate.can.codec import CanCodec
+from leafgate.can.codec import CanCodec, EncodeError
 from leafgate.control import make_controller
 from leafgate.errors import ConfigError
 from leafgate.gateway.core import Gateway, GatewayInputs
@@ -231,6 +231,11 @@ class _Slots:
         return counts
 
 
+def _is_report(values: tuple[object, ...]) -> bool:
+    """Whether a decoded frame refreshed one of the ECU reports the gateway watches."""
+    return any(isinstance(v, (SteerReport, LongReport, SystemReport)) for v in values)
+
+
 def run(
     config: LeafgateConfig,
     scenario: Scenario,
@@ -253,10 +258,9 @@ def run(
         controller = recorder.wrap_controller(controller)
     gateway = Gateway(config.gateway, config.vehicle, controller, config.long_mode)
     plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
-    ecu = SimulatedEcu(
-        config.sim.ecu, plant, config.vehicle, CanCodec(config.can.dbw_dbc, config.can.car_dbc)
-    )
-    gw_codec = CanCodec(config.can.dbw_dbc, config.can.car_dbc)
+    ecu = SimulatedEcu(config.sim.ecu, plant, config.vehicle, CanCodec.for_config(config))
+    ecu.set_driver_path(traj)  # lateral-only vehicles: the driver holds the planned speed
+    gw_codec = CanCodec.for_config(config)
     report_ids = gw_codec.receive_ids("reports") | gw_codec.receive_ids("car")
     channel = f"leafgate-sim-{next(_channel_ids)}"
     gw_bus = can.Bus(
@@ -306,7 +310,7 @@ def run(
                     recorder.on_can_frame(rx, "rx")
                 decoded = gw_codec.decode(rx)
                 value = decoded.value
-                if isinstance(value, (SteerReport, LongReport, SystemReport)) or decoded.error in (
+                if _is_report(decoded.values) or decoded.error in (
                     "bad_crc",
                     "bad_counter",
                     "wrong_length",
@@ -318,17 +322,18 @@ def run(
                         frames_rejected += 1
                 if not decoded.valid:
                     continue
-                if isinstance(value, SteerReport):
-                    slots.steer = Stamped(value, now)
-                elif isinstance(value, LongReport):
-                    if slots.long is None or slots.long.value.gear != value.gear:
-                        timeline.append((now, f"gear {value.gear.name}"))
-                    slots.long = Stamped(value, now)
-                elif isinstance(value, SystemReport):
-                    slots.system = Stamped(value, now)
-                    if value.state.name != ecu_state_seen:
-                        ecu_state_seen = value.state.name
-                        timeline.append((now, f"ECU {ecu_state_seen}"))
+                for value in decoded.values:
+                    if isinstance(value, SteerReport):
+                        slots.steer = Stamped(value, now)
+                    elif isinstance(value, LongReport):
+                        if slots.long is None or slots.long.value.gear != value.gear:
+                            timeline.append((now, f"gear {value.gear.name}"))
+                        slots.long = Stamped(value, now)
+                    elif isinstance(value, SystemReport):
+                        slots.system = Stamped(value, now)
+                        if value.state.name != ecu_state_seen:
+                            ecu_state_seen = value.state.name
+                            timeline.append((now, f"ECU {ecu_state_seen}"))
             if k % ticks_per_control:
                 continue
             # 3. Localization from the plant (unless a fault is injected), the scripted operator.
@@ -388,10 +393,10 @@ def run(
             cmds = result.commands
             steer_target = cmds.steer.angle
             sent: list[can.Message] = []  # recording: the frames that went onto the bus
-            for value in (cmds.steer, cmds.long, cmds.system):
-                if value is None:
-                    continue
-                frame = gw_codec.encode(value, timestamp=now)
+            frames = gw_codec.encode_commands(cmds, timestamp=now)
+            if gw_codec.last_errors:  # the gate keeps values in range: this is a bug, say so
+                raise EncodeError(gw_codec.last_errors[0])
+            for frame in frames:
                 frames_sent += 1
                 if not command_dropout:
                     gw_bus.send(frame)
