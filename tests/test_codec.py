@@ -22,7 +22,6 @@ from leafgate.can.codec import (
     _compile,
     _compile_encoder,
 )
-from leafgate.can.profile import MPS_PER_RPM as _MPS_PER_RPM
 from leafgate.can.profile import load_profile
 from leafgate.errors import CanCodecError
 from leafgate.messages import (
@@ -46,6 +45,7 @@ CODEC = CanCodec()  # for DBC look-ups only; tests that encode/decode make their
 DBW, CAR = CODEC.databases
 DEG = math.pi / 180.0  # rad/deg
 KMH = 1 / 3.6  # (m/s)/(km/h)
+MPS_PER_COUNT = KMH / 8.570637  # (m/s) per count of 0x176 bytes 0-1 (wheel rpm)
 
 # (message, signal) → (SI value from the DBC value, message built with that field)
 FIELDS: dict[tuple[str, str], tuple[float, Callable[[float], EncodableMessage]]] = {
@@ -86,7 +86,7 @@ FIELDS: dict[tuple[str, str], tuple[float, Callable[[float], EncodableMessage]]]
         lambda v: SystemReport(EcuState.READY, False, False, False, False, round(v)),
     ),
     ("STEER_ANGLE_SENSOR", "STEER_ANGLE"): (DEG, lambda v: SteeringWheelAngle(v)),
-    ("MOTOR_SPEED", "MOTOR_REVS"): (_MPS_PER_RPM, lambda v: MotorSpeed(v)),
+    ("MOTOR_SPEED", "MOTOR_REVS"): (MPS_PER_COUNT, lambda v: MotorSpeed(v)),
     ("WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FL"): (KMH, lambda v: WheelSpeeds(v, 0.0, "front")),
     ("WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FR"): (KMH, lambda v: WheelSpeeds(0.0, v, "front")),
     ("WHEEL_SPEEDS_REAR", "WHEEL_SPEED_RL"): (KMH, lambda v: WheelSpeeds(v, 0.0, "rear")),
@@ -318,9 +318,9 @@ def test_wheel_speeds_round_trip(left_kmh: float, right_kmh: float, axle: str) -
 
 @given(within("MOTOR_SPEED", "MOTOR_REVS"))
 def test_motor_speed_round_trip(rpm: float) -> None:
-    out = roundtrip(MotorSpeed(rpm * _MPS_PER_RPM))
+    out = roundtrip(MotorSpeed(rpm * MPS_PER_COUNT))
     assert isinstance(out, MotorSpeed)
-    assert close(out.speed, rpm * _MPS_PER_RPM, "MOTOR_SPEED", "MOTOR_REVS", _MPS_PER_RPM)
+    assert close(out.speed, rpm * MPS_PER_COUNT, "MOTOR_SPEED", "MOTOR_REVS", MPS_PER_COUNT)
 
 
 @pytest.mark.parametrize("gear", [Gear.P, Gear.R, Gear.N, Gear.D, Gear.NONE])

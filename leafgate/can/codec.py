@@ -63,8 +63,6 @@ from leafgate.can import e2e
 from leafgate.can.profile import (
     COMMAND_SOURCES,
     DEFAULT_PROFILE,
-    LEAF_REDUCTION_RATIO,
-    LEAF_TYRE_RADIUS,
     REPORT_SOURCES,
     UNITS,
     FrameSpec,
@@ -88,8 +86,6 @@ from leafgate.messages import (
 )
 
 __all__ = [
-    "LEAF_REDUCTION_RATIO",
-    "LEAF_TYRE_RADIUS",
     "CanCodec",
     "Decoded",
     "Direction",
@@ -728,22 +724,28 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
             raise CanCodecError(
                 f"{spec.name} and {rx[message.frame_id].name} share ID 0x{message.frame_id:03X}"
             )
-        _check_e2e(message, spec, where)
+        try:
+            _check_e2e(message, spec, where)
+            encoders[spec.name] = _tx_entry(message, spec, profile)
+            rx[message.frame_id] = _RxEntry(
+                name=spec.name,
+                length=message.length,
+                exact=spec.e2e in ("leafgate", "nissan-lkas"),
+                e2e=spec.e2e,
+                decode=_compile_decoder(message, spec, profile, shared[spec.direction]),
+                counter=(
+                    _counter_reader(message, spec.counter_signal)
+                    if spec.e2e == "nissan-lkas" and spec.counter_signal
+                    else None
+                ),
+                direction=spec.direction,
+            )
+        except CanCodecError as exc:  # name the profile file as well as the DBC
+            text = str(exc)
+            raise CanCodecError(
+                text if text.startswith(where) else f"{profile.where}: {text} ({where})"
+            ) from None
         messages[spec.name] = message
-        encoders[spec.name] = _tx_entry(message, spec, profile)
-        rx[message.frame_id] = _RxEntry(
-            name=spec.name,
-            length=message.length,
-            exact=spec.e2e in ("leafgate", "nissan-lkas"),
-            e2e=spec.e2e,
-            decode=_compile_decoder(message, spec, profile, shared[spec.direction]),
-            counter=(
-                _counter_reader(message, spec.counter_signal)
-                if spec.e2e == "nissan-lkas" and spec.counter_signal
-                else None
-            ),
-            direction=spec.direction,
-        )
         direction = (
             "commands" if spec.direction == "command" else spec.bus.replace("dbw", "reports")
         )

@@ -112,10 +112,6 @@ REPORT_SOURCES: Final[Mapping[str, type]] = {
 _BUSES: Final = ("dbw", "car")
 
 # Unit conversions at the edge: (SI → DBC unit, DBC unit → SI) as Python operator snippets.
-# ``leaf-motor-rpm`` is the AZE0's motor speed: the reduction gear and tyre fix the ratio.
-LEAF_REDUCTION_RATIO: Final = 8.1938  # motor revolutions per wheel revolution (AZE0)
-LEAF_TYRE_RADIUS: Final = 0.310  # m, rolling radius of a 205/55 R16 tyre under load
-MPS_PER_RPM: Final = 2.0 * math.pi / 60.0 * LEAF_TYRE_RADIUS / LEAF_REDUCTION_RATIO  # (m/s)/rpm
 DEG: Final = math.pi / 180.0  # rad/deg
 KMH: Final = 3.6  # (km/h)/(m/s)
 UNITS: Final[Mapping[str, tuple[str, str]]] = {
@@ -123,7 +119,6 @@ UNITS: Final[Mapping[str, tuple[str, str]]] = {
     "deg": (f" / {DEG!r}", f" * {DEG!r}"),
     "deg/s": (f" / {DEG!r}", f" * {DEG!r}"),
     "km/h": (f" * {KMH!r}", f" / {KMH!r}"),
-    "leaf-motor-rpm": (f" / {MPS_PER_RPM!r}", f" * {MPS_PER_RPM!r}"),
 }
 _VEHICLE_SCALES: Final = ("steering_ratio",)
 
@@ -268,7 +263,7 @@ def _resolve_profile_path(name_or_path: str) -> tuple[str, Path | None]:
     path = Path(name_or_path)
     if path.suffix not in (".yaml", ".yml"):
         raise ConfigError(
-            f"vehicle.profile: {name_or_path!r} is neither a packaged profile "
+            f"{name_or_path!r} is neither a packaged profile "
             f"({', '.join(PROFILE_NAMES)}) nor a .yaml file"
         )
     return str(path), path

@@ -23,6 +23,7 @@ import numpy as np
 
 from leafgate.can.bus import open_buses
 from leafgate.can.codec import CanCodec
+from leafgate.can.profile import Profile
 from leafgate.control import make_controller
 from leafgate.control.base import Controller
 from leafgate.gateway.core import Gateway
@@ -110,6 +111,18 @@ def signals_set(stop: threading.Event) -> Iterator[None]:
             signal.signal(sig, old)
 
 
+def log_profile(profile: Profile) -> None:
+    """Say what protects the frames of the chosen vehicle; a warning when nothing does."""
+    caps = profile.capabilities
+    lacks = [name for name in ("lateral", "longitudinal", "gear") if not getattr(caps, name)]
+    if lacks:
+        log.info("vehicle profile %s cannot command: %s", profile.name, ", ".join(lacks))
+    if profile.protection.upper().startswith("NONE"):
+        log.warning("vehicle profile %s: frame protection %s", profile.name, profile.protection)
+    else:
+        log.info("vehicle profile %s: frame protection: %s", profile.name, profile.protection)
+
+
 def run_daemon(
     cfg: LeafgateConfig,
     stop: threading.Event | None = None,
@@ -126,7 +139,7 @@ def run_daemon(
     """
     stop = stop or threading.Event()
     clock = time.perf_counter
-    codec = CanCodec(cfg.can.dbw_dbc, cfg.can.car_dbc)  # CanCodecError: a DBC missing/invalid
+    codec = CanCodec.for_config(cfg)  # CanCodecError: a DBC missing/invalid
     requests = RequestBox()
     from leafgate.replay.recorder import open_recording
     from leafgate.transport.node import GatewayTransport  # zenoh loads only where it is used
@@ -174,12 +187,14 @@ def run_daemon(
         if on_runtime is not None:
             on_runtime(runtime)
         log.info(
-            "leafgate running at %.0f Hz: dbw %s:%s, zenoh prefix %r",
+            "leafgate running at %.0f Hz: vehicle profile %s, dbw %s:%s, zenoh prefix %r",
             cfg.gateway.rate_hz,
+            codec.profile.name,
             cfg.can.dbw.interface,
             cfg.can.dbw.channel,
             cfg.zenoh.prefix,
         )
+        log_profile(codec.profile)
 
         def ready() -> None:
             sd_notify("READY=1")
