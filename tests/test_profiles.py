@@ -34,8 +34,14 @@ from leafgate.can.profile import PROFILE_NAMES, load_profile
 from leafgate.config import VehicleConfig
 from leafgate.errors import CanCodecError, ConfigError, LeafgateError
 from leafgate.gateway.safety import SafetyLimits, angle_rate_bounds
-from leafgate.messages import Commands, LongCommand, LongMode, SteerCommand, SystemCommand
-from leafgate.messages import GatewayState
+from leafgate.messages import (
+    Commands,
+    GatewayState,
+    LongCommand,
+    LongMode,
+    SteerCommand,
+    SystemCommand,
+)
 from leafgate.settings import LeafgateConfig, load_config, with_profile
 from leafgate.sim.runner import run
 from leafgate.sim.scenarios import get_scenario
