@@ -494,7 +494,7 @@ def test_bad_extra_setting_raises_naming_the_key() -> None:
     assert "zenoh.extra.scouting/multicast/nonsense" in _one_line(exc)
 
 
-@pytest.mark.parametrize("name", ["peer.json5", "router.json5", "tls-acl.json5"])
+@pytest.mark.parametrize("name", ["peer.json5", "router.json5", "secure.json5"])
 def test_example_zenoh_files_are_valid_zenoh_configs(name: str) -> None:
     config = build_config(ZenohConfig(config_file=str(ZENOH_FILES / name)))
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False

@@ -10,11 +10,19 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
 from leafgate.errors import TransportError
 from leafgate.transport.config import ZenohConfig
+
+# TLS settings naming a file (eclipse-zenoh 1.10 ``transport/link/tls``), by the side that uses
+# them: checked before opening, because Zenoh's own error ("Invalid TLS private key file: No such
+# file …") names neither the setting nor the path.
+TLS_LISTEN_FILES = ("root_ca_certificate", "listen_certificate", "listen_private_key")
+TLS_CONNECT_FILES = ("root_ca_certificate", "connect_certificate", "connect_private_key")
+_TLS_SCHEMES = ("tls/", "quic/")  # endpoints that use the TLS settings
 
 # Zenoh's messages end with " at /path/to/file.rs:123." and may span lines; keep the gist.
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
@@ -77,15 +85,54 @@ def build_config(cfg: ZenohConfig) -> zenoh.Config:
     return config
 
 
+def _get(config: zenoh.Config, key: str) -> Any:
+    """A setting as a Python value; None when this Zenoh does not have it."""
+    try:
+        return json.loads(config.get_json(key))
+    except (zenoh.ZError, ValueError):
+        return None
+
+
+def _uses_tls(config: zenoh.Config, side: str, mode: str) -> bool:
+    """Whether ``side`` ("listen" or "connect") has a TLS endpoint in ``mode``."""
+    endpoints = _get(config, f"{side}/endpoints")
+    if isinstance(endpoints, dict):  # per mode: {router: [...], peer: [...]}
+        endpoints = endpoints.get(mode)
+    return any(str(e).startswith(_TLS_SCHEMES) for e in endpoints or ())
+
+
+def _check_tls_files(config: zenoh.Config, config_file: str | None) -> None:
+    """Every TLS certificate or key the session will load must name an existing file.
+
+    Only the side with a ``tls/`` endpoint is checked: a tool sharing the gateway's file
+    connects, and never loads the gateway's listening certificate.
+
+    :raises TransportError: naming the setting, the path and where the setting came from
+    """
+    mode = _get(config, "mode") or "peer"
+    names: list[str] = []
+    if mode != "client" and _uses_tls(config, "listen", mode):
+        names += TLS_LISTEN_FILES
+    if _uses_tls(config, "connect", mode):
+        names += TLS_CONNECT_FILES
+    for name in dict.fromkeys(names):
+        key = f"transport/link/tls/{name}"
+        value = _get(config, key)
+        if value is not None and not Path(str(value)).is_file():
+            where = f"{config_file} or zenoh.extra" if config_file else "zenoh.extra"
+            raise TransportError(f"{key}: {value}: no such file (from {where})")
+
+
 def open_session(cfg: ZenohConfig) -> zenoh.Session:
     """Open a Zenoh session as ``cfg`` says.
 
     Peer mode with explicit endpoints and multicast scouting off unless a JSON5 file is given
     (see :mod:`leafgate.transport.config`). The caller owns the session and closes it.
 
-    :raises TransportError: one line naming the file or endpoint at fault
+    :raises TransportError: one line naming the file, endpoint or TLS certificate at fault
     """
     config = build_config(cfg)
+    _check_tls_files(config, cfg.config_file)
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
