@@ -109,6 +109,7 @@ EncodableMessage = (
 )
 
 _E2E_SIGNALS: Final = {"ALIVE_COUNTER": (48, 4), "CRC": (56, 8)}  # start bit, length (e2e.py)
+EXTENDED_KEY: Final = 1 << 31  # added to a 29-bit ID's key in :attr:`CanCodec.stats`
 _MAX_TRACKED_UNKNOWN_IDS: Final = 1024  # beyond this, unknown IDs are only counted globally
 
 ErrorKind = Literal["bad_crc", "bad_counter", "wrong_length", "unknown_id", "decode_error"]
@@ -1007,7 +1008,8 @@ class CanCodec:
         frame_id = msg.arbitration_id
         entry = None if msg.is_extended_id else self._rx.get(frame_id)
         if entry is None:
-            self._count_unknown(frame_id)
+            # an extended ID is kept apart from the standard ID of the same number
+            self._count_unknown(frame_id | EXTENDED_KEY if msg.is_extended_id else frame_id)
             return Decoded(frame_id, None, None, False, "unknown_id")
         counts = self._counts[frame_id]
         counts[_FRAMES] += 1
@@ -1078,7 +1080,8 @@ class CanCodec:
     @property
     def stats(self) -> Mapping[int, FrameStats]:
         """Receive counters per CAN ID (a snapshot). Unknown IDs are listed too, up to 1024
-        distinct ones; :attr:`unknown_id_count` counts all of them."""
+        distinct ones (29-bit IDs as ``ID | EXTENDED_KEY``); :attr:`unknown_id_count` counts
+        all of them."""
         return {frame_id: FrameStats(*counts) for frame_id, counts in list(self._counts.items())}
 
     @property

@@ -9,6 +9,8 @@ from typing import Literal
 from leafgate.config import positive
 from leafgate.control.baselines import PurePursuitConfig, StanleyConfig
 
+MAX_HORIZON = 500  # model steps (50 s at 0.1 s); beyond, memory and set-up time explode
+
 
 @dataclass(frozen=True)
 class MpcConfig:
@@ -96,6 +98,11 @@ class MpcConfig:
         )
         if self.control_horizon > self.prediction_horizon:
             raise ValueError("control_horizon must not exceed prediction_horizon")
+        if self.prediction_horizon > MAX_HORIZON:  # the dense matrices grow as Np·Nc
+            raise ValueError(
+                f"prediction_horizon must be at most {MAX_HORIZON} steps, got "
+                f"{self.prediction_horizon}"
+            )
         for name in ("weight_along", "weight_lateral", "weight_heading", "hold_decel"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):

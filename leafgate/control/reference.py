@@ -23,12 +23,14 @@ import bisect
 import csv
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from leafgate.config import safe_load_yaml, utf8_text, yaml_error_text
 from leafgate.errors import TrajectoryError
 from leafgate.messages import FloatArray, Trajectory
 
@@ -64,16 +66,20 @@ def load_trajectory(path: str | Path) -> Trajectory:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except FileNotFoundError:
         raise TrajectoryError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TrajectoryError(f"{path}: cannot read: {exc}") from None
+    except OSError as exc:
+        raise TrajectoryError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        text = utf8_text(data)
+    except ValueError as exc:
+        raise TrajectoryError(f"{path}: {exc}") from None
     suffix = path.suffix.lower()
     if suffix == ".csv":
-        columns = _parse_csv(text, str(path))
+        columns, rows = _parse_csv(text, str(path))
     elif suffix in (".yaml", ".yml"):
-        columns = _parse_yaml(text, str(path))
+        columns, rows = _parse_yaml(text, str(path)), None
     else:
         raise TrajectoryError(f"{path}: unknown trajectory format {suffix!r} (use .csv or .yaml)")
     traj = Trajectory(
@@ -82,21 +88,30 @@ def load_trajectory(path: str | Path) -> Trajectory:
         heading=np.asarray(columns["heading"], dtype=np.float64),
         speed=np.asarray(columns["speed"], dtype=np.float64),
     )
-    validate(traj, str(path))
+    validate(traj, str(path), rows=rows)
     return traj
+
+
+def _show(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _number(text: object, source: str, row: int, name: str) -> float:
     if isinstance(text, bool):
-        raise TrajectoryError(f"{source}: row {row}: {name} is not a number: {text!r}")
-    if isinstance(text, (int, float)):
-        return float(text)
-    if isinstance(text, str):
-        try:
+        raise TrajectoryError(f"{source}: row {row}: {name} is not a number: {_show(text)}")
+    try:
+        if isinstance(text, (int, float)):
+            return float(text)
+        if isinstance(text, str):
             return float(text.strip())
-        except ValueError:
-            pass
-    raise TrajectoryError(f"{source}: row {row}: {name} is not a number: {text!r}")
+    except OverflowError:  # an integer beyond float range
+        raise TrajectoryError(
+            f"{source}: row {row}: {name} is out of range: {_show(text)}"
+        ) from None
+    except ValueError:
+        pass
+    raise TrajectoryError(f"{source}: row {row}: {name} is not a number: {_show(text)}")
 
 
 def _check_header(names: list[str], source: str) -> None:
@@ -113,7 +128,8 @@ def _check_header(names: list[str], source: str) -> None:
         raise TrajectoryError(f"{source}: a column is given twice in the header")
 
 
-def _parse_csv(text: str, source: str) -> dict[str, list[float]]:
+def _parse_csv(text: str, source: str) -> tuple[dict[str, list[float]], list[int]]:
+    """The columns, and the row (line after the header = 1) of each waypoint."""
     reader = csv.reader(text.splitlines())
     try:
         header = [h.strip() for h in next(reader)]
@@ -121,11 +137,24 @@ def _parse_csv(text: str, source: str) -> dict[str, list[float]]:
         raise TrajectoryError(
             f"{source}: empty file (a header x,y,heading,speed is required)"
         ) from None
+    except csv.Error as exc:  # a field over the csv module's size limit
+        raise TrajectoryError(f"{source}: line 1 (the header): {exc}") from None
     if all(_is_number(h) for h in header if h):
         raise TrajectoryError(f"{source}: no header (the first line must be x,y,heading,speed)")
     _check_header(header, source)
     columns: dict[str, list[float]] = {name: [] for name in FIELDS}
-    for row, cells in enumerate(reader, start=1):
+    rows: list[int] = []
+    header_lines = reader.line_num
+    while True:
+        try:
+            cells = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as exc:  # a field over the csv module's size limit
+            raise TrajectoryError(
+                f"{source}: row {reader.line_num - header_lines}: {exc}"
+            ) from None
+        row = reader.line_num - header_lines  # lines, so blank lines keep their number
         if not cells or all(not c.strip() for c in cells):
             continue  # blank line
         if len(cells) != len(header):
@@ -134,7 +163,8 @@ def _parse_csv(text: str, source: str) -> dict[str, list[float]]:
             )
         for name, cell in zip(header, cells, strict=True):
             columns[name].append(_number(cell, source, row, name))
-    return columns
+        rows.append(row)
+    return columns, rows
 
 
 def _is_number(text: str) -> bool:
@@ -147,11 +177,9 @@ def _is_number(text: str) -> bool:
 
 def _parse_yaml(text: str, source: str) -> dict[str, list[float]]:
     try:
-        data = yaml.safe_load(text)
+        data = safe_load_yaml(text)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}" if mark is not None else ""
-        raise TrajectoryError(f"{source}: invalid YAML{at}") from None
+        raise TrajectoryError(f"{source}: {yaml_error_text(exc, text)}") from None
     columns: dict[str, list[float]] = {name: [] for name in FIELDS}
     if isinstance(data, list):
         for row, item in enumerate(data, start=1):
@@ -179,29 +207,37 @@ def _parse_yaml(text: str, source: str) -> dict[str, list[float]]:
     return columns
 
 
-def validate(traj: Trajectory, source: str) -> Spacing:
+def validate(traj: Trajectory, source: str, rows: Sequence[int] | None = None) -> Spacing:
     """Check a trajectory and report its waypoint spacing.
 
     Checks: at least four waypoints, every value finite, no waypoint repeating the previous
     one (closer than 1 mm).
 
     :param source: the file or topic the trajectory came from, for messages
+    :param rows: the row of the file each waypoint came from (a CSV file's blank lines keep
+        their numbers); None when waypoint ``i`` is row ``i + 1``
     :returns: min / median / max spacing, m
     :raises TrajectoryError: ``"<source>: row <n>: <problem>"``
     """
     n = len(traj)
+
+    def row_of(index: int) -> int:
+        return int(rows[index]) if rows is not None else index + 1
+
     if n < MIN_POINTS:
         raise TrajectoryError(f"{source}: {n} waypoint(s), at least {MIN_POINTS} are needed")
     for name in FIELDS:
         bad = np.flatnonzero(~np.isfinite(getattr(traj, name)))
         if bad.size:
-            raise TrajectoryError(f"{source}: row {bad[0] + 1}: {name} is not finite")
-    gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
+            raise TrajectoryError(f"{source}: row {row_of(int(bad[0]))}: {name} is not finite")
+    with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: inf gaps are fine
+        gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
     repeats = np.flatnonzero(gaps < REPEAT_DISTANCE)
     if repeats.size:
-        row = repeats[0] + 2
+        i = int(repeats[0])
         raise TrajectoryError(
-            f"{source}: row {row}: repeats row {row - 1} (waypoints {gaps[repeats[0]]:.4f} m apart)"
+            f"{source}: row {row_of(i + 1)}: repeats row {row_of(i)} "
+            f"(waypoints {gaps[i]:.4f} m apart)"
         )
     return Spacing(float(gaps.min()), float(np.median(gaps)), float(gaps.max()))
 

@@ -181,6 +181,7 @@ def run_daemon(
             on_tick=recording.on_tick,
             extra_diagnostics=lambda: {
                 "zenoh_decode_errors": transport.decode_errors,
+                "zenoh_invalid_samples": transport.invalid_samples,
                 "recording": recording.diagnostics(),
             },
         )

@@ -13,6 +13,20 @@ Example (YAML)::
       listen: ["tcp/127.0.0.1:7447"]
       connect: []
       encoding: cdr
+
+TLS with access control (``config/zenoh/secure.json5``) is one file for every process: the
+gateway uses it as written, and each tool points it at the gateway and at its own certificate
+with ``extra`` (the file's header shows the lines), e.g. for the operator::
+
+    zenoh:
+      config_file: config/zenoh/secure.json5
+      connect: ["tls/127.0.0.1:7447"]
+      extra:
+        mode: '"client"'
+        listen/endpoints: '[]'
+        transport/link/tls/connect_certificate: '"/etc/leafgate/tls/operator.pem"'
+        transport/link/tls/connect_private_key: '"/etc/leafgate/tls/operator.key"'
+        access_control/enabled: 'false'
 """
 
 from __future__ import annotations

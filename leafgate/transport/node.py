@@ -76,6 +76,7 @@ class LatestSlot(Generic[T]):
         self._latest: Stamped[T] | None = None
         self._lock = threading.Lock()
         self._received = 0
+        self._invalid = 0
         self._errors = 0
         self._last_error = ""
 
@@ -88,6 +89,8 @@ class LatestSlot(Generic[T]):
         with self._lock:
             self._latest = sample
             self._received += 1
+            if not sample.valid:
+                self._invalid += 1
 
     def count_error(self, reason: str) -> None:
         """Count a payload that was dropped; the newest good sample stays."""
@@ -99,6 +102,11 @@ class LatestSlot(Generic[T]):
     def received(self) -> int:
         """Samples decoded and stored so far."""
         return self._received
+
+    @property
+    def invalid(self) -> int:
+        """Samples decoded but stored marked invalid (not finite, no points); in ``received``."""
+        return self._invalid
 
     @property
     def errors(self) -> int:
@@ -347,6 +355,12 @@ class GatewayTransport:
     def decode_errors(self) -> dict[str, int]:
         """Dropped payloads per input key."""
         return {self.pose.key: self.pose.errors, self.trajectory.key: self.trajectory.errors}
+
+    @property
+    def invalid_samples(self) -> dict[str, int]:
+        """Samples per input key that decoded but were stored marked invalid (the control
+        path refuses them); together with :attr:`decode_errors`, every rejected sample."""
+        return {self.pose.key: self.pose.invalid, self.trajectory.key: self.trajectory.invalid}
 
     @property
     def publish_errors(self) -> dict[str, int]:

@@ -327,11 +327,12 @@ def ros_to_trajectory(msg: Any) -> Trajectory:
         quat[i] = (q.x, q.y, q.z, q.w)
         speed[i] = p.longitudinal_velocity_mps
     qx, qy, qz, qw = quat.T
-    norm2 = np.einsum("ij,ij->i", quat, quat)
-    if np.any(norm2 <= 1e-12):
-        bad = int(np.flatnonzero(norm2 <= 1e-12)[0])
-        raise PayloadError(f"trajectory point {bad}: orientation is a zero quaternion")
-    heading = np.arctan2(2.0 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)
+    with np.errstate(over="ignore", invalid="ignore"):  # as in decode_trajectory_cdr
+        norm2 = np.einsum("ij,ij->i", quat, quat)
+        if np.any(norm2 <= 1e-12):
+            bad = int(np.flatnonzero(norm2 <= 1e-12)[0])
+            raise PayloadError(f"trajectory point {bad}: orientation is a zero quaternion")
+        heading = np.arctan2(2.0 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)
     return Trajectory(
         x=xy[:, 0],
         y=xy[:, 1],
@@ -391,11 +392,14 @@ def decode_trajectory_cdr(payload: bytes) -> Trajectory:
         else np.zeros(0, dtype=_POSE_AND_FLOATS)
     )
     qx, qy, qz, qw = (points[q].astype(np.float64) for q in ("qx", "qy", "qz", "qw"))
-    norm2 = qx * qx + qy * qy + qz * qz + qw * qw
-    if np.any(norm2 <= 1e-12):
-        bad = int(np.flatnonzero(norm2 <= 1e-12)[0])
-        raise PayloadError(f"trajectory point {bad}: orientation is a zero quaternion")
-    heading = np.arctan2(2.0 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)
+    # Absurd components overflow to inf/NaN: the heading is then not finite and the subscriber
+    # marks the trajectory invalid, so numpy need not warn (on Zenoh's thread) about it.
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm2 = qx * qx + qy * qy + qz * qz + qw * qw
+        if np.any(norm2 <= 1e-12):
+            bad = int(np.flatnonzero(norm2 <= 1e-12)[0])
+            raise PayloadError(f"trajectory point {bad}: orientation is a zero quaternion")
+        heading = np.arctan2(2.0 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)
     stamp = from_ros_time(_types()[cdr.TIME](sec=sec, nanosec=nanosec))
     return Trajectory(
         x=points["px"],
