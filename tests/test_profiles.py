@@ -325,3 +325,30 @@ def test_unknown_profile_is_one_config_error(tmp_path: Path) -> None:
     cfg.write_text("vehicle:\n  profile: leaf-2030\n")
     with pytest.raises(ConfigError, match=r"bad\.yaml: vehicle\.profile: 'leaf-2030'"):
         load_config(cfg)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    profile=st.sampled_from(PROFILE_NAMES),
+    frames=st.lists(
+        st.tuples(
+            st.sampled_from([0x01, 0x05, 0x002, 0x169, 0x176, 0x185, 0x284, 0x285, 0x421])
+            | st.integers(0, 0x7FF),
+            st.binary(min_size=0, max_size=8),
+        ),
+        max_size=20,
+    ),
+)
+def test_every_profile_decodes_random_frames_without_raising(
+    profile: str, frames: list[tuple[int, bytes]]
+) -> None:
+    import can
+
+    codec = CanCodec(profile=profile)
+    for frame_id, data in frames:
+        decoded = codec.decode(
+            can.Message(arbitration_id=frame_id, data=data, is_extended_id=False)
+        )
+        assert decoded.valid == (decoded.error is None)
+        assert decoded.valid or not decoded.values or decoded.error in ("bad_crc", "bad_counter")
+    assert sum(s.frames for s in codec.stats.values()) == len(frames)
