@@ -17,7 +17,7 @@ from typing import Any
 
 from leafgate import __version__
 from leafgate.errors import ConfigError, LeafgateError
-from leafgate.settings import LeafgateConfig, load_config
+from leafgate.settings import LeafgateConfig, apply_profile, load_config, with_profile
 from leafgate.sim.scenarios import Scenario
 
 log = logging.getLogger("leafgate")
@@ -41,7 +41,7 @@ def _with_overrides(cfg: LeafgateConfig, overrides: dict[str, Any]) -> LeafgateC
                 cfg = _replace_path(cfg, dotted, value)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(f"command line: {dotted}: {exc}") from None
-    return cfg
+    return apply_profile(cfg, "command line")  # the vehicle still decides (e.g. speed-only)
 
 
 # --- sim ----------------------------------------------------------------------------------------
@@ -110,6 +110,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
             "sim.plant.kind": args.plant,
         },
     )
+    if args.profile:
+        cfg = with_profile(cfg, args.profile)
     scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)
     if (injections or args.record) and (args.direct or args.realtime):
@@ -193,12 +195,17 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_sim_ecu(args: argparse.Namespace) -> int:
     import threading
 
-    from leafgate.sim.realtime import run_sim_ecu
+    from leafgate.sim.realtime import EngagedInjection, run_sim_ecu
 
+    injections = [EngagedInjection.parse(text) for text in args.inject]
     cfg = load_config(args.config)
     cfg = _with_overrides(cfg, {"sim.plant.kind": args.plant})
     return run_sim_ecu(
-        cfg, _scenario(args.scenario or cfg.sim.scenario), threading.Event(), args.trace
+        cfg,
+        _scenario(args.scenario or cfg.sim.scenario),
+        threading.Event(),
+        args.trace,
+        injections,
     )
 
 
@@ -256,8 +263,11 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     from leafgate.control import make_controller
 
     cfg = load_config(args.file)
-    CanCodec(cfg.can.dbw_dbc, cfg.can.car_dbc)  # the DBCs load
-    make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
+    CanCodec.for_config(cfg)  # the profile and its DBCs load
+    try:
+        make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
+    except ConfigError as exc:  # a check across sections: name the file too
+        raise ConfigError(f"{args.file}: {exc}") from None
     _scenario(cfg.sim.scenario)
     print(
         f"{args.file}: ok — controller {cfg.controller.kind} at {cfg.gateway.rate_hz:g} Hz, "
@@ -265,6 +275,11 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         f"car bus {'shared' if cfg.can.car is None else cfg.can.car.interface + ':' + cfg.can.car.channel}, "
         f"zenoh {cfg.zenoh.mode} prefix {cfg.zenoh.prefix!r}"
     )
+    profile = cfg.profile
+    caps = profile.capabilities
+    can_do = [n for n in ("lateral", "longitudinal", "gear") if getattr(caps, n)]
+    print(f"vehicle profile {profile.name} ({profile.where}): commands {', '.join(can_do)}")
+    print(f"frame protection: {profile.protection}")
     return 0
 
 
@@ -369,6 +384,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--solver", choices=("hildreth", "osqp"))
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
+        "--profile",
+        help="vehicle profile: leafgate-dbw (default), sze-hlc, leaf-ze1-lkas, or a .yaml file",
+    )
+    p.add_argument(
         "--out", default="leafgate-sim", help="output directory (default: ./leafgate-sim/)"
     )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -408,6 +427,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
     p.add_argument(
         "--trace", metavar="CSV", help="write the plant's states there on exit (every 20 ms)"
+    )
+    p.add_argument(
+        "--inject",
+        action="append",
+        default=[],
+        metavar="KIND@T[+DUR][:NAME=VALUE,...]",
+        help="fault T s after the ECU first engages, e.g. localization-stop@3s, "
+        "localization-jump@2:lateral=2, corrupt-crc@3+0.5 (repeatable)",
     )
     p.set_defaults(func=cmd_sim_ecu)
 

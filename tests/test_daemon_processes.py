@@ -7,6 +7,7 @@ published and the gateway engaged with the CLI, exactly as the README shows.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -14,7 +15,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import can
@@ -23,7 +26,7 @@ import pytest
 import yaml
 
 from leafgate.can.codec import CanCodec
-from leafgate.messages import EcuState, SystemReport
+from leafgate.messages import EcuState, SteerCommand, SystemReport
 from leafgate.sim.metrics import tracking_metrics
 from leafgate.sim.scenarios import get_scenario
 
@@ -50,9 +53,16 @@ def udp_multicast_works() -> bool:
     return True
 
 
+@pytest.fixture(params=["leafgate-dbw", "sze-hlc", "leaf-ze1-lkas"])
+def profile(request: pytest.FixtureRequest) -> str:
+    """Every vehicle profile runs the cross-process loop (issue 9)."""
+    return str(request.param)
+
+
 @pytest.fixture
-def sim_config(tmp_path: Path) -> Path:
+def sim_config(tmp_path: Path, profile: str) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    cfg.setdefault("vehicle", {})["profile"] = profile
     cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
     cfg["can"]["dbw"]["channel"] = f"239.74.{random.randint(164, 250)}.{random.randint(1, 250)}"
     cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
@@ -98,8 +108,34 @@ def ecu_state(config: Path) -> EcuState | None:
     return None
 
 
+@contextlib.contextmanager
+def command_sniffer(config: Path) -> Iterator[list[can.Message]]:
+    """Collect every frame on the dbw bus while the block runs (and 0.3 s after)."""
+    cfg = yaml.safe_load(config.read_text())["can"]["dbw"]
+    frames: list[can.Message] = []
+    with can.Bus(interface="udp_multicast", channel=cfg["channel"], **cfg["kwargs"]) as bus:
+        stop = threading.Event()
+
+        def collect() -> None:
+            while not stop.is_set():
+                msg = bus.recv(timeout=0.1)
+                if msg is not None:
+                    frames.append(msg)
+
+        thread = threading.Thread(target=collect, daemon=True)
+        thread.start()
+        try:
+            yield frames
+            time.sleep(0.3)
+        finally:
+            stop.set()
+            thread.join(timeout=2)
+
+
 @pytest.mark.skipif(not udp_multicast_works(), reason="python-can udp_multicast unavailable here")
-def test_s_curve_in_real_time_across_processes(sim_config: Path, tmp_path: Path) -> None:
+def test_s_curve_in_real_time_across_processes(
+    sim_config: Path, tmp_path: Path, profile: str
+) -> None:
     trace = tmp_path / "trace.csv"
     ecu = start(
         "sim-ecu", "--config", str(sim_config), "--trace", str(trace), log=tmp_path / "ecu.log"
@@ -137,11 +173,16 @@ def test_s_curve_in_real_time_across_processes(sim_config: Path, tmp_path: Path)
         )
         assert "trajectory end" in diag.get("reason", "")
 
-        daemon.send_signal(signal.SIGTERM)
-        assert daemon.wait(timeout=10) == 0
+        with command_sniffer(sim_config) as seen:
+            daemon.send_signal(signal.SIGTERM)
+            assert daemon.wait(timeout=10) == 0
         # Disengaged: the daemon sent ENABLE=0 before it went quiet (silence alone would be a
         # command timeout while engaged, which the ECU reports as FAULT).
-        assert ecu_state(sim_config) in (EcuState.READY, EcuState.NOT_READY)
+        codec = CanCodec(profile=profile)
+        steer = [v for f in seen for v in codec.decode(f).values if isinstance(v, SteerCommand)]
+        assert steer and not steer[-1].enable, f"{len(seen)} frames, last {steer[-1:]}"
+        if profile == "leafgate-dbw":  # the only profile whose ECU reports its state
+            assert ecu_state(sim_config) in (EcuState.READY, EcuState.NOT_READY)
     finally:
         for proc in (planner, daemon, ecu):
             if proc.poll() is None:

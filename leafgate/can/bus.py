@@ -23,9 +23,9 @@ Without kernel CAN
 ``virtual`` connects buses of the same channel name inside one process (filters applied in
 software, no rate limiting, no arbitration). ``udp_multicast`` connects processes on one
 host or LAN; its channel is a multicast group address (python-can's default is
-``ff15:7079:7468:6f6e:6465:6d6f:6d63:6173``). It needs the ``msgpack`` package and never
-delivers a bus's own frames back to it. Any other python-can interface is opened by name with
-``kwargs`` passed through.
+``ff15:7079:7468:6f6e:6465:6d6f:6d63:6173``). It needs the ``msgpack`` package, and it
+delivers a bus's own frames back to it (multicast loopback: the gateway recognises its own
+echoes). Any other python-can interface is opened by name with ``kwargs`` passed through.
 """
 
 from __future__ import annotations

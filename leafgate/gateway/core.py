@@ -29,6 +29,12 @@ Decisions that go beyond DESIGN's tables (documented here so the tests can hold 
   speed is below the standstill speed, and through STOPPING otherwise.
 - Reset is accepted in FAULT when every latched cause is gone (``ecu`` causes are what the
   CLEAR_FAULTS of the reset clears) and in STANDBY (to clear ECU faults); not while driving.
+- Frames on the gateway's own command IDs that it did not send (another node commanding the
+  ECU) latch FAULT in any state, as a command conflict; the cause is gone once no such frame
+  was seen for ``FOREIGN_QUIET`` seconds.
+- A plan replaced while ENGAGED is judged like an engage: when the vehicle is outside the engage
+  envelope of the new plan (``engage.max_distance``, ``engage.max_heading_error``) the gateway
+  makes a controlled stop instead of chasing it; a plan within the envelope is followed.
 """
 
 from __future__ import annotations
@@ -48,6 +54,7 @@ from leafgate.gateway.state import (
     Event,
     Transition,
     engage_refusal,
+    path_deviation,
 )
 from leafgate.gateway.watchdog import (
     Check,
@@ -78,6 +85,7 @@ from leafgate.messages import (
 )
 
 _EPS = 1e-9  # s, slack when comparing times built from sums of periods
+FOREIGN_QUIET = 1.0  # s without foreign command frames before a command conflict may be reset
 
 #: The last valid ECU reports (steer, long, system), read from a tick's WatchdogReport.
 _Reports = tuple[SteerReport | None, LongReport | None, SystemReport | None]
@@ -97,6 +105,8 @@ class GatewayInputs:
     request: OperatorRequest | None = None  # pending operator request
     overrun: bool = False  # this tick started late (the period was exceeded)
     bus_errors: int = 0  # command frames that could not be encoded or sent since the last step
+    foreign_command_frames: int = 0  # frames on our command IDs we did not send, since last step
+    foreign_command_names: tuple[str, ...] = ()  # their DBC names (for the fault reason)
 
 
 class EngagePhase(enum.Enum):
@@ -257,6 +267,8 @@ class Gateway:
         self._fault_braking = False  # in FAULT, still braking with ENABLE=1
         self._rest_since: float | None = None  # s, since when |v| is below standstill speed
         self._stop_reason = ""
+        self._plan: Trajectory | None = None  # the plan being followed (checked against the pose)
+        self._foreign_seen: float | None = None  # s, when foreign command frames were last seen
         self._next_system: float | None = None  # s, when DBW_SYSTEM_CMD is due next
         # fault_causes of diagnostics, sorted: kept until the machine's (frozen) set changes
         self._causes_of: frozenset[str] = frozenset()
@@ -294,7 +306,7 @@ class Gateway:
         standstill = abs(measured.speed) < self.limits.standstill_speed
         at_rest = self._update_rest(now, standstill)
 
-        self._react_to_watchdogs(now, wd, reports, inputs.bus_errors)
+        self._react_to_watchdogs(now, wd, reports, inputs)
         reply, clear_faults = self._handle_request(now, inputs, wd, reports, at_rest)
         self._advance_engagement(now, reports)
 
@@ -371,7 +383,7 @@ class Gateway:
     # -- watchdog reactions ----------------------------------------------------------------------
 
     def _react_to_watchdogs(
-        self, now: float, wd: WatchdogReport, reports: _Reports, bus_errors: int
+        self, now: float, wd: WatchdogReport, reports: _Reports, inputs: GatewayInputs
     ) -> None:
         m = self.machine
         driving = m.state in (GatewayState.ENGAGED, GatewayState.STOPPING)
@@ -380,8 +392,16 @@ class Gateway:
             check = wd.get(name)
             if check.reaction >= Reaction.FAULT:
                 causes[name] = check.detail
-        if bus_errors > 0:
-            causes["bus"] = f"{bus_errors} command frame(s) could not be encoded or sent"
+        if inputs.bus_errors > 0:
+            causes["bus"] = f"{inputs.bus_errors} command frame(s) could not be encoded or sent"
+        if inputs.foreign_command_frames > 0:
+            # Another node sends on our IDs: the ECU cannot tell whose command it follows.
+            self._foreign_seen = now
+            names = ", ".join(inputs.foreign_command_names) or "command"
+            causes["command_conflict"] = (
+                f"command conflict: {inputs.foreign_command_frames} foreign {names} frame(s) "
+                "on the bus"
+            )
         if driving:
             for check in wd.failing(Reaction.FAULT):
                 causes.setdefault(check.name, check.detail)
@@ -412,6 +432,34 @@ class Gateway:
             stops = wd.failing(Reaction.STOP)
             if stops:
                 self._stop(now, stops[0].detail)
+                return
+            replaced = self._plan_refusal(wd)
+            if replaced is not None:
+                self._stop(now, replaced)
+
+    def _plan_refusal(self, wd: WatchdogReport) -> str | None:
+        """Why a plan that replaced the followed one must not be chased, or None.
+
+        Runs once per new plan object (the runtime keeps one object while a planner re-publishes
+        the same waypoints), so its cost does not fall on every tick.
+        """
+        traj = wd.trajectory
+        if traj is None or traj.value is self._plan or wd.pose is None:
+            return None
+        self._plan = traj.value
+        distance, heading_error = path_deviation(wd.pose.value, traj.value)
+        limits = self.config.engage
+        if distance > limits.max_distance:
+            return (
+                f"trajectory replaced: vehicle {distance:.2f} m from the new plan "
+                f"(limit {limits.max_distance:g} m)"
+            )
+        if heading_error > limits.max_heading_error:
+            return (
+                f"trajectory replaced: heading {math.degrees(heading_error):.1f}° off the new "
+                f"plan (limit {math.degrees(limits.max_heading_error):g}°)"
+            )
+        return None
 
     def _fault(self, now: float, causes: dict[str, str], wd: WatchdogReport) -> None:
         m = self.machine
@@ -454,6 +502,7 @@ class Gateway:
                 return EngageReply(False, state, refusal), False
             clear = self._override_latched or override_active(*reports)
             m.fire(Event.ENGAGE, now, "operator engage")
+            self._plan = None if wd.trajectory is None else wd.trajectory.value
             self.controller.reset()
             self._phase = EngagePhase.CLEARING_OVERRIDE if clear else EngagePhase.ENABLING
             self._phase_since = now
@@ -477,7 +526,7 @@ class Gateway:
             ), False
         if self._fault_braking and not at_rest:
             return EngageReply(False, state, "vehicle still braking to rest"), False
-        remaining = self._remaining_causes(wd, inputs.bus_errors)
+        remaining = self._remaining_causes(now, wd, inputs.bus_errors)
         if remaining:
             return EngageReply(
                 False, state, "fault cause still present: " + "; ".join(remaining)
@@ -486,11 +535,16 @@ class Gateway:
         self._fault_braking = False
         return EngageReply(True, m.state, "fault cleared"), True
 
-    def _remaining_causes(self, wd: WatchdogReport, bus_errors: int) -> list[str]:
+    def _remaining_causes(self, now: float, wd: WatchdogReport, bus_errors: int) -> list[str]:
         out = []
         for cause in sorted(self.machine.fault_causes):
             if cause == "ecu":
                 continue  # cleared by the CLEAR_FAULTS this reset sends
+            if cause == "command_conflict":
+                seen = self._foreign_seen
+                if seen is not None and now - seen < FOREIGN_QUIET - _EPS:
+                    out.append(f"foreign command frames seen {now - seen:.2f} s ago")
+                continue
             if cause == "bus":
                 if bus_errors > 0:
                     out.append(f"{bus_errors} command frame(s) could not be sent")

@@ -4,6 +4,8 @@ Threads and what they own:
 
 - python-can's ``Notifier`` thread decodes every received frame and writes the latest report of
   each kind into a slot (with its receive time and validity) and counts good and bad frames.
+  It also watches the gateway's own command IDs: a frame there that the gateway did not send
+  (another node commanding the ECU) is counted as foreign, and the core faults on it.
 - Zenoh's callback threads (inside :class:`~leafgate.transport.node.GatewayTransport`) write the
   latest localization and trajectory into their slots, and queue operator requests.
 - One control thread (the caller of :meth:`Runtime.run`) ticks on absolute deadlines of
@@ -15,6 +17,13 @@ Threads and what they own:
 Faults in the loop are state, never exceptions: a bus send error is counted and reported to the
 gateway, which latches FAULT; an encode error (a value the safety gate should have clamped) drops
 that frame, is counted and likewise faults.
+
+Own frames and foreign ones: python-can's ``udp_multicast`` delivers every frame a bus sends back
+to that same bus (the socket joins the group with multicast loopback on), while SocketCAN does
+not (unless ``receive_own_messages``) and ``virtual`` does not. :class:`SentFrames` therefore
+remembers each frame sent for :data:`ECHO_WINDOW`; a received frame on a command ID that
+matches one, byte for byte, is our own echo and is dropped (the recorder already has it as
+sent); any other is foreign. Both bus behaviours give the same verdicts.
 """
 
 from __future__ import annotations
@@ -55,6 +64,11 @@ SHUTDOWN_TICKS = 5  # ticks of ENABLE=0 frames sent before exit (100 ms at 50 Hz
 DIAGNOSTICS_PERIOD = 0.1  # s, 10 Hz
 STATS_WINDOW = 3000  # ticks kept for the timing figures (one minute at 50 Hz)
 REQUEST_TIMEOUT = 1.0  # s an operator request waits for the control thread
+# s a sent frame waits for its echo. Loopback delivers in well under a millisecond, but the
+# Notifier thread may be starved for far longer on a loaded machine; a late echo must not count
+# as foreign. A foreign frame byte-identical to one we sent within this window passes as ours.
+ECHO_WINDOW = 2.0
+FOREIGN_LOGGED = 20  # foreign frames logged one by one, then every thousandth
 
 
 class LatestSlot(Generic[T]):
@@ -73,12 +87,93 @@ class LatestSlot(Generic[T]):
             return self._value
 
 
+class _Sent:
+    """One frame sent, waiting for its echo."""
+
+    __slots__ = ("key", "taken", "time")
+
+    def __init__(self, time: float, key: tuple[int, bytes]) -> None:
+        self.time = time  # s, when it was sent
+        self.key = key
+        self.taken = False  # its echo came back
+
+
+class SentFrames:
+    """The command frames sent in the last ``window`` seconds, to recognise their echoes.
+
+    Written by the control thread (:meth:`add`, before the send) and read by the Notifier
+    thread (:meth:`take`). Frames are keyed by ``(ID, data)``; the same key recurs (a STANDBY
+    frame repeats whenever its 4-bit alive counter wraps), so each key holds its sent frames in
+    order and an echo takes the oldest one still waiting.
+
+    :param window: s a sent frame waits for its echo
+    """
+
+    def __init__(self, window: float = ECHO_WINDOW) -> None:
+        self.window = window
+        self._lock = threading.Lock()
+        self._waiting: dict[tuple[int, bytes], deque[_Sent]] = {}
+        self._order: deque[_Sent] = deque()  # every frame of the window, oldest first
+
+    def add(self, msg: can.Message, now: float) -> None:
+        """Remember a frame about to be sent at ``now``."""
+        sent = _Sent(now, (msg.arbitration_id, bytes(msg.data)))
+        with self._lock:
+            self._expire(now)
+            self._order.append(sent)
+            waiting = self._waiting.get(sent.key)
+            if waiting is None:
+                self._waiting[sent.key] = deque((sent,))
+            else:
+                waiting.append(sent)
+
+    def take(self, msg: can.Message, now: float) -> bool:
+        """True (and forgotten) when ``msg`` is the echo of a frame we sent."""
+        key = (msg.arbitration_id, bytes(msg.data))
+        with self._lock:
+            self._expire(now)
+            waiting = self._waiting.get(key)
+            if not waiting:
+                return False
+            waiting.popleft().taken = True
+            if not waiting:
+                del self._waiting[key]
+            return True
+
+    def __len__(self) -> int:
+        """Frames still waiting for their echo."""
+        with self._lock:
+            return sum(len(w) for w in self._waiting.values())
+
+    def _expire(self, now: float) -> None:
+        order = self._order
+        while order and now - order[0].time > self.window:
+            sent = order.popleft()
+            if sent.taken:
+                continue
+            # The oldest frame of the window still waiting is the oldest waiting for its key.
+            waiting = self._waiting[sent.key]
+            waiting.popleft()
+            if not waiting:
+                del self._waiting[sent.key]
+
+
 class CanReceiver(can.Listener):
-    """Decodes report frames on the Notifier thread into latest-value slots."""
+    """Decodes report frames on the Notifier thread into latest-value slots.
+
+    Frames on the gateway's own command IDs are not decoded: an echo of one we sent is dropped,
+    any other is counted as foreign (and handed to the recorder hook, as evidence).
+    """
 
     def __init__(self, codec: CanCodec, clock: Callable[[], float]) -> None:
         self.codec = codec
         self.clock = clock
+        self.command_ids = codec.receive_ids("commands")
+        self.sent = SentFrames()
+        self.own_echoes = 0  # echoes of our own frames received (udp_multicast delivers them)
+        self.foreign_total = 0  # foreign frames on our command IDs since start
+        self._foreign = 0  # … since the last take_foreign()
+        self._foreign_ids: set[int] = set()
         self.steer: LatestSlot[Stamped[SteerReport]] = LatestSlot()
         self.long: LatestSlot[Stamped[LongReport]] = LatestSlot()
         self.system: LatestSlot[Stamped[SystemReport]] = LatestSlot()
@@ -90,27 +185,51 @@ class CanReceiver(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         now = self.clock()
+        if msg.arbitration_id in self.command_ids and not msg.is_extended_id:
+            if self.sent.take(msg, now):
+                self.own_echoes += 1
+                return
+            with self._lock:
+                self._foreign += 1
+                self.foreign_total += 1
+                self._foreign_ids.add(msg.arbitration_id)
+                total = self.foreign_total
+            if total <= FOREIGN_LOGGED or total % 1000 == 0:
+                log.warning(
+                    "foreign frame on our command ID 0x%03X: %s (%d so far)",
+                    msg.arbitration_id,
+                    bytes(msg.data).hex(" "),
+                    total,
+                )
+            if self.on_frame is not None:
+                # not decoded: the codec's alive-counter state belongs to our own frames
+                name = self.codec.name_of(msg.arbitration_id)
+                self.on_frame(msg, Decoded(msg.arbitration_id, name, None, False, None))
+            return
         decoded = self.codec.decode(msg)
         if self.on_frame is not None:
             self.on_frame(msg, decoded)
-        value = decoded.value
-        is_report = isinstance(value, (SteerReport, LongReport, SystemReport))
-        if is_report or decoded.error in ("bad_crc", "bad_counter", "wrong_length"):
+        values = decoded.values  # a frame may refresh several messages
+        is_report = any(isinstance(v, (SteerReport, LongReport, SystemReport)) for v in values)
+        # Bad frames of known IDs count against the report error counter; so does content
+        # that decodes to no report (a code outside its table) despite a good CRC.
+        if is_report or decoded.error in ("bad_crc", "bad_counter", "wrong_length", "decode_error"):
             with self._lock:
                 if decoded.valid:
                     self._good += 1
                 else:
                     self._bad += 1
-        if not decoded.valid or value is None:
+        if not decoded.valid:
             return
-        if isinstance(value, SteerReport):
-            self.steer.set(Stamped(value, now))
-        elif isinstance(value, LongReport):
-            self.long.set(Stamped(value, now))
-        elif isinstance(value, SystemReport):
-            self.system.set(Stamped(value, now))
-        else:
-            self.car.setdefault(type(value).__name__, LatestSlot()).set(Stamped(value, now))
+        for value in values:
+            if isinstance(value, SteerReport):
+                self.steer.set(Stamped(value, now))
+            elif isinstance(value, LongReport):
+                self.long.set(Stamped(value, now))
+            elif isinstance(value, SystemReport):
+                self.system.set(Stamped(value, now))
+            else:
+                self.car.setdefault(type(value).__name__, LatestSlot()).set(Stamped(value, now))
 
     def take_counts(self) -> tuple[int, int]:
         """Good and bad report frames since the last call."""
@@ -118,6 +237,15 @@ class CanReceiver(can.Listener):
             good, bad = self._good, self._bad
             self._good = self._bad = 0
         return good, bad
+
+    def take_foreign(self) -> tuple[int, tuple[str, ...]]:
+        """Foreign frames on our command IDs since the last call, and their DBC names."""
+        with self._lock:
+            count, ids = self._foreign, self._foreign_ids
+            self._foreign, self._foreign_ids = 0, set()
+        if not count:
+            return 0, ()
+        return count, tuple(sorted(self.codec.name_of(i) or f"0x{i:03X}" for i in ids))
 
     def on_error(self, exc: Exception) -> None:
         log.error("CAN receive error: %s", exc)
@@ -203,6 +331,15 @@ class LoopStats:
         }
 
 
+def _watch_ids(bus: can.BusABC, ids: frozenset[int]) -> None:
+    """Widen ``bus``'s receive filter by ``ids`` (no-op when it delivers everything already)."""
+    filters = bus.filters
+    if filters is None or not ids:
+        return
+    extra = [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(ids)]
+    bus.set_filters([*filters, *extra])  # type: ignore[list-item]
+
+
 def sd_notify(state: str) -> bool:
     """Tell systemd (Type=notify) about our state; a no-op outside systemd."""
     address = os.environ.get("NOTIFY_SOCKET")
@@ -231,6 +368,8 @@ class Runtime:
     :param publisher: Zenoh publications (optional)
     :param period: control tick period, s
     :param clock: monotonic clock, s — the same clock must stamp the inputs
+    :param watch_command_ids: add our command IDs to ``bus``'s receive filter, so frames other
+        nodes send on them reach the receiver (the daemon opens the bus for reports only)
     """
 
     def __init__(
@@ -247,6 +386,7 @@ class Runtime:
         on_tick: Callable[[float, GatewayInputs, StepResult, Sequence[can.Message]], None]
         | None = None,
         extra_diagnostics: Callable[[], dict[str, Any]] | None = None,
+        watch_command_ids: bool = True,
     ) -> None:
         self.gateway = gateway
         self.codec = codec
@@ -265,6 +405,8 @@ class Runtime:
         self._pub_thread: threading.Thread | None = None
         self._last_diag = -1e9
         self._bus_errors_pending = 0
+        if watch_command_ids:
+            _watch_ids(bus, receiver.command_ids)
 
     # -- one tick ----------------------------------------------------------------------------
 
@@ -275,6 +417,7 @@ class Runtime:
         started = self.clock()
         pending = self.requests.take() if request is None else None
         good, bad = self.receiver.take_counts()
+        foreign, foreign_names = self.receiver.take_foreign()
         bus_errors, self._bus_errors_pending = self._bus_errors_pending, 0
         inputs = GatewayInputs(
             pose=self.inputs.latest_pose(),
@@ -287,6 +430,8 @@ class Runtime:
             request=request if request is not None else (pending.request if pending else None),
             overrun=overrun,
             bus_errors=bus_errors,
+            foreign_command_frames=foreign,
+            foreign_command_names=foreign_names,
         )
         result = self.gateway.step(now, inputs)
         if pending is not None:
@@ -297,7 +442,9 @@ class Runtime:
                 else {"accepted": False, "state": self.gateway.state.name, "reason": "no reply"}
             )
         frames = self._encode(result, now)
+        sent = self.receiver.sent
         for frame in frames:
+            sent.add(frame, now)  # before the send: the echo may arrive before send() returns
             try:
                 self.bus.send(frame)
             except can.CanError as exc:
@@ -313,17 +460,15 @@ class Runtime:
         return result
 
     def _encode(self, result: StepResult, now: float) -> list[can.Message]:
-        cmds = result.commands
-        frames = []
-        for value in (cmds.steer, cmds.long, cmds.system):
-            if value is None:
-                continue
-            try:
-                frames.append(self.codec.encode(value, timestamp=now))
-            except Exception as exc:  # an encode error must never end the loop
-                self.stats.encode_errors += 1
-                self._bus_errors_pending += 1
-                log.error("cannot encode %s: %s", type(value).__name__, exc)
+        try:
+            frames = self.codec.encode_commands(result.commands, timestamp=now)
+            errors = self.codec.last_errors
+        except Exception as exc:  # an encode error must never end the loop
+            frames, errors = [], [str(exc)]
+        for error in errors:
+            self.stats.encode_errors += 1
+            self._bus_errors_pending += 1
+            log.error("cannot encode a command frame: %s", error)
         return frames
 
     def _queue_publications(self, now: float, result: StepResult) -> None:
@@ -352,6 +497,10 @@ class Runtime:
         diag["can"] = {
             f"0x{fid:03X}": vars(s) if not isinstance(s, dict) else s
             for fid, s in self.codec.stats.items()
+        }
+        diag["command_ids"] = {
+            "own_echoes": self.receiver.own_echoes,
+            "foreign_frames": self.receiver.foreign_total,
         }
         if self.extra_diagnostics is not None:
             diag.update(self.extra_diagnostics())

@@ -3,6 +3,12 @@
 :class:`FrameSource` iterates the frames of a file in recorded order and tells how far it has
 got (for a progress bar): python-can's readers for ``.log``, ``.asc``, ``.blf``, ``.trc``,
 ``.csv``, ``.mf4`` (and gzip), :class:`~leafgate.replay.session.SessionReader` for ``.mcap``.
+
+Files cut short by a crash read up to the cut: a session up to its last complete chunk, a BLF
+up to its last complete object (python-can's reader stops there), a text log (``.log``,
+``.asc``) up to its last complete line — a line without its newline is dropped, since its
+beginning may parse as a different frame (``0A0#0102`` of ``0A0#01020304…``). Either way
+:attr:`FrameSource.truncated` tells.
 """
 
 from __future__ import annotations
@@ -11,7 +17,7 @@ import functools
 import json
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import can
 
@@ -26,6 +32,32 @@ _TEXT_READERS: dict[str, Any] = {
     ".log": can.CanutilsLogReader,
     ".asc": functools.partial(can.ASCReader, relative_timestamp=False),
 }
+
+
+class _CompleteLines:
+    """A text file's lines, without a last line that lacks its newline (a cut write).
+
+    One iterator, as a file is: python-can's ASC reader reads the header, then goes on.
+    """
+
+    def __init__(self, file: IO[str]) -> None:
+        self.file = file
+        self.cut = False  # the last line was dropped
+
+    def __iter__(self) -> _CompleteLines:
+        return self
+
+    def __next__(self) -> str:
+        line = self.file.readline()
+        if not line:
+            raise StopIteration
+        if not line.endswith("\n"):
+            self.cut = True
+            raise StopIteration
+        return line
+
+    def close(self) -> None:
+        self.file.close()
 
 
 def is_session(path: str | Path) -> bool:
@@ -46,7 +78,7 @@ class FrameSource:
             raise ReplayError(f"{self.path}: no such file")
         self.size = self.path.stat().st_size
         self.frames = 0
-        self.truncated = False  # a session that ended before its footer
+        self.truncated = False  # a session without its footer, a text log with a cut last line
         self._position: Any = None  # callable giving the bytes consumed, when known
         self.session: SessionReader | None = None
 
@@ -93,10 +125,12 @@ class FrameSource:
         suffix = self.path.suffix.lower()
         file: Any = None
         reader: Any
+        lines: _CompleteLines | None = None
         if suffix in _TEXT_READERS:
             file = self.path.open("r", encoding="utf-8", errors="replace")
             self._position = file.buffer.tell  # the text layer hides tell() while iterating
-            reader = _TEXT_READERS[suffix](file)
+            lines = _CompleteLines(file)
+            reader = _TEXT_READERS[suffix](lines)
         elif suffix == ".blf":
             file = self.path.open("rb")
             self._position = file.tell
@@ -107,6 +141,8 @@ class FrameSource:
             for msg in reader:
                 self.frames += 1
                 yield msg
+            if lines is not None and lines.cut:
+                self.truncated = True
         finally:
             reader.stop()
             if file is not None:

@@ -51,7 +51,7 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from leafgate.config import from_mapping
+from leafgate.config import from_mapping, safe_load_yaml, yaml_error_text
 from leafgate.errors import ConfigError, ReplayError
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.messages import (
@@ -69,7 +69,7 @@ from leafgate.messages import (
     SystemReport,
     Trajectory,
 )
-from leafgate.settings import LeafgateConfig
+from leafgate.settings import LeafgateConfig, apply_profile
 
 __all__ = [
     "FORMAT_VERSION",
@@ -168,9 +168,9 @@ def config_from_yaml(
     :raises ConfigError: the YAML is invalid or a key/value is rejected (named)
     """
     try:
-        data = yaml.safe_load(text) or {}
+        data = safe_load_yaml(text) or {}
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: invalid YAML: {str(exc).splitlines()[0]}") from None
+        raise ConfigError(f"{source}: {yaml_error_text(exc, text)}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: the recorded configuration is not a mapping")
     # Sections this version does not know (a newer recorder) are dropped, not fatal: a re-run
@@ -179,7 +179,7 @@ def config_from_yaml(
     data = {k: v for k, v in data.items() if k in known}
     if overrides:
         apply_overrides(data, overrides, "override")
-    return from_mapping(LeafgateConfig, data, source)
+    return apply_profile(from_mapping(LeafgateConfig, data, source), source)
 
 
 # --- values ⇄ JSON ------------------------------------------------------------------------------
@@ -333,6 +333,8 @@ def encode_inputs(inputs: GatewayInputs, trajectory: tuple[int, int] | None) -> 
         "request": None if inputs.request is None else inputs.request.value,
         "overrun": inputs.overrun,
         "bus_errors": inputs.bus_errors,
+        "foreign_command_frames": inputs.foreign_command_frames,
+        "foreign_command_names": list(inputs.foreign_command_names),
     }
 
 
@@ -361,6 +363,9 @@ def decode_inputs(
         request=None if d["request"] is None else OperatorRequest(d["request"]),
         overrun=bool(d["overrun"]),
         bus_errors=int(d["bus_errors"]),
+        # absent in sessions recorded before the gateway watched its command IDs
+        foreign_command_frames=int(d.get("foreign_command_frames", 0)),
+        foreign_command_names=tuple(str(n) for n in d.get("foreign_command_names", ())),
     )
 
 

@@ -5,6 +5,15 @@ plant on a real bus (``udp_multicast`` here, ``socketcan`` where the kernel has 
 the plant's pose as localization (nav_msgs/Odometry) over Zenoh with configurable rate, noise
 and latency.
 
+Faults for process tests (``sim-ecu --inject KIND@T[+DUR][:NAME=VALUE,...]``, repeatable): T is
+counted from the moment the ECU first engages (the first accepted ENABLE edge), so a test can
+say "3 s into the maneuver" without knowing how long start-up and engagement took. The ECU's own
+injections (:data:`leafgate.sim.ecu.INJECTION_KINDS`) go to :meth:`SimulatedEcu.inject`; the
+localization publisher performs :data:`LOCALIZATION_FAULTS`. Each start and end is logged with
+its ``time.perf_counter`` value (CLOCK_MONOTONIC on Linux, the clock the gateway stamps its
+transitions with, so times compare across processes) and listed at the end of the ``--trace``
+CSV as ``# {json}`` comment lines.
+
 ``sim --realtime`` runs the daemon's own runtime (its threads, one in-process Zenoh session, a
 python-can ``virtual`` bus) against the simulated ECU in the same process, drives a scenario
 and reports the same metrics as the simulated-clock mode.
@@ -14,20 +23,25 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import logging
+import math
+import re
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from leafgate.can.config import BusConfig, CanConfig
-from leafgate.errors import LeafgateError
+from leafgate.errors import ConfigError, LeafgateError
 from leafgate.messages import GatewayState, Pose
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.config import LocalizationConfig
+from leafgate.sim.ecu import INJECTION_KINDS as ECU_INJECTION_KINDS
 from leafgate.sim.ecu import SimulatedEcu, run_ecu_realtime
 from leafgate.sim.metrics import path_errors, tracking_metrics
 from leafgate.sim.plots import Trace
@@ -37,6 +51,173 @@ log = logging.getLogger(__name__)
 
 TRAJECTORY_REPUBLISH = 0.5  # s, planners re-publish their plan; the gateway refuses a stale one
 _channels = itertools.count()
+_EPS = 1e-9  # s, tolerance of "due at now" against sums of tick periods
+
+#: Faults the localization publisher of ``sim-ecu`` performs: kind → parameters and defaults.
+LOCALIZATION_FAULTS: Mapping[str, Mapping[str, float]] = {
+    "localization-stop": {},  # nothing is published
+    "localization-jump": {"lateral": 2.0, "longitudinal": 0.0},  # m, offset (left +, ahead +)
+    "localization-delay": {"delay": 0.4},  # s, each sample is published this long after its stamp
+}
+#: Every ``sim-ecu --inject`` kind with its parameters' defaults.
+SIM_ECU_INJECTIONS: Mapping[str, Mapping[str, float]] = {
+    **ECU_INJECTION_KINDS,
+    **LOCALIZATION_FAULTS,
+}
+_INJECT_SYNTAX = re.compile(
+    r"(?P<kind>[a-z-]+)@(?P<at>[0-9.]+)s?(?:\+(?P<dur>[0-9.]+)s?)?(?::(?P<params>.*))?"
+)
+
+
+@dataclass(frozen=True)
+class EngagedInjection:
+    """A fault ``at`` seconds after the ECU first engages: ``KIND@T[s][+DUR[s]][:NAME=VALUE,...]``.
+
+    ``params`` holds every parameter of the kind (defaults filled in).
+    """
+
+    kind: str
+    at: float  # s after the first engagement
+    duration: float | None = None  # s, None = until the end
+    params: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def parse(cls, text: str) -> EngagedInjection:
+        """Parse ``localization-jump@3`` or ``override-torque@2+0.5:torque=5``.
+
+        :raises ConfigError: one line naming the text and what is wrong
+        """
+        m = _INJECT_SYNTAX.fullmatch(text.strip())
+        if not m:
+            raise ConfigError(
+                f"--inject {text!r}: expected KIND@TIME[s][+DURATION[s]][:NAME=VALUE,...], "
+                "e.g. localization-stop@3s"
+            )
+        kind = m.group("kind")
+        defaults = SIM_ECU_INJECTIONS.get(kind)
+        if defaults is None:
+            raise ConfigError(
+                f"--inject {text!r}: unknown kind {kind!r} "
+                f"(known: {', '.join(sorted(SIM_ECU_INJECTIONS))})"
+            )
+        try:
+            at = float(m.group("at"))
+            duration = float(m.group("dur")) if m.group("dur") else None
+        except ValueError:
+            raise ConfigError(f"--inject {text!r}: bad time {m.group(0)!r}") from None
+        if duration is not None and not duration > 0.0:
+            raise ConfigError(f"--inject {text!r}: the duration must be positive")
+        params = dict(defaults)
+        for item in filter(None, (m.group("params") or "").split(",")):
+            name, sep, value = item.partition("=")
+            name = name.strip()
+            if not sep or name not in defaults:
+                known = ", ".join(sorted(defaults)) or "none"
+                raise ConfigError(
+                    f"--inject {text!r}: unknown parameter {name!r} for {kind} (known: {known})"
+                )
+            try:
+                params[name] = float(value)
+            except ValueError:
+                raise ConfigError(f"--inject {text!r}: {name}={value!r} is not a number") from None
+            if not math.isfinite(params[name]):
+                raise ConfigError(f"--inject {text!r}: {name} must be finite")
+        if kind == "localization-delay" and not params["delay"] > 0.0:
+            raise ConfigError(f"--inject {text!r}: delay must be positive")
+        return cls(kind, at, duration, params)
+
+    def __str__(self) -> str:
+        dur = "" if self.duration is None else f"+{self.duration:g}"
+        return f"{self.kind}@{self.at:g}{dur}"
+
+
+class InjectionSchedule:
+    """Arms :class:`EngagedInjection` s at the ECU's first engagement and logs them.
+
+    :meth:`on_tick` is called by the ECU loop after each step; ECU faults are handed to
+    :meth:`SimulatedEcu.inject` once the engagement time is known, localization faults are
+    asked for with :meth:`params`.
+
+    :param clock: the monotonic clock logged with each event (the gateway's clock)
+    """
+
+    def __init__(
+        self, injections: Iterable[EngagedInjection], clock: Callable[[], float] = time.perf_counter
+    ) -> None:
+        self.injections = tuple(injections)
+        self.clock = clock
+        self.engaged_at: float | None = None  # s, ECU time of the first engagement
+        self.events: list[dict[str, Any]] = []
+        self._started = [False] * len(self.injections)
+        self._ended = [False] * len(self.injections)
+
+    def _event(self, event: str, now: float, **extra: Any) -> dict[str, Any]:
+        record = {"event": event, "t": now, "mono": self.clock(), **extra}
+        self.events.append(record)
+        return record
+
+    def on_tick(self, now: float, ecu: SimulatedEcu) -> None:
+        """Arm at the first engagement; log each injection's start and end."""
+        if self.engaged_at is None:
+            if not ecu.engaged:
+                return
+            self.engaged_at = now
+            record = self._event("engaged", now)
+            log.info(
+                "ECU engaged at t=%.3f s (monotonic %.6f); %d injection(s) armed",
+                now,
+                record["mono"],
+                len(self.injections),
+            )
+            for inj in self.injections:
+                if inj.kind in ECU_INJECTION_KINDS:
+                    ecu.inject(inj.kind, now + inj.at, inj.duration, **inj.params)
+        if not self.injections:
+            return
+        engaged_at = self.engaged_at
+        for i, inj in enumerate(self.injections):
+            start = engaged_at + inj.at
+            if not self._started[i] and now >= start - _EPS:
+                self._started[i] = True
+                record = self._event("injection-start", now, kind=inj.kind, after_engage=inj.at)
+                log.info(
+                    "injection %s started %.3f s after engage (t=%.3f s, monotonic %.6f) %s",
+                    inj.kind,
+                    now - engaged_at,
+                    now,
+                    record["mono"],
+                    dict(inj.params),
+                )
+            end = start + inj.duration if inj.duration is not None else math.inf
+            if self._started[i] and not self._ended[i] and now >= end - _EPS:
+                self._ended[i] = True
+                record = self._event("injection-end", now, kind=inj.kind)
+                log.info(
+                    "injection %s ended (t=%.3f s, monotonic %.6f)", inj.kind, now, record["mono"]
+                )
+
+    def params(self, now: float, kind: str) -> Mapping[str, float] | None:
+        """The parameters of the last-given injection of ``kind`` active at ``now``, or None."""
+        if self.engaged_at is None:
+            return None
+        for inj in reversed(self.injections):
+            if inj.kind != kind:
+                continue
+            start = self.engaged_at + inj.at
+            end = start + inj.duration if inj.duration is not None else math.inf
+            if start - _EPS <= now < end - _EPS:
+                return inj.params
+        return None
+
+    def never_started(self) -> list[EngagedInjection]:
+        """The injections whose time had not come when the run ended."""
+        return [
+            inj for inj, started in zip(self.injections, self._started, strict=True) if not started
+        ]
+
+
+#: ``faults(now, kind)``: the active localization fault's parameters, or None.
+FaultLookup = Callable[[float, str], Mapping[str, float] | None]
 
 
 class LocalizationFeed:
@@ -44,20 +225,34 @@ class LocalizationFeed:
 
     ``on_tick`` is called by the ECU loop at its 1 kHz tick; it keeps a short history so the pose
     published is the one ``latency`` seconds old.
+
+    :param faults: asked each sample for the :data:`LOCALIZATION_FAULTS` that act now:
+        ``localization-stop`` publishes nothing, ``localization-jump`` offsets the position
+        (``lateral`` to the left of the heading, ``longitudinal`` ahead, m),
+        ``localization-delay`` publishes each sample ``delay`` s after its stamp (samples stay in
+        order: while delayed ones wait, later ones queue behind them)
     """
 
-    def __init__(self, publish: Any, cfg: LocalizationConfig) -> None:
+    def __init__(
+        self, publish: Any, cfg: LocalizationConfig, faults: FaultLookup | None = None
+    ) -> None:
         self._publish = publish  # callable(Pose)
         self.cfg = cfg
         self.period = 1.0 / cfg.rate_hz
         self._next = 0.0
         self._history: deque[tuple[float, Pose]] = deque()
         self._rng = np.random.default_rng(cfg.seed)
+        self._faults = faults
+        self._delayed: deque[tuple[float, Pose]] = deque()  # (due, pose with its stamp)
         self.published = 0
+        self.suppressed = 0  # samples not published (localization-stop)
         self.errors = 0
 
     def on_tick(self, now: float, ecu: SimulatedEcu) -> None:
         self._history.append((now, ecu.plant.pose()))
+        delayed = self._delayed
+        while delayed and delayed[0][0] <= now + _EPS:
+            self._send(delayed.popleft()[1])
         if now + 1e-9 < self._next:
             return
         self._next = max(self._next + self.period, now)
@@ -70,8 +265,28 @@ class LocalizationFeed:
             pose = dataclasses.replace(
                 pose, x=pose.x + nx, y=pose.y + ny, heading=pose.heading + nh
             )
+        pose = dataclasses.replace(pose, stamp=time.time() - self.cfg.latency)
+        faults = self._faults
+        if faults is not None:
+            if faults(now, "localization-stop") is not None:
+                self.suppressed += 1
+                return
+            jump = faults(now, "localization-jump")
+            if jump is not None:
+                c, s = math.cos(pose.heading), math.sin(pose.heading)
+                ahead, left = jump["longitudinal"], jump["lateral"]
+                pose = dataclasses.replace(
+                    pose, x=pose.x + ahead * c - left * s, y=pose.y + ahead * s + left * c
+                )
+            delay = faults(now, "localization-delay")
+            if delay is not None or delayed:
+                delayed.append((now + (delay["delay"] if delay is not None else 0.0), pose))
+                return
+        self._send(pose)
+
+    def _send(self, pose: Pose) -> None:
         try:
-            self._publish(dataclasses.replace(pose, stamp=time.time() - self.cfg.latency))
+            self._publish(pose)
             self.published += 1
         except LeafgateError as exc:  # a publication problem must not stop the ECU loop
             self.errors += 1
@@ -79,12 +294,18 @@ class LocalizationFeed:
 
 
 def run_sim_ecu(
-    cfg: LeafgateConfig, scenario: Scenario, stop: threading.Event, trace_path: str | None = None
+    cfg: LeafgateConfig,
+    scenario: Scenario,
+    stop: threading.Event,
+    trace_path: str | None = None,
+    injections: Sequence[EngagedInjection] = (),
 ) -> int:
     """The body of ``leafgate sim-ecu``: ECU + plant on the configured bus, localization on Zenoh.
 
-    :param trace_path: write the plant's states (t, x, y, heading, speed, steer_angle; SI) as CSV
-        there on exit, every 20 ms
+    :param trace_path: write the plant's states (t, x, y, heading, speed, steer_angle; SI, and
+        mono, the ``time.perf_counter`` of the tick) as CSV there on exit, every 20 ms, followed
+        by the injection events and the ECU's counters as ``# {json}`` comment lines
+    :param injections: faults armed at the ECU's first engagement
     """
     from leafgate.gateway.daemon import signals_set, tool_view
     from leafgate.transport.client import OdometryPublisher
@@ -94,10 +315,17 @@ def run_sim_ecu(
     session = open_session(zcfg)
     try:
         with OdometryPublisher(session, zcfg) as odom:
-            feed = LocalizationFeed(odom.publish, cfg.sim.localization)
+            schedule = InjectionSchedule(injections)
+            feed = LocalizationFeed(odom.publish, cfg.sim.localization, schedule.params)
             trace = _PlantTrace()
+            ecus: list[SimulatedEcu] = []
 
             def on_tick(now: float, ecu: SimulatedEcu) -> None:
+                if not ecus:
+                    ecus.append(ecu)
+                    # lateral-only vehicles: the simulated driver holds the planned speed
+                    ecu.set_driver_path(scenario.trajectory)
+                schedule.on_tick(now, ecu)
                 feed.on_tick(now, ecu)
                 if trace_path is not None:
                     trace.on_tick(now, ecu)
@@ -116,16 +344,31 @@ def run_sim_ecu(
                     stats = run_ecu_realtime(cfg, stop, start=scenario.start, on_tick=on_tick)
                 finally:
                     if trace_path is not None:
-                        trace.write_csv(trace_path)
+                        footer = [*schedule.events]
+                        if ecus:
+                            footer.append({"counters": dataclasses.asdict(ecus[0].counters)})
+                        trace.write_csv(trace_path, footer)
+            c = stats.counters
             log.info(
                 "simulated ECU stopped: %d ticks, %d frames sent, %d received, %d overruns; "
-                "%d poses published",
+                "%d command frames rejected (bad CRC %d, bad counter %d, length %d); "
+                "%d timeouts, %d overrides; %d poses published, %d suppressed",
                 stats.ticks,
                 stats.frames_sent,
                 stats.frames_received,
                 stats.overruns,
+                c.rx_errors,
+                c.bad_crc,
+                c.bad_counter,
+                c.wrong_length,
+                c.timeouts,
+                c.overrides,
                 feed.published,
+                feed.suppressed,
             )
+            for inj in schedule.never_started():
+                why = "the ECU never engaged" if schedule.engaged_at is None else "run ended first"
+                log.warning("injection %s never started (%s)", inj, why)
     finally:
         session.close()
     return 0
@@ -136,20 +379,24 @@ class _PlantTrace:
     """The plant's states, sampled by the ECU loop every 20 ms."""
 
     period: float = 0.02
-    rows: list[tuple[float, float, float, float, float, float]] = field(default_factory=list)
+    rows: list[tuple[float, float, float, float, float, float, float]] = field(default_factory=list)
     _next: float = 0.0
 
     def on_tick(self, now: float, ecu: SimulatedEcu) -> None:
         if now + 1e-9 >= self._next:
             self._next = now + self.period
             p = ecu.plant
-            self.rows.append((now, p.x, p.y, p.heading, p.speed, p.steer_angle))
+            mono = time.perf_counter()  # s, compares with the gateway's clock
+            self.rows.append((now, p.x, p.y, p.heading, p.speed, p.steer_angle, mono))
 
-    def write_csv(self, path: str) -> None:
+    def write_csv(self, path: str, footer: Iterable[Mapping[str, Any]] = ()) -> None:
+        """The rows, then each ``footer`` record as a ``# {json}`` line (numpy skips them)."""
         with open(path, "w", encoding="utf-8") as f:
-            f.write("t,x,y,heading,speed,steer_angle\n")
+            f.write("t,x,y,heading,speed,steer_angle,mono\n")
             for row in self.rows:
                 f.write(",".join(f"{v:.6f}" for v in row) + "\n")
+            for record in footer:
+                f.write("# " + json.dumps(record) + "\n")
 
 
 def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
@@ -199,7 +446,12 @@ def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
         ):
             feed = LocalizationFeed(odom.publish, cfg.sim.localization)
 
+            driving: list[SimulatedEcu] = []
+
             def on_tick(now: float, ecu: SimulatedEcu) -> None:
+                if not driving:  # lateral-only vehicles: the driver holds the planned speed
+                    driving.append(ecu)
+                    ecu.set_driver_path(scenario.trajectory)
                 feed.on_tick(now, ecu)
                 trace.on_tick(now, ecu)
 

@@ -1,0 +1,102 @@
+"""Localization faults across processes: the publisher stops, jumps 2 m, or runs 400 ms late.
+
+DESIGN's thresholds apply here (STOPPING above 100 ms of age, FAULT above 500 ms or a jump of
+more than 1 m in one sample); the bounds on the reaction add scheduling slack for a shared
+2-core machine, not a different threshold.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from harness import PROCESS_TEST, FaultRun, transitions
+
+from leafgate.messages import GatewayState
+
+pytestmark = PROCESS_TEST
+
+STOP_AGE = 0.1  # s, DESIGN: localization older than this → STOPPING
+FAULT_AGE = 0.5  # s, DESIGN: older than this → FAULT
+SLACK = 0.4  # s, scheduling noise of four processes on two cores
+MAX_SPEED = 2.0  # m/s, the s-curve's top speed
+STOP_TIME = MAX_SPEED / 1.5 + 1.5 / 2.0  # s, comfort stop (1.5 m/s²) after its jerk ramp (2 m/s³)
+
+
+def _drive_until(run: FaultRun, kind: str, states: set[GatewayState]) -> tuple[float, dict]:
+    """Engage, wait for the injection and the vehicle at rest; the injection time and status."""
+    with run.start():
+        run.engage()
+        run.wait_engaged()
+        run.wait_for(f"{kind} to start", lambda: run.injection_started(kind) is not None, 15)
+        run.wait_at_rest(states, timeout=15)
+        status = run.status()
+        run.shutdown()
+    injected = run.injection_started(kind)
+    assert injected is not None
+    return injected, status
+
+
+def test_localization_stop_stops_then_faults(make_run: Callable[..., FaultRun]) -> None:
+    run = make_run(
+        "localization stops",
+        injections=["localization-stop@3"],
+        localization_design_thresholds=True,
+    )
+    injected, status = _drive_until(run, "localization-stop", {GatewayState.FAULT})
+    outcome = run.outcome(injected, status=status)
+    outcome.report()
+
+    assert status["state"] == "FAULT"
+    assert "localization age" in status["reason"]
+    after = [t for t in transitions(run.recording_files()[1]) if t["time"] >= injected - 0.05]
+    assert [t["to"] for t in after[:2]] == ["STOPPING", "FAULT"], after
+    assert after[0]["time"] - injected <= STOP_AGE + SLACK
+    assert after[1]["time"] - injected <= FAULT_AGE + SLACK
+    assert outcome.reaction_s is not None and outcome.reaction_s <= STOP_AGE + SLACK
+    assert outcome.safe_state_s is not None
+    assert outcome.safe_state_s <= FAULT_AGE + STOP_TIME + 2 * SLACK
+    assert outcome.frames_missing == 0
+
+
+def test_localization_jump_of_2_m_faults(make_run: Callable[..., FaultRun]) -> None:
+    run = make_run(
+        "localization jumps 2 m",
+        injections=["localization-jump@3:lateral=2"],
+        localization_design_thresholds=True,
+    )
+    injected, status = _drive_until(run, "localization-jump", {GatewayState.FAULT})
+    outcome = run.outcome(injected, status=status)
+    outcome.report()
+
+    assert status["state"] == "FAULT"
+    assert "localization jumped 2.0" in status["reason"], status["reason"]
+    sample = 1.0 / float(run.cfg["sim"]["localization"]["rate_hz"])  # s, one publication
+    assert outcome.reaction_s is not None and outcome.reaction_s <= sample + SLACK
+    # FAULT brakes at stop.fault_decel (3 m/s²) with its jerk limit (5 m/s³)
+    assert outcome.safe_state_s is not None
+    assert outcome.safe_state_s <= sample + MAX_SPEED / 3.0 + 3.0 / 5.0 + 2 * SLACK
+
+
+def test_localization_400_ms_late_stops(make_run: Callable[..., FaultRun]) -> None:
+    """Each sample published 0.4 s after its stamp: the 0.4 s gap at the onset is > 100 ms.
+
+    The samples then arrive at the normal rate, only old; the gateway judges age by receive
+    time, so what it sees is the gap (a controlled stop, not a fault: the gap stays under
+    500 ms), after which the old-but-regular samples let the stop finish in STANDBY.
+    """
+    run = make_run(
+        "localization 400 ms late",
+        injections=["localization-delay@3:delay=0.4"],
+        localization_design_thresholds=True,
+    )
+    injected, status = _drive_until(run, "localization-delay", {GatewayState.STANDBY})
+    outcome = run.outcome(injected, status=status)
+    outcome.report()
+
+    assert status["state"] == "STANDBY"
+    assert "controlled stop (localization age" in status["reason"], status["reason"]
+    after = [t for t in transitions(run.recording_files()[1]) if t["time"] >= injected - 0.05]
+    assert [t["to"] for t in after] == ["STOPPING", "STANDBY"], after
+    assert outcome.reaction_s is not None and outcome.reaction_s <= STOP_AGE + SLACK
+    assert outcome.safe_state_s is not None and outcome.safe_state_s <= STOP_TIME + 2 * SLACK
+    assert outcome.frames_missing == 0
