@@ -102,7 +102,7 @@ def assert_consistent(codec: CanCodec, msg: can.Message, out: Decoded) -> None:
 def assert_counts_add_up(codec: CanCodec, fed: int, valid_per_id: dict[int, int]) -> None:
     """Every frame fed is counted once; per known ID, frames - errors = valid decodes."""
     stats = codec.stats
-    # an extended frame numbered like a known ID is counted under it, as unknown_id
+    # unknown_id counts appear only under unknown (or extended, ID | EXTENDED_KEY) keys
     in_known = sum(stats[i].frames - stats[i].unknown_id for i in KNOWN_IDS)
     assert in_known + codec.unknown_id_count == fed
     for frame_id in KNOWN_IDS:

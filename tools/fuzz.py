@@ -532,6 +532,7 @@ class CanReceiverTarget(CanCodecTarget):
             "bad_crc",
             "bad_counter",
             "wrong_length",
+            "decode_error",  # content outside its value table counts against the ECU too
         ):
             self.counted += 1
         for slot, kind in (
