@@ -475,9 +475,14 @@ class Observer:
         self.publisher.close()
 
 
-def _start(args: Sequence[str], log: Path) -> subprocess.Popen[bytes]:
+def _start(
+    args: Sequence[str], log: Path, rt_priority: int | None = None
+) -> subprocess.Popen[bytes]:
+    """Start a leafgate command; under SCHED_FIFO at ``rt_priority`` (``chrt -f``) when given,
+    as ``tools/leafgate.service`` runs the daemon on the car."""
+    prefix = ["chrt", "-f", str(rt_priority)] if rt_priority is not None else []
     return subprocess.Popen(
-        [*CLI, *args], stdout=log.open("wb"), stderr=subprocess.STDOUT, cwd=ROOT
+        [*prefix, *CLI, *args], stdout=log.open("wb"), stderr=subprocess.STDOUT, cwd=ROOT
     )
 
 
@@ -601,8 +606,9 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         system_id,
     )
     first = args.scenarios[0]
-    ecu = _start(["sim-ecu", "--config", str(config), "--scenario", first], workdir / "ecu.log")
-    daemon = _start(["run", "--config", str(config)], workdir / "gateway.log")
+    rt = args.rt_priority
+    ecu = _start(["sim-ecu", "--config", str(config), "--scenario", first], workdir / "ecu.log", rt)
+    daemon = _start(["run", "--config", str(config)], workdir / "gateway.log", rt)
     session = open_session(zcfg)
     observer = Observer(session, zcfg)
     driver = Driver(observer, zcfg, session, args.scenarios)
@@ -699,6 +705,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
         "load_average_start": [round(v, 2) for v in load_before],
         "load_average_end": [round(v, 2) for v in os.getloadavg()],
         "cpus": os.cpu_count(),
+        "rt_priority": args.rt_priority,
         "logs": str(workdir),
     }
     return current_report(end - start, final)
@@ -720,6 +727,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--max-growth-mb", type=float, default=20.0)
     parser.add_argument("--out", help="also write the JSON report here")
     parser.add_argument("--no-fail", action="store_true", help="exit 0 whatever the goals")
+    parser.add_argument(
+        "--rt-priority",
+        type=int,
+        metavar="N",
+        help="run the gateway and the simulated ECU under SCHED_FIFO priority N (chrt -f), as "
+        "tools/leafgate.service runs the daemon on the car (needs CAP_SYS_NICE)",
+    )
     args = parser.parse_args(argv)
     report = run_soak(args)
     text = json.dumps(report, indent=2)
