@@ -352,3 +352,14 @@ def test_every_profile_decodes_random_frames_without_raising(
         assert decoded.valid == (decoded.error is None)
         assert decoded.valid or not decoded.values or decoded.error in ("bad_crc", "bad_counter")
     assert sum(s.frames for s in codec.stats.values()) == len(frames)
+
+
+@pytest.mark.slow
+def test_ze1_driver_steering_is_an_override_not_a_fault() -> None:
+    from leafgate.sim.runner import Injection
+
+    cfg = with_profile(LeafgateConfig(), "leaf-ze1-lkas")
+    result = run(cfg, get_scenario("s-curve"), injections=(Injection.parse("override@8"),))
+    events = [event for _, event in result.timeline]
+    assert any("ENGAGED → STANDBY: driver override" in e for e in events), events
+    assert not any("FAULT" in e for e in events), events

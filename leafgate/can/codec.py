@@ -500,12 +500,13 @@ def _compile_decoder(
             elif isinstance(field_type, type) and issubclass(field_type, enum.Enum):
                 namespace[field_type.__name__] = field_type
             fields[src][attr] = _typed(field_type, si, conv)
+    derived = profile.derived if spec.direction == "report" else {}
     out = []
     for src, attrs in fields.items():
         cls = sources[src]
         namespace[cls.__name__] = cls
         all_fields = [f.name for f in dataclasses.fields(cls)]
-        complete = set(attrs) == set(all_fields) and src not in shared
+        complete = set(attrs) == set(all_fields) and src not in shared and src not in derived
         if complete:
             args = ", ".join(f"{a}={attrs[a]}" for a in all_fields)
             if src in spec.refreshes:
@@ -516,6 +517,8 @@ def _compile_decoder(
         for attr, expr in attrs.items():
             lines.append(f"    d_{src}[{attr!r}] = {expr}")
         if src in spec.refreshes:
+            for flag, source_field, above in derived.get(src, ()):  # |field| > threshold
+                lines.append(f"    d_{src}[{flag!r}] = abs(d_{src}[{source_field!r}]) > {above!r}")
             lines.append(f"    v_{src} = {cls.__name__}(**d_{src})")
             out.append(f"v_{src}")
     lines.append(f"    return ({', '.join(out)}{',' if out else ''})")

@@ -196,6 +196,10 @@ class Profile:
     frames: tuple[FrameSpec, ...]
     defaults: Mapping[str, Mapping[str, Mapping[str, Any]]]  # direction → source → attr → value
     steer_rate: SteerRateTable | None = None
+    # report source → flags derived from a field: (flag, field, threshold) = |field| > threshold
+    derived: Mapping[str, tuple[tuple[str, str, float], ...]] = dataclasses.field(
+        default_factory=dict
+    )
 
     def frame(self, name: str) -> FrameSpec:
         """The frame spec of a DBC message name.
@@ -322,6 +326,7 @@ def _load_profile(name_or_path: str, vehicle: VehicleConfig) -> Profile:
             "protection",
             "capabilities",
             "defaults",
+            "derived",
             "commands",
             "reports",
             "safety",
@@ -360,6 +365,7 @@ def _load_profile(name_or_path: str, vehicle: VehicleConfig) -> Profile:
     if not any(f.direction == "command" for f in frames):
         raise r.fail("commands", "a profile needs at least one command frame")
     defaults = _defaults(r, doc.get("defaults", {}))
+    derived = _derived(r, doc.get("derived", {}))
     steer_rate = _steer_rate(r, doc.get("safety"), vehicle)
     profile = Profile(
         name=name,
@@ -371,6 +377,7 @@ def _load_profile(name_or_path: str, vehicle: VehicleConfig) -> Profile:
         frames=tuple(frames),
         defaults=defaults,
         steer_rate=steer_rate,
+        derived=derived,
     )
     return profile
 
@@ -543,6 +550,35 @@ def _defaults(r: _Reader, raw: Any) -> Mapping[str, Mapping[str, Mapping[str, An
                     raise r.fail(where, f"{cls.__name__} has no field {attr!r}")
                 values[attr] = _coerce(r, types[attr], value, where)
             out[direction][source] = values
+    return out
+
+
+def _derived(r: _Reader, raw: Any) -> Mapping[str, tuple[tuple[str, str, float], ...]]:
+    """``derived``: report flags a car does not send, from a field it does.
+
+    ``steer: {override: {field: driver_torque, above: 1.0}}`` sets ``override`` whenever
+    ``|driver_torque|`` exceeds 1.0 (as opendbc reads a ZE1 driver steering from 0x185).
+    """
+    doc = r.mapping(raw, "derived")
+    out: dict[str, tuple[tuple[str, str, float], ...]] = {}
+    for source, flags in doc.items():
+        key = f"derived.{source}"
+        cls = REPORT_SOURCES.get(source)
+        if cls is None:
+            raise r.fail(key, f"unknown report source (known: {', '.join(REPORT_SOURCES)})")
+        types = _field_types(cls)
+        rules = []
+        for flag, rule in r.mapping(flags, key).items():
+            where = f"{key}.{flag}"
+            if types.get(flag) is not bool:
+                raise r.fail(where, f"{cls.__name__}.{flag} is not a flag")
+            spec = r.mapping(rule, where)
+            r.keys(spec, where, ("field", "above"))
+            field = spec.get("field")
+            if field not in types or types[field] is bool:
+                raise r.fail(f"{where}.field", f"{cls.__name__} has no number field {field!r}")
+            rules.append((str(flag), str(field), r.number(spec.get("above"), f"{where}.above")))
+        out[str(source)] = tuple(rules)
     return out
 
 
