@@ -4,9 +4,11 @@ The gateway and the simulated ECU each own a :class:`CanCodec`; it holds the ali
 of the frames it sends and the counter state of the frames it receives, so two instances
 never share E2E state.
 
-The DBC files are the truth for every layout: the codec finds frames and signals by *name*
-(``DBW_STEER_CMD.STEER_ANGLE_CMD``) and reads IDs, bit positions and scales from the
-databases. Units: SI inside leafgate; degrees, km/h and rpm exist only in the DBC and are
+The DBC files are the truth for every layout, and the vehicle profile
+(:mod:`leafgate.can.profile`) says which frames and signals carry which message fields: the
+codec finds frames and signals by *name* (``DBW_STEER_CMD.STEER_ANGLE_CMD``), reads IDs, bit
+positions and scales from the databases, and the units, scales and counter/checksum scheme
+from the profile. Units: SI inside leafgate; degrees and km/h exist only in the DBC and are
 converted here.
 
 * :meth:`CanCodec.encode` is strict: a value outside the DBC's range, or not finite, raises
