@@ -954,14 +954,19 @@ _FILE_LEVEL = (
 )
 
 
-def check_file_message(message: str, path: Path) -> None:
-    """A trajectory file error: one line, starts with the file, names the row/line if any."""
+def after_file(message: str, path: Path) -> str:
+    """What a file error says after ``"{path}: "``; a Failure unless it is one such line."""
     if "\n" in message:
         raise Failure(f"multi-line message: {message!r}")
     prefix = f"{path}: "
     if not message.startswith(prefix):
         raise Failure(f"message does not start with the file: {message!r}")
-    rest = message[len(prefix) :]
+    return message[len(prefix) :]
+
+
+def check_file_message(message: str, path: Path) -> None:
+    """A trajectory file error: one line, starts with the file, names the row/line if any."""
+    rest = after_file(message, path)
     if _LOCATION.search(rest) or any(text in rest for text in _FILE_LEVEL):
         return
     if re.match(r"(x|y|heading|speed): expected a list", rest):  # a key of the YAML mapping
@@ -1095,12 +1100,7 @@ class ConfigFileTarget(FileTarget):
         return True
 
     def _check_message(self, message: str, path: Path, case: ConfigCase) -> None:
-        if "\n" in message:
-            raise Failure(f"multi-line message: {message!r}")
-        prefix = f"{path}: "
-        if not message.startswith(prefix):
-            raise Failure(f"message does not start with the file: {message!r}")
-        rest = message[len(prefix) :]
+        rest = after_file(message, path)
         if re.match(r"(invalid YAML|not UTF-8|cannot read)", rest):
             if not _LOCATION.search(rest) and "line" not in rest:
                 raise Failure(f"YAML error without a line: {message!r}")

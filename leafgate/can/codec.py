@@ -172,7 +172,17 @@ class Decoded:
     error: ErrorKind | None
     values: tuple[object, ...] = ()  # every message the frame refreshes (``value`` is the first)
 
+    @property
+    def counts_for_reports(self) -> bool:
+        """Whether the frame counts in the gateway's report error counter (DESIGN, panda
+        style): it refreshed an ECU report, or a frame of a known ID was bad (checksum,
+        counter, length, or content outside its value table)."""
+        if self.error is not None:
+            return self.error != "unknown_id"
+        return any(isinstance(v, _ECU_REPORTS) for v in self.values)
 
+
+_ECU_REPORTS: Final = (SteerReport, LongReport, SystemReport)
 _COUNTER_OK: Final = e2e.CounterStatus.OK
 _COUNTER_FIRST: Final = e2e.CounterStatus.FIRST
 
@@ -1044,7 +1054,7 @@ class CanCodec:
                     status = self._rx_counters.check(frame_id, entry.counter(data))
                     if status is not _COUNTER_OK and status is not _COUNTER_FIRST:
                         error = "bad_counter"
-            latest = self._latest["command" if entry.direction == "command" else "report"]
+            latest = self._latest[entry.direction]
             if error is not None:  # decoded for the log only: fold nothing into the state
                 latest = {src: dict(fields) for src, fields in latest.items()}
             try:

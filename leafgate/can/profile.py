@@ -52,7 +52,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Final, Literal
 
-from leafgate.config import VehicleConfig, load_yaml
+from leafgate.config import VehicleConfig, load_yaml, safe_load_yaml
 from leafgate.errors import ConfigError
 from leafgate.messages import (
     GearPosition,
@@ -304,12 +304,8 @@ def _load_profile(name_or_path: str, vehicle: VehicleConfig) -> Profile:
     """
     where, path = _resolve_profile_path(name_or_path)
     if path is None:
-        text = (
-            resources.files("leafgate") / "data" / "profiles" / f"{name_or_path}.yaml"
-        ).read_text(encoding="utf-8")
-        import yaml
-
-        raw = yaml.safe_load(text)
+        resource = resources.files("leafgate") / "data" / "profiles" / f"{name_or_path}.yaml"
+        raw = safe_load_yaml(resource.read_text(encoding="utf-8"))
         base_dir = None
     else:
         raw = load_yaml(path)

@@ -210,10 +210,7 @@ class CanReceiver(can.Listener):
         if self.on_frame is not None:
             self.on_frame(msg, decoded)
         values = decoded.values  # a frame may refresh several messages
-        is_report = any(isinstance(v, (SteerReport, LongReport, SystemReport)) for v in values)
-        # Bad frames of known IDs count against the report error counter; so does content
-        # that decodes to no report (a code outside its table) despite a good CRC.
-        if is_report or decoded.error in ("bad_crc", "bad_counter", "wrong_length", "decode_error"):
+        if decoded.counts_for_reports:
             with self._lock:
                 if decoded.valid:
                     self._good += 1

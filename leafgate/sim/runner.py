@@ -231,11 +231,6 @@ class _Slots:
         return counts
 
 
-def _is_report(values: tuple[object, ...]) -> bool:
-    """Whether a decoded frame refreshed one of the ECU reports the gateway watches."""
-    return any(isinstance(v, (SteerReport, LongReport, SystemReport)) for v in values)
-
-
 def run(
     config: LeafgateConfig,
     scenario: Scenario,
@@ -309,12 +304,7 @@ def run(
                 if recorder is not None:  # recording: every frame the gateway receives
                     recorder.on_can_frame(rx, "rx")
                 decoded = gw_codec.decode(rx)
-                value = decoded.value
-                if _is_report(decoded.values) or decoded.error in (
-                    "bad_crc",
-                    "bad_counter",
-                    "wrong_length",
-                ):
+                if decoded.counts_for_reports:
                     if decoded.valid:
                         slots.good += 1
                     else:
