@@ -144,7 +144,11 @@ def test_non_finite_input_is_a_status_not_an_exception(pose: Pose, steer: float)
 def test_bad_trajectory_is_a_status_not_an_exception() -> None:
     bad = Trajectory(x=[0.0, 0.5, 0.5, 1.0], y=[0.0] * 4, heading=[0.0] * 4, speed=[1.0] * 4)
     out = _controller().step(Pose(0.0, 0.0, 0.0, 0.0), 0.0, bad)
-    assert not out.converged and out.status == "bad-trajectory"
+    # the reason the controller found is shown, not only stored (issue 13)
+    assert not out.converged
+    assert out.status == (
+        "bad-trajectory: trajectory: 3 waypoint(s) (1 overlapping removed), at least 4 are needed"
+    )
 
 
 def test_reverse_segment_asks_for_reverse_gear_and_brakes_positive() -> None:
