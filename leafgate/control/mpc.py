@@ -11,8 +11,9 @@ Each control tick:
    why the frame is path-aligned and why ``x`` is an output);
 3. prediction ``Y = F x + S ΔU`` (eq. 22–26) and the QP ``½ΔUᵀEΔU + ΔUᵀf, MΔU ≤ γ``
    (eq. 28–31) with output weights ``Q`` and input-change weights ``R̄``;
-4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else Hildreth or
-   OSQP — and apply the first move, clipped to the hard limits whatever the solver returned.
+4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else DAQP (the
+   default), Hildreth or OSQP — and apply the first move, clipped to the hard limits whatever
+   the solver returned.
 
 **Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: the
 kinematic model's ``S`` and free response come in closed form (:class:`~leafgate.control.
@@ -90,7 +91,7 @@ from leafgate.control.model import (
     steer_lag_factor,
     steer_lag_increment,
 )
-from leafgate.control.qp import OsqpBackend, QpResult, hildreth
+from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
 from leafgate.control.reference import (
     Progress,
     ReferencePath,
@@ -172,6 +173,7 @@ class MpcController:
         self._no_multipliers = np.zeros(self.M.shape[0])
         self._no_multipliers.setflags(write=False)
         self._osqp: OsqpBackend | None = None
+        self._daqp = DaqpBackend(self.M) if cfg.solver == "daqp" else None
         if cfg.solver == "osqp":
             E0 = np.eye(Nc * m)
             self._osqp = OsqpBackend(E0, self.M, eps=cfg.osqp_tolerance)
@@ -544,7 +546,8 @@ class MpcController:
         )
 
     def _solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
-        """Eq. 29 when it satisfies every constraint, else the configured QP backend.
+        """Eq. 29 when it satisfies every constraint, else the configured QP backend (DAQP,
+        OSQP or Hildreth).
 
         ``E`` is factored once (Cholesky); the factor gives the unconstrained optimum and is
         reused by Hildreth for ``E⁻¹Mᵀ`` on its working set.
@@ -556,6 +559,8 @@ class MpcController:
         if (self.M @ x_unc <= gamma).all():
             self._lam = None
             return QpResult(x_unc, True, 0, self._no_multipliers)
+        if self._daqp is not None:
+            return self._daqp.solve(E, f, gamma)
         if self._osqp is not None:
             return self._osqp.solve(E, f, gamma)
         result = hildreth(
