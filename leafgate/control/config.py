@@ -69,6 +69,16 @@ class MpcConfig:
     # (≈ the time constant of the vehicle's speed loop, 1/kp with kp ≈ 1.2–1.5 1/s)
     delay_compensation: float = 0.0  # s, predict the pose this far over the last command
 
+    # offset-free tracking (leafgate.control.disturbance): constant input disturbances
+    # estimated from the measured increments; 0 switches an estimate off
+    disturbance_tau_steer: float = 1.0  # s, filter of the steering misalignment estimate
+    disturbance_tau_accel: float = 2.0  # s, filter of the drag / incline estimate
+
+    # speed bounds: the MPC never asks for more than the plan's speed plus a margin, nor for
+    # more than the maneuver limit (so the safety gate's speed clamp is never needed)
+    speed_margin: float = 0.2  # m/s, above the plan's speed
+    max_speed: float = 3.0  # m/s, the maneuver limit (the gateway's safety.max_speed)
+
     # steering actuator (model "kinematic_steer_lag")
     steer_tau: float = 0.3  # s, first-order lag of the road-wheel angle
     steer_dead_time: float = 0.1  # s, pure delay of the steering actuator
@@ -108,6 +118,11 @@ class MpcConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        for name in ("disturbance_tau_steer", "disturbance_tau_accel", "speed_margin"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        positive(self, "max_speed")
         for name in ("delay_compensation", "steer_dead_time"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):
