@@ -624,13 +624,14 @@ class MpcController:
         """The acceleration command within the speed bound ``v_cap`` (m/s, > 0).
 
         ``speed`` is in the driving direction. Below the bound the acceleration in the driving
-        direction is at most ``√(2 j (v_cap − v))`` — what the jerk limit ``j`` can take back
-        to zero before the bound is reached; above it, the car slows at ``(v − v_cap) / 0.5 s``.
+        direction is at most ``√(j (v_cap − v))`` — half the jerk ``j`` that the limit allows
+        for taking it back to zero before the bound is reached, so the delay of a tick or two
+        does not carry the car over it; above it, the car slows at ``(v − v_cap) / 0.5 s``.
         The jerk bound of this tick still holds (the command never drops faster than it).
         """
         jerk = self.cfg.jerk_max
         excess = speed - v_cap
-        bound = math.sqrt(2.0 * jerk * -excess) if excess < 0.0 else -excess / _GOVERN_TIME
+        bound = math.sqrt(jerk * -excess) if excess < 0.0 else -excess / _GOVERN_TIME
         a_dir = direction * accel
         if a_dir <= bound:
             return accel
