@@ -271,3 +271,33 @@ def test_car_config_uses_the_steering_aware_model_and_holds_a_corner_with_lag() 
     result = run_direct(cfg, routes.scenario("corner", routes.corner()))
     assert result.metrics["finished"]
     assert result.metrics["lateral_error_max_m"] <= 0.15
+
+
+# --- standing starts anywhere in the engage envelope ---------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["s-curve", "perpendicular-park"])
+@pytest.mark.parametrize(("offset", "heading_deg"), [(-0.9, -25.0), (0.9, 25.0), (0.9, -25.0)])
+def test_envelope_start_completes_with_the_default_solver(
+    scenario: str, offset: float, heading_deg: float
+) -> None:
+    """Old code (Hildreth, 100-sweep cap): 17 of 20 such runs hit the cap at least once, and
+    the gateway stops the car on any unconverged solve."""
+    import dataclasses
+
+    from leafgate.sim.scenarios import get_scenario
+
+    s = get_scenario(scenario)
+    h = s.start.heading
+    start = Pose(
+        s.start.x - offset * math.sin(h),
+        s.start.y + offset * math.cos(h),
+        h + math.radians(heading_deg),
+        0.0,
+    )
+    assert MpcConfig().solver == "daqp"
+    result = run_direct(LeafgateConfig(), dataclasses.replace(s, start=start))
+    assert result.metrics["solver_not_converged"] == 0
+    assert result.metrics["finished"]
+    assert result.metrics["final_position_error_m"] <= 0.05
