@@ -21,7 +21,7 @@ from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.config import PlantConfig, SimConfig
 from leafgate.sim.plant import STANDSTILL_SPEED, KinematicPlant, gear_direction, make_plant
 from leafgate.sim.runner import run_direct
-from tests import route_shapes as routes
+from tests import routes
 
 PERIOD = 0.02
 FEASIBLE = {
