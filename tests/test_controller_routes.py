@@ -301,23 +301,3 @@ def test_envelope_start_completes_with_the_default_solver(
     assert result.metrics["solver_not_converged"] == 0
     assert result.metrics["finished"]
     assert result.metrics["final_position_error_m"] <= 0.05
-
-
-def test_a_stop_just_short_of_a_cusp_ends_the_segment() -> None:
-    """A stop 1 mm before the cusp's end line, 0.5 m aside: the progress is at the end, so the
-    next segment starts (the old half-plane test held the car there for good)."""
-    traj = routes.with_reverse(routes.leg([(6.0, 0.0)]), [(4.0, 0.0)])
-    path = ReferencePath(traj)
-    prog = Progress(path, window=20)
-    end = path.segments[0].end
-    for i in range(end):
-        prog.update(float(traj.x[i]), 0.5, 0.0)
-    prog.update(float(traj.x[end]) - 0.001, 0.5, 0.0)
-    assert not prog.passed and not prog.at_end(float(traj.x[end]) - 0.001, 0.5, 0.15)
-    assert prog.ended(float(traj.x[end]) - 0.001, 0.5, 0.15)
-    assert prog.next_segment() and prog.segment.direction == -1
-    # the last segment needs the goal tolerance: progress alone does not finish the route
-    for i in range(prog.segment.start, prog.segment.end + 1):
-        prog.update(float(traj.x[i]), 0.5, 0.0)
-    assert not prog.ended(float(traj.x[-1]), 0.5, 0.15)
-    assert prog.ended(float(traj.x[-1]), 0.05, 0.15)

@@ -10,6 +10,7 @@ import pytest
 import yaml
 
 from leafgate.control.reference import (
+    Progress,
     ReferencePath,
     _interp_scalar,
     load_trajectory,
@@ -19,6 +20,7 @@ from leafgate.control.reference import (
 )
 from leafgate.errors import TrajectoryError
 from leafgate.messages import Trajectory
+from tests import routes
 
 GOOD_ROWS = [(0.5 * i, 0.0, 0.0, 1.0) for i in range(8)]
 
@@ -277,3 +279,23 @@ def test_scalar_interpolation_is_numpys_bit_for_bit() -> None:
         queries = np.concatenate((rng.uniform(xp[0] - 1.0, xp[-1] + 1.0, 500), xp))
         got = [_interp_scalar(float(x), xp.tolist(), fp.tolist()) for x in queries]
         np.testing.assert_array_equal(got, np.interp(queries, xp, fp))
+
+
+def test_a_stop_just_short_of_a_cusp_ends_the_segment() -> None:
+    """A stop 1 mm before the cusp's end line, 0.5 m aside: the progress is at the end, so the
+    next segment starts (the old half-plane test held the car there for good)."""
+    traj = routes.with_reverse(routes.leg([(6.0, 0.0)]), [(4.0, 0.0)])
+    path = ReferencePath(traj)
+    prog = Progress(path, window=20)
+    end = path.segments[0].end
+    for i in range(end):
+        prog.update(float(traj.x[i]), 0.5, 0.0)
+    prog.update(float(traj.x[end]) - 0.001, 0.5, 0.0)
+    assert not prog.passed and not prog.at_end(float(traj.x[end]) - 0.001, 0.5, 0.15)
+    assert prog.ended(float(traj.x[end]) - 0.001, 0.5, 0.15)
+    assert prog.next_segment() and prog.segment.direction == -1
+    # the last segment needs the goal tolerance: progress alone does not finish the route
+    for i in range(prog.segment.start, prog.segment.end + 1):
+        prog.update(float(traj.x[i]), 0.5, 0.0)
+    assert not prog.ended(float(traj.x[-1]), 0.5, 0.15)
+    assert prog.ended(float(traj.x[-1]), 0.05, 0.15)
