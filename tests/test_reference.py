@@ -14,7 +14,6 @@ from leafgate.control.reference import (
     ReferencePath,
     _interp_scalar,
     load_trajectory,
-    nearest_index,
     split_segments,
     validate,
 )
@@ -136,23 +135,6 @@ def test_spacing_is_reported() -> None:
 # --- nearest point ---
 
 
-def test_nearest_index_searches_forward_within_a_window() -> None:
-    traj = _line(100)
-    assert nearest_index(traj, 10.1, 0.3, start=15, window=20) == 20
-    # the point at x = 40 m is out of the window from 15: the search stops at the window's end
-    assert nearest_index(traj, 40.0, 0.0, start=15, window=20) == 33
-
-
-def test_nearest_index_ignores_an_earlier_pass_over_the_same_place() -> None:
-    """A loop: waypoints 0 and 40 are at the same place; from index 35 it must find 40."""
-    angle = np.linspace(0.0, 2 * math.pi, 41)
-    traj = Trajectory(
-        x=10 * np.cos(angle), y=10 * np.sin(angle), heading=angle + math.pi / 2, speed=np.ones(41)
-    )
-    assert nearest_index(traj, 10.0, 0.0, start=35, window=10) == 40
-    assert nearest_index(traj, 10.0, 0.0, start=0, window=10) == 0
-
-
 # --- segments and resampling ---
 
 
@@ -236,18 +218,6 @@ def _parking_like() -> Trajectory:
         heading=heading,
         speed=speed,
     )
-
-
-def test_path_nearest_index_is_the_functions() -> None:
-    traj = _parking_like()
-    path = ReferencePath(traj)
-    rng = np.random.default_rng(4)
-    for _ in range(300):
-        start = int(rng.integers(0, len(traj)))
-        x, y = traj.x[start] + rng.normal(0, 0.7), traj.y[start] + rng.normal(0, 0.7)
-        window, stop = int(rng.integers(1, 25)), int(rng.integers(0, len(traj)))
-        expected = nearest_index(traj, x, y, start, window=window, stop=stop)
-        assert path.nearest_index(x, y, start, window=window, stop=stop) == expected
 
 
 def test_horizon_is_sample_of_horizon_arclength_and_reference_speed() -> None:
