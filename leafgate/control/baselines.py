@@ -40,6 +40,8 @@ import numpy as np
 from leafgate.config import VehicleConfig, positive
 from leafgate.control.reference import ReferencePath, Segment, nearest_index, validate
 from leafgate.errors import TrajectoryError
+from leafgate.geometry import clip_abs as _clip
+from leafgate.geometry import wrap_angle as _wrap
 from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
 
 __all__ = [
@@ -442,11 +444,3 @@ class Stanley(_Tracker):
         error = -(fx - px) * math.sin(tangent) + (fy - py) * math.cos(tangent)
         heading_error = _wrap(tangent - travel)
         return heading_error + math.atan2(cfg.gain * -error, cfg.softening + abs(pose.speed))
-
-
-def _clip(value: float, limit: float) -> float:
-    return min(max(value, -limit), limit)
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi

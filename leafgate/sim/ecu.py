@@ -54,6 +54,7 @@ from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.config import VehicleConfig
 from leafgate.errors import LeafgateError
+from leafgate.geometry import clip_abs as _clip
 from leafgate.messages import (
     EcuState,
     Gear,
@@ -587,10 +588,6 @@ class SimulatedEcu:
             data = bytes(broken)
         msg.data = bytearray(data)
         return msg
-
-
-def _clip(value: float, limit: float) -> float:
-    return min(max(value, -limit), limit)
 
 
 # --- the real-time process body ---------------------------------------------------------------
