@@ -91,9 +91,6 @@ from leafgate.control.model import (
 from leafgate.control.qp import OsqpBackend, QpResult, hildreth
 from leafgate.control.reference import ReferencePath, Segment, validate
 from leafgate.errors import TrajectoryError
-from leafgate.geometry import clip as _clamp
-from leafgate.geometry import clip_abs as _clip
-from leafgate.geometry import wrap_angle as _wrap
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
 _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a clip (solver
@@ -620,3 +617,15 @@ class MpcController:
             status="finished",
             solve_time=time.perf_counter() - t0,
         )
+
+
+def _clamp(value: float, lo: float, hi: float) -> float:
+    return lo if value < lo else hi if value > hi else value
+
+
+def _clip(value: float, limit: float) -> float:
+    return min(max(value, -limit), limit)
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi

@@ -10,9 +10,6 @@ Two backends return the same :class:`QpResult`:
 - :class:`OsqpBackend` — OSQP set up once with a fixed sparsity pattern, then updated in place
   and warm-started every cycle.
 
-:func:`qphild` is Wang's textbook procedure, line for line: the slow reference the tests hold
-the accelerated :func:`hildreth` to, not a backend.
-
 Neither raises on a hard problem: non-convergence is reported in :attr:`QpResult.converged`.
 """
 

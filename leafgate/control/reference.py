@@ -514,3 +514,8 @@ def _interp_scalar(x: float, xp: list[float], fp: list[float]) -> float:
     if xp[j] == x:
         return fp[j]
     return (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) * (x - xp[j]) + fp[j]
+
+
+def wrap_angle(angle: float) -> float:
+    """Wrap to [−π, π)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi

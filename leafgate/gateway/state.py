@@ -19,7 +19,6 @@ import numpy as np
 
 from leafgate.gateway.config import EngageConfig
 from leafgate.gateway.watchdog import Status, WatchdogReport, ecu_fault
-from leafgate.geometry import wrap_angle
 from leafgate.messages import EcuState, GatewayState, Pose, Trajectory
 
 
@@ -91,6 +90,11 @@ class EngageReply:
     def to_dict(self) -> dict[str, Any]:
         """The JSON reply ``{accepted, state, reason}``."""
         return {"accepted": self.accepted, "state": self.state.name, "reason": self.reason}
+
+
+def wrap_angle(angle: float) -> float:
+    """Angle wrapped to [−π, π), rad."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def path_deviation(pose: Pose, trajectory: Trajectory) -> tuple[float, float]:

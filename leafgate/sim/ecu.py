@@ -54,7 +54,6 @@ from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.config import VehicleConfig
 from leafgate.errors import InjectionError, LeafgateError
-from leafgate.geometry import clip_abs as _clip
 from leafgate.messages import (
     EcuState,
     Gear,
@@ -584,6 +583,10 @@ class SimulatedEcu:
             data = bytes(broken)
         msg.data = bytearray(data)
         return msg
+
+
+def _clip(value: float, limit: float) -> float:
+    return min(max(value, -limit), limit)
 
 
 # --- the real-time process body ---------------------------------------------------------------

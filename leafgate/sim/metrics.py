@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from leafgate.geometry import wrap_angle
 from leafgate.messages import FloatArray, Trajectory
 
 STEER_RATE_DEADBAND = 0.01  # rad/s, rate changes smaller than this are not a sign change
@@ -22,6 +21,10 @@ class PathErrors:
     lateral: FloatArray  # m, signed cross-track error (left of the path positive)
     heading: FloatArray  # rad, wrapped to (−π, π]
     speed_ref: FloatArray  # m/s, reference speed at the projection
+
+
+def wrap_angle(angle: FloatArray | float) -> FloatArray:
+    return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
 
 
 PROJECTION_WINDOW = 40  # segments ahead the projection may move per sample (20 m at 0.5 m)
