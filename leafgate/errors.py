@@ -31,3 +31,18 @@ class TransportError(LeafgateError):
 
 class ReplayError(LeafgateError):
     """A recorded log or session could not be read."""
+
+
+class PayloadError(TransportError):
+    """A payload could not be decoded (truncated, malformed, wrong type or bad values).
+
+    Raised inside the codecs only; subscribers catch it, count it per key and drop the sample.
+    """
+
+
+class InjectionError(LeafgateError, ValueError):
+    """An injected driver action or fault (simulator) is unknown or has bad parameters."""
+
+
+# leafgate.can.codec.EncodeError(CanCodecError, cantools.database.EncodeError) stays beside the
+# codec: it also derives from cantools' class, and this module imports nothing.

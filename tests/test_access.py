@@ -19,7 +19,6 @@ import json
 import random
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -39,6 +38,7 @@ from leafgate.transport.client import OdometryPublisher, TrajectoryPublisher
 from leafgate.transport.config import ZenohConfig
 from leafgate.transport.node import GatewayTransport
 from leafgate.transport.session import build_config, open_session
+from tests.conftest import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 SECURE = ROOT / "config" / "zenoh" / "secure.json5"
@@ -54,12 +54,6 @@ pytestmark = [
         OPENSSL is None, reason="the openssl command is needed to make certificates"
     ),
 ]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def openssl(*args: str, cwd: Path) -> None:

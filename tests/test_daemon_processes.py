@@ -12,7 +12,6 @@ import json
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -29,28 +28,12 @@ from leafgate.can.codec import CanCodec
 from leafgate.messages import EcuState, SteerCommand, SystemReport
 from leafgate.sim.metrics import tracking_metrics
 from leafgate.sim.scenarios import get_scenario
+from tests.conftest import free_port, udp_multicast_works
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "leafgate.cli"]
 
 pytestmark = pytest.mark.slow
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def udp_multicast_works() -> bool:
-    try:
-        import msgpack  # noqa: F401  (python-can's udp_multicast needs it)
-
-        bus = can.Bus(interface="udp_multicast", channel="239.74.163.250", port=free_port())
-    except Exception:
-        return False
-    bus.shutdown()
-    return True
 
 
 @pytest.fixture(params=["leafgate-dbw", "sze-hlc", "leaf-ze1-lkas"])

@@ -23,15 +23,10 @@ import yaml
 
 from leafgate.can.codec import CanCodec
 from leafgate.messages import EcuState, LongCommand, SteerCommand, SteerReport, SystemReport
+from tests.conftest import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 pytestmark = pytest.mark.slow
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def vcan_available() -> str | None:

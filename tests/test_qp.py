@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from leafgate.control.qp import DaqpBackend, OsqpBackend, hildreth
+from leafgate.control.qp import DaqpBackend, OsqpBackend, hildreth, qphild
 
 
 def _random_qp(seed: int, n: int = 8, m: int = 12) -> tuple[np.ndarray, ...]:
@@ -249,3 +249,30 @@ def test_daqp_infeasible_and_capped_are_not_converged() -> None:
     assert not DaqpBackend(M).solve(E, f, gamma).converged
     E, f, M, gamma = _box_qp(3)
     assert not DaqpBackend(M, max_iter=1).solve(E, f, gamma).converged
+@pytest.mark.parametrize("seed", range(10))
+@pytest.mark.parametrize("kind", ["random", "box", "saturated"])
+def test_accelerated_hildreth_agrees_with_the_textbook_qphild(seed: int, kind: str) -> None:
+    """The working set, the relaxation, the warm start and the active-set certificate change
+    how fast the sweeps get there, not where: both reach the same optimum."""
+    qp = {"random": _random_qp, "box": _box_qp, "saturated": _saturated_qp}[kind](seed)
+    E, f, M, gamma = qp
+    textbook = qphild(E, f, M, gamma, max_iter=20_000, tol=1e-20)
+    fast = hildreth(E, f, M, gamma, max_iter=5000, relaxation=1.5)
+    assert textbook.converged and fast.converged
+    np.testing.assert_allclose(fast.x, textbook.x, atol=1e-6)
+    if kind != "saturated":  # there, dependent active rows leave the multipliers non-unique
+        np.testing.assert_allclose(fast.lam, textbook.lam, atol=1e-5)
+
+
+def test_textbook_qphild_returns_the_unconstrained_optimum_without_sweeps() -> None:
+    E, f, M, _ = _random_qp(4)
+    result = qphild(E, f, M, np.full(M.shape[0], 1e6))
+    assert result.converged and result.iterations == 0
+    np.testing.assert_allclose(result.x, -np.linalg.solve(E, f), atol=1e-12)
+
+
+def test_textbook_qphild_stops_at_the_papers_38_sweeps() -> None:
+    """Wang's cap: a saturated QP is not solved in 38 sweeps, and that is reported."""
+    E, f, M, gamma = _saturated_qp(0)
+    result = qphild(E, f, M, gamma, tol=1e-20)
+    assert result.iterations == 38 and not result.converged

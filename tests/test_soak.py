@@ -21,6 +21,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _load_soak() -> ModuleType:
+    sys.path.insert(
+        0, str(ROOT / "tools")
+    )  # soak imports tools/_common.py, as when run as a script
     spec = importlib.util.spec_from_file_location("soak", ROOT / "tools" / "soak.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

@@ -42,15 +42,10 @@ from leafgate.transport.config import ZenohConfig
 from leafgate.transport.node import GatewayTransport
 from leafgate.transport.payloads import ControlMode, SteeringStatus, codecs
 from leafgate.transport.session import build_config, open_session
+from tests.conftest import free_port
 
 ZENOH_FILES = Path(__file__).resolve().parents[1] / "config" / "zenoh"
 WAIT = 5.0  # s, upper bound for loopback delivery; tests poll and never assert on speed
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def wait_until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:

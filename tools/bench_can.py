@@ -53,6 +53,7 @@ from pathlib import Path
 import can
 import numpy as np
 import yaml
+from _common import free_port
 
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded, EncodableMessage
@@ -316,21 +317,15 @@ class BenchError(Exception):
     """The jitter measurement could not run (the ECU did not start, or sent nothing)."""
 
 
-def _free_port(kind: socket.SocketKind) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _private_config(directory: Path) -> tuple[Path, str, int]:
     """config/sim.yaml with its own multicast group, UDP port and Zenoh port, so that parallel
     runs (and a daemon already running on the defaults) do not meet; (path, group, port)."""
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text(encoding="utf-8"))
     group = f"239.74.{random.randint(164, 250)}.{random.randint(1, 250)}"
-    port = _free_port(socket.SOCK_DGRAM)
+    port = free_port(socket.SOCK_DGRAM)
     cfg["can"]["dbw"]["channel"] = group
     cfg["can"]["dbw"]["kwargs"] = {"port": port}
-    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}"]
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"]
     path = directory / "sim.yaml"
     path.write_text(yaml.safe_dump(cfg), encoding="utf-8")
     return path, group, port

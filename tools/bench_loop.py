@@ -20,7 +20,6 @@ import json
 import os
 import random
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -31,6 +30,7 @@ from typing import Any
 import can
 import numpy as np
 import yaml
+from _common import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "leafgate.cli"]
@@ -120,12 +120,6 @@ def bench_compute() -> dict[str, Any]:
         "ticks": runtime.stats.ticks,
         "note": "one process, simulated clock, virtual bus; the tick includes encode and send",
     }
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def load_generator(channel: str, port: int, fps: int, seconds: float) -> None:

@@ -35,7 +35,6 @@ import os
 import random
 import re
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -49,6 +48,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from _common import free_port
 
 from leafgate.messages import Pose, Trajectory
 
@@ -306,12 +306,6 @@ def progress_line(elapsed: float, total: float, report: Mapping[str, Any]) -> st
 
 
 # --- the processes ------------------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def private_config(base: Path, directory: Path) -> Path:

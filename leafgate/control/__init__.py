@@ -13,8 +13,7 @@ import math
 
 from leafgate.config import VehicleConfig
 from leafgate.control.base import Controller
-from leafgate.control.baselines import PurePursuit, PurePursuitConfig, Stanley, StanleyConfig
-from leafgate.control.config import ControllerConfig, MpcConfig
+from leafgate.control.config import ControllerConfig, MpcConfig, PurePursuitConfig, StanleyConfig
 from leafgate.errors import ConfigError
 
 __all__ = ["Controller", "make_controller"]
@@ -52,10 +51,12 @@ def make_controller(cfg: ControllerConfig, vehicle: VehicleConfig, period: float
     if not (math.isfinite(period) and period > 0.0):
         raise ConfigError(f"control period must be a positive number of seconds, got {period!r}")
     if cfg.kind == "mpc":
-        from leafgate.control.mpc import MpcController  # numpy/osqp only when needed
+        from leafgate.control.mpc import MpcController  # algorithms load only when built
 
         _check_inside_vehicle(cfg.mpc, vehicle)
         return MpcController(cfg.mpc, vehicle, period)
+    from leafgate.control.baselines import PurePursuit, Stanley
+
     if cfg.kind == "pure-pursuit":
         _check_inside_vehicle(cfg.pure_pursuit, vehicle, "pure_pursuit")
         return PurePursuit(cfg.pure_pursuit, vehicle, period)

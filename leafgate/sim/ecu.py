@@ -53,7 +53,7 @@ import can
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.config import VehicleConfig
-from leafgate.errors import LeafgateError
+from leafgate.errors import InjectionError, LeafgateError
 from leafgate.messages import (
     EcuState,
     Gear,
@@ -86,10 +86,6 @@ __all__ = [
     "SimulatedEcu",
     "run_ecu_realtime",
 ]
-
-
-class InjectionError(LeafgateError, ValueError):
-    """An injected driver action or fault is unknown or has bad parameters."""
 
 
 # Injectable driver actions and faults: kind → its parameters with their defaults.

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
 
 from leafgate.config import VehicleConfig
 from leafgate.messages import Gear, Pose
@@ -287,19 +286,6 @@ class SpeedController:
         if clamped == accel:
             self._integral = integral
         return clamped
-
-
-@dataclass(frozen=True)
-class PlantSnapshot:
-    """What a plant looks like at one instant (for logs and plots)."""
-
-    t: float
-    x: float
-    y: float
-    heading: float
-    speed: float
-    steer_angle: float
-    accel: float
 
 
 def make_plant(cfg: PlantConfig, vehicle: VehicleConfig, start: Pose) -> KinematicPlant:

@@ -23,7 +23,7 @@ from typing import Any
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from leafgate.errors import TransportError
+from leafgate.errors import PayloadError, TransportError
 
 # --- type names ------------------------------------------------------------------------------
 
@@ -42,13 +42,6 @@ CONTROL_MODE_REPORT = "autoware_vehicle_msgs/msg/ControlModeReport"
 TIME = "builtin_interfaces/msg/Time"
 DURATION = "builtin_interfaces/msg/Duration"
 HEADER = "std_msgs/msg/Header"
-
-
-class PayloadError(TransportError):
-    """A payload could not be decoded (truncated, malformed, wrong type or bad values).
-
-    Raised inside the codecs only; subscribers catch it, count it per key and drop the sample.
-    """
 
 
 # --- the .msg texts (autoware_msgs 1.x) -------------------------------------------------------

@@ -35,7 +35,7 @@ from typing import Any, Generic, Literal, TypeVar, get_type_hints
 
 import numpy as np
 
-from leafgate.errors import TransportError
+from leafgate.errors import PayloadError, TransportError
 from leafgate.messages import (
     EcuState,
     GatewayState,
@@ -49,7 +49,6 @@ from leafgate.messages import (
     Trajectory,
 )
 from leafgate.transport import cdr
-from leafgate.transport.cdr import PayloadError
 
 Encoding = Literal["cdr", "json"]
 T = TypeVar("T")

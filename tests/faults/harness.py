@@ -25,7 +25,6 @@ import os
 import random
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -49,35 +48,13 @@ from leafgate.messages import (
     SystemCommand,
     SystemReport,
 )
+from tests.conftest import free_port, private_group, udp_multicast_works
 
 ROOT = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "leafgate.cli"]
 COMMAND_IDS = frozenset({0x0A0, 0x0A1, 0x0A2})  # DBW_STEER_CMD, DBW_LONG_CMD, DBW_SYSTEM_CMD
 REST_SPEED = 0.01  # m/s, below this the vehicle counts as at rest
 REPORT_ENV = "LEAFGATE_FAULT_REPORT"  # JSON lines of outcomes are appended there when set
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def private_group() -> str:
-    """An administratively scoped IPv4 group no other test run uses (with a free port)."""
-    return f"239.75.{random.randint(1, 250)}.{random.randint(1, 250)}"
-
-
-def udp_multicast_works() -> bool:
-    """python-can's udp_multicast can be opened here (msgpack installed, multicast allowed)."""
-    try:
-        import msgpack  # noqa: F401  (python-can's udp_multicast needs it)
-
-        bus = can.Bus(interface="udp_multicast", channel=private_group(), port=free_port())
-    except Exception:
-        return False
-    bus.shutdown()
-    return True
 
 
 def write_config(
