@@ -15,7 +15,7 @@ from typing import Any
 import zenoh
 
 from leafgate.errors import TransportError
-from leafgate.transport.config import ZenohConfig
+from leafgate.transport.config import RMW_ZENOHD, ZenohConfig
 
 # TLS settings naming a file (eclipse-zenoh 1.10 ``transport/link/tls``), by the side that uses
 # them: checked before opening, because Zenoh's own error ("Invalid TLS private key file: No such
@@ -71,6 +71,10 @@ def build_config(cfg: ZenohConfig) -> zenoh.Config:
             _insert(config, "scouting/delay", "0", "zenoh.multicast_scouting")
     for name in ("listen", "connect"):
         endpoints: tuple[str, ...] = getattr(cfg, name)
+        if cfg.ros == "rmw_zenoh" and cfg.config_file is None and not endpoints:
+            # As an rmw_zenoh session: connect to rmw_zenohd, listen on a loopback port of
+            # the system's choosing for the peers the router tells about (gossip).
+            endpoints = (RMW_ZENOHD,) if name == "connect" else ("tcp/127.0.0.1:0",)
         if cfg.config_file is None or endpoints:
             for endpoint in endpoints:  # one at a time, so the error names the culprit
                 _insert(
