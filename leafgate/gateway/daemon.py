@@ -41,11 +41,16 @@ def tool_view(cfg: ZenohConfig) -> ZenohConfig:
     """The Zenoh settings a tool (engage, status, sim-ecu …) uses to reach the daemon.
 
     The daemon listens on ``listen``; a tool started with the same config must not try to bind
-    the same port, so it listens nowhere and connects to the daemon's endpoints instead.
+    the same port, so it listens nowhere and connects to the daemon's endpoints instead. A
+    daemon in router mode (the shipped configs) routes between the tools, which then connect
+    as its clients: every tool receives what any other publishes.
     """
     if cfg.config_file is not None:
         return cfg
-    return dataclasses.replace(cfg, listen=(), connect=tuple(cfg.listen) + tuple(cfg.connect))
+    mode = "client" if cfg.mode == "router" else cfg.mode
+    return dataclasses.replace(
+        cfg, mode=mode, listen=(), connect=tuple(cfg.listen) + tuple(cfg.connect)
+    )
 
 
 def same_plan(a: Trajectory, b: Trajectory) -> bool:

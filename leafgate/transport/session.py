@@ -23,6 +23,7 @@ from leafgate.transport.config import RMW_ZENOHD, ZenohConfig
 TLS_LISTEN_FILES = ("root_ca_certificate", "listen_certificate", "listen_private_key")
 TLS_CONNECT_FILES = ("root_ca_certificate", "connect_certificate", "connect_private_key")
 _TLS_SCHEMES = ("tls/", "quic/")  # endpoints that use the TLS settings
+TX_DATA_BATCHES = 16  # batches of the data priority in the transmit queue (Zenoh's maximum)
 
 # Zenoh's messages end with " at /path/to/file.rs:123." and may span lines; keep the gist.
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
@@ -69,6 +70,12 @@ def build_config(cfg: ZenohConfig) -> zenoh.Config:
             # explicit endpoints there is nothing to discover, and the tools wait for a
             # matching subscriber or queryable instead. ``extra`` may set it back.
             _insert(config, "scouting/delay", "0", "zenoh.multicast_scouting")
+        # The gateway publishes its statuses in bursts (six express messages per tick, each a
+        # batch of its own): Zenoh's default of 2 data batches in the transmit queue drops
+        # the burst's tail whenever the transmit thread is a moment late (measured: ~2 % of
+        # the later statuses on a loaded machine). 16 is Zenoh's maximum. ``extra`` may
+        # set it back.
+        _insert(config, "transport/link/tx/queue/size/data", str(TX_DATA_BATCHES), "tx queue")
     for name in ("listen", "connect"):
         endpoints: tuple[str, ...] = getattr(cfg, name)
         if cfg.ros == "rmw_zenoh" and cfg.config_file is None and not endpoints:
