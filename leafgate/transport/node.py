@@ -11,8 +11,6 @@ values are counted per key and dropped.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import enum
 import json
 import logging
 import math
@@ -26,6 +24,7 @@ import numpy as np
 import zenoh
 
 from leafgate.errors import TransportError
+from leafgate.jsonconv import to_json
 from leafgate.messages import (
     Gear,
     LongReport,
@@ -151,34 +150,9 @@ def trajectory_is_valid(trajectory: Trajectory) -> bool:
     )
 
 
-def to_jsonable(value: Any) -> Any:
-    """Make diagnostics JSON-safe: enums by name, NaN/±inf as null, numpy as Python.
-
-    Dataclasses become objects, tuples and arrays lists; anything else unknown becomes its
-    ``str`` so a diagnostics publication never fails on an odd value.
-    """
-    if value is None or isinstance(value, (bool, str)):
-        return value
-    if isinstance(value, enum.Enum):
-        return value.name
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.ndarray):
-        return [to_jsonable(v) for v in value.tolist()]
-    if isinstance(value, Mapping):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set, frozenset)):
-        return [to_jsonable(v) for v in value]
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    return str(value)
-
-
 def _reply_json(reply: Mapping[str, Any]) -> dict[str, Any]:
     """The engage reply with its three fields always present."""
-    out = to_jsonable(dict(reply))
+    out = to_json(dict(reply))
     out["accepted"] = bool(out.get("accepted", False))
     out.setdefault("state", None)
     out["reason"] = str(out.get("reason") or "")
@@ -498,7 +472,7 @@ class GatewayTransport:
         publisher, codec = self._publishers[suffix]
         try:
             if codec is None:
-                payload = json.dumps(to_jsonable(value), allow_nan=False).encode()
+                payload = json.dumps(to_json(value), allow_nan=False).encode()
             else:
                 payload = codec.encode(value)
             publisher.put(payload)
@@ -569,7 +543,7 @@ class GatewayTransport:
             )
 
     def publish_diagnostics(self, diagnostics: Mapping[str, Any]) -> None:
-        """Publish ``gateway/diagnostics`` as a JSON object (see :func:`to_jsonable`)."""
+        """Publish ``gateway/diagnostics`` as a JSON object (:mod:`leafgate.jsonconv`)."""
         self._publish(DIAGNOSTICS, diagnostics)
 
     # --- lifecycle ------------------------------------------------------------------------

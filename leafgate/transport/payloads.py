@@ -36,6 +36,7 @@ from typing import Any, Generic, Literal, TypeVar, get_type_hints
 import numpy as np
 
 from leafgate.errors import TransportError
+from leafgate.jsonconv import to_json
 from leafgate.messages import (
     EcuState,
     GatewayState,
@@ -571,21 +572,9 @@ def ros_to_command(msg: Any) -> SentCommand:
 # --- JSON -----------------------------------------------------------------------------------
 
 
-def _json_number(value: float) -> float | None:
-    return None if math.isnan(value) else value
-
-
 def _flat_to_dict(value: Any) -> dict[str, Any]:
-    """A flat dataclass → JSON object: enums by name, NaN as null."""
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(value):
-        v = getattr(value, f.name)
-        if isinstance(v, enum.Enum):
-            out[f.name] = v.name
-        elif isinstance(v, float):
-            out[f.name] = _json_number(v)
-        else:
-            out[f.name] = v
+    """A flat dataclass → JSON object in leafgate's convention (enums by name, NaN as null)."""
+    out: dict[str, Any] = to_json(value)
     return out
 
 
@@ -638,7 +627,7 @@ def _flat_from_dict(cls: type[T], data: Any) -> T:
 
 def _trajectory_to_dict(trajectory: Trajectory) -> dict[str, Any]:
     return {
-        "stamp": _json_number(trajectory.stamp),
+        "stamp": to_json(trajectory.stamp),
         "x": trajectory.x.tolist(),
         "y": trajectory.y.tolist(),
         "heading": trajectory.heading.tolist(),
