@@ -3,12 +3,21 @@ published for Jazzy, zenoh-plugin-ros2dds's token format."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import re
+from pathlib import Path
+
 import pytest
 import ros2_peer
+import yaml
 
+from leafgate.config import from_mapping
 from leafgate.errors import TransportError
+from leafgate.settings import load_config
 from leafgate.transport import cdr, ros2
 from leafgate.transport.config import ZenohConfig
+from leafgate.transport.session import build_config
 
 # RIHS01 hashes for Jazzy as published: std_msgs/String and example_interfaces/AddTwoInts in
 # ros2/rmw_zenoh docs/design.md; Odometry and the Autoware messages in public repositories that
@@ -163,3 +172,30 @@ def test_topics_default_to_autowares_absolute_names() -> None:
 def test_bad_ros_settings_are_refused(kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         ZenohConfig(**kwargs)
+
+
+# --- shipped configs and the README's commands --------------------------------------------------
+
+ROOT = Path(__file__).resolve().parent.parent
+ROS_PORTS = {7447}  # zenoh-bridge-ros2dds (router mode) and rmw_zenohd listen there
+
+
+@pytest.mark.parametrize("name", ["leafgate.yaml", "sim.yaml"])
+def test_shipped_configs_leave_the_bridge_and_rmw_zenohd_their_port(name: str) -> None:
+    cfg = load_config(str(ROOT / "config" / name)).zenoh
+    ports = {int(e.rsplit(":", 1)[1]) for e in cfg.listen}
+    assert ports and not ports & ROS_PORTS
+    assert cfg.mode == "router"  # the daemon routes for its tools
+    assert cfg.ros_namespace == "/leaf"  # what the README gives zenoh-bridge-ros2dds -n
+
+
+def test_the_readme_rmw_zenoh_section_connects_to_rmw_zenohd() -> None:
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"```yaml\n(zenoh:\n  ros: rmw_zenoh\n.*?)```", text, re.DOTALL)
+    assert block is not None
+    cfg = from_mapping(ZenohConfig, yaml.safe_load(block.group(1))["zenoh"], "README")
+    assert cfg.ros == "rmw_zenoh" and cfg.ros_distro == "jazzy"
+    config = build_config(dataclasses.replace(cfg, connect=()))  # the default endpoint
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(config.get_json("mode")) == "peer"
+    assert "zenoh-bridge-ros2dds -n /leaf -e tcp/127.0.0.1:7450" in text
