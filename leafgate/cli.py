@@ -280,6 +280,14 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     can_do = [n for n in ("lateral", "longitudinal", "gear") if getattr(caps, n)]
     print(f"vehicle profile {profile.name} ({profile.where}): commands {', '.join(can_do)}")
     print(f"frame protection: {profile.protection}")
+    z = cfg.zenoh
+    if z.ros == "rmw_zenoh":
+        print(
+            f"ROS 2: rmw_zenoh node {z.node_namespace.rstrip('/')}/{z.node_name}, "
+            f"domain {z.domain_id}, {z.ros_distro} type hashes"
+        )
+    else:
+        print(f"ROS 2: through zenoh-bridge-ros2dds -n {z.ros_namespace}")
     return 0
 
 
