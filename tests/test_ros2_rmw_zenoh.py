@@ -298,10 +298,14 @@ def test_bridge_mode_announces_topics_and_answers_cdr_service_calls(
             tool.get(
                 "leaf/control/control_mode_request",
                 payload=control_mode_request(1),
+                # the bridge strips the DDS request id (client GUID + sequence number, 16
+                # bytes) from the request and sends it as the attachment
+                attachment=bytes(range(16)),
                 target=zenoh.QueryTarget.ALL_COMPLETE,
                 timeout=WAIT,
             )
         )
         oks = [r.ok for r in replies if r.ok is not None]
-        assert oks and oks[0].payload.to_bytes() == b"\x00\x01\x00\x00\x01"
+        assert len(oks) == 1  # the bridge forwards one reply per request
+        assert oks[0].payload.to_bytes() == b"\x00\x01\x00\x00\x01"  # CDR: bool success
         assert handler.requests == [OperatorRequest.ENGAGE]
