@@ -159,7 +159,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
             "timeline": [{"t": t, "event": e} for t, e in timeline],
         }
     )
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
+    from leafgate.jsonconv import to_json  # one JSON convention: NaN as null, enums by name
+
+    text = json.dumps(to_json(metrics), indent=2, allow_nan=False)
+    (out / "metrics.json").write_text(text + "\n", encoding="utf-8")
     if not args.no_plots:
         from leafgate.sim.scenarios import OBSTACLES
 
