@@ -241,3 +241,26 @@ def test_a_recorded_session_lines_up_and_decodes_with_the_mcap_readers(tmp_path:
         first, last = min(times[topic]), max(times[topic])
         assert offset_ns <= first and last <= offset_ns + round((last_tick + 1.0) * 1e9), topic
     assert last_tick > 10.0  # the whole drive was recorded
+
+
+def test_sessions_of_format_1_still_decode() -> None:
+    """Before the one JSON convention, sessions wrote enums by number and NaN as "nan"."""
+    old = {
+        "steer": {"angle": "nan", "rate_limit": "inf", "enable": True, "clear_override": False},
+        "long": {
+            "mode": 1,
+            "accel": 0.0,
+            "speed": "-inf",
+            "gear": 2,
+            "enable": True,
+            "clear_override": False,
+        },
+        "system": None,
+        "extra": {"k": "nan"},
+    }
+    commands = decode_commands(old)
+    assert math.isnan(commands.steer.angle) and commands.steer.rate_limit == math.inf
+    assert commands.long.mode == LongMode(1) and commands.long.gear == Gear(2)
+    assert commands.long.speed == -math.inf and math.isnan(commands.extra["k"])
+    new = json.loads(json.dumps(encode_commands(commands), allow_nan=False))
+    assert new["long"]["mode"] == LongMode(1).name and new["steer"]["angle"] is None
