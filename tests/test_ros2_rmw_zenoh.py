@@ -184,6 +184,9 @@ def test_peer_receives_the_statuses_with_attachments(
 
 def test_peer_inputs_reach_the_gateway(gateway: GatewayTransport, peer: ros2_peer.Peer) -> None:
     c = codecs("cdr")
+    tapped: set[tuple[str, str | None]] = set()
+    # The session recorder's tap names the ROS topic, not the rmw_zenoh key with its hash.
+    gateway.on_raw = lambda name, payload, received, typename: tapped.add((name, typename))
     odometry = peer.publisher(
         "/localization/kinematic_state", INPUTS["/localization/kinematic_state"]
     )
@@ -207,6 +210,7 @@ def test_peer_inputs_reach_the_gateway(gateway: GatewayTransport, peer: ros2_pee
     traj = gateway.latest_trajectory()
     assert traj is not None and traj.valid
     np.testing.assert_array_equal(traj.value.x, path.x)
+    assert tapped == set(INPUTS.items())
 
 
 def control_mode_request(mode: int) -> bytes:

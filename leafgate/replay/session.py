@@ -5,7 +5,8 @@ Layout (profile ``leafgate``; every JSON record is one object, floats written ex
 =========================== ========= ==============================================================
 topic                       encoding  content
 =========================== ========= ==============================================================
-``/<zenoh key>``            cdr/json  raw Zenoh input payloads as received; CDR channels carry their
+``/<ROS topic>``            cdr/json  raw Zenoh input payloads as received, on their ROS topic names
+                                      (``/localization/kinematic_state`` …); CDR channels carry their
                                       ``ros2msg`` schema so Foxglove and the ``mcap`` CLI decode them
 ``/can``                    json      every CAN frame in and out: ``{t, dir, id, ext, data, channel}``
 ``/leafgate/trajectory``    json      each distinct trajectory once: ``{ref, stamp, x, y, heading,
@@ -587,7 +588,8 @@ class SessionWriter:
         )
 
     def zenoh_input(self, key: str, payload: bytes, received: float, typename: str | None) -> None:
-        """A raw Zenoh payload as received; CDR payloads get a ``ros2msg`` schema channel."""
+        """A raw Zenoh payload as received on topic ``key`` (the ROS name the gateway passes,
+        e.g. ``/localization/kinematic_state``); CDR payloads get a ``ros2msg`` schema channel."""
         cdr = typename is not None and payload[:2] in _CDR_HEADERS
         encoding = "cdr" if cdr else "json"
         channel_id = self._zenoh.get((key, encoding))

@@ -220,8 +220,9 @@ class GatewayTransport:
         self._codecs = codecs(cfg.encoding)
         self._publish_errors: dict[str, int] = {}
         self._handler_errors = 0
-        # Called with (key, raw payload, receive time, ROS type name or None for JSON) for every
-        # input sample before it is decoded: the session recorder's tap.
+        # Called with (ROS topic name, raw payload, receive time, ROS type name or None for JSON)
+        # for every input sample before it is decoded: the session recorder's tap (its channels
+        # carry the ROS names, so they line up with rosbag2 recordings in either ROS mode).
         self.on_raw: Callable[[str, bytes, float, str | None], None] | None = None
         self._tap_errors = 0
         self._lock = threading.Lock()
@@ -248,7 +249,13 @@ class GatewayTransport:
                 self.ros.subscriber(
                     "kinematic_state",
                     cdr.ODOMETRY,
-                    self._subscriber(self.pose, self._codecs.pose, pose_is_valid, cdr.ODOMETRY),
+                    self._subscriber(
+                        self.pose,
+                        self._codecs.pose,
+                        pose_is_valid,
+                        cdr.ODOMETRY,
+                        cfg.topic("kinematic_state"),
+                    ),
                 )
             )
             self._declared.append(
@@ -260,6 +267,7 @@ class GatewayTransport:
                         self._codecs.trajectory,
                         trajectory_is_valid,
                         cdr.TRAJECTORY,
+                        cfg.topic("trajectory"),
                     ),
                 )
             )
@@ -331,17 +339,23 @@ class GatewayTransport:
     # --- inputs ---------------------------------------------------------------------------
 
     def _subscriber(
-        self, slot: LatestSlot[T], codec: Codec[T], valid: Callable[[T], bool], typename: str
+        self,
+        slot: LatestSlot[T],
+        codec: Codec[T],
+        valid: Callable[[T], bool],
+        typename: str,
+        topic: str | None = None,
     ) -> Callable[[zenoh.Sample], None]:
         clock = self._clock
         typename_or_none = typename if self._cfg.encoding == "cdr" else None
+        name = topic or slot.key
 
         def on_sample(sample: zenoh.Sample) -> None:
             received = clock()  # before decoding: the age counts from arrival
             payload = sample.payload.to_bytes()
             if self.on_raw is not None:
                 try:
-                    self.on_raw(slot.key, payload, received, typename_or_none)
+                    self.on_raw(name, payload, received, typename_or_none)
                 except Exception:  # a recorder problem must not stop the inputs
                     self._tap_errors += 1
             try:
