@@ -185,7 +185,7 @@ def test_shipped_configs_leave_the_bridge_and_rmw_zenohd_their_port(name: str) -
     cfg = load_config(str(ROOT / "config" / name)).zenoh
     ports = {int(e.rsplit(":", 1)[1]) for e in cfg.listen}
     assert ports and not ports & ROS_PORTS
-    assert cfg.mode == "router"  # the daemon routes for its tools
+    assert cfg.mode == "router"  # routes for clients (the bridge), gossips for the tools
     assert cfg.ros_namespace == "/leaf"  # what the README gives zenoh-bridge-ros2dds -n
 
 
