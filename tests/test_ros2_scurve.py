@@ -39,7 +39,8 @@ CLI = [sys.executable, "-m", "leafgate.cli"]
 SRV = "autoware_vehicle_msgs/srv/ControlModeCommand"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TRAJECTORY = "autoware_planning_msgs/msg/Trajectory"
-AUTONOMOUS = 1
+AUTONOMOUS = 1  # ControlModeReport modes
+MANUAL = 4
 
 pytestmark = [
     pytest.mark.slow,
@@ -119,6 +120,21 @@ def test_a_ros2_peer_drives_the_s_curve(tmp_path: Path, router: str) -> None:
 
         threading.Thread(target=planner, daemon=True).start()
 
+        # Discovery first: the peer and the daemon find each other through the router, then
+        # connect directly; reception is counted from a settled graph (two seconds of
+        # statuses), as a ROS node sees it in steady state.
+        def flowing() -> bool:
+            with lock:
+                return len(seqs["/vehicle/status/control_mode"]) >= 100
+
+        deadline = time.monotonic() + 60
+        while not flowing() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert flowing(), (tmp_path / "gw.log").read_text()[-2000:]
+        with lock:
+            for received in seqs.values():
+                received.clear()
+
         engaged = False
         deadline = time.monotonic() + 60
         while not engaged and time.monotonic() < deadline:
@@ -137,6 +153,8 @@ def test_a_ros2_peer_drives_the_s_curve(tmp_path: Path, router: str) -> None:
             time.sleep(0.2)
         assert finished(), (tmp_path / "gw.log").read_text()[-2000:]
         stop.set()
+        with lock:  # MANUAL: stopped at the end of the trajectory (DISENGAGED would be a fault)
+            assert modes[-1] == MANUAL, (modes[-1], (tmp_path / "gw.log").read_text()[-2000:])
     finally:
         for proc in (daemon, ecu):
             if proc.poll() is None:
