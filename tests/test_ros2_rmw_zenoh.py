@@ -280,14 +280,16 @@ def test_bridge_mode_announces_topics_and_answers_cdr_service_calls(
     with GatewayTransport.open(cfg, handler) as gateway, zenoh.open(tool_cfg) as tool:
         zid = str(gateway.ros.node.session_id)
 
-        def tokens() -> set[str]:
-            replies = tool.liveliness().get(f"@/{zid}/@ros2_lv/**", timeout=2.0)
-            return {str(r.ok.key_expr) for r in replies if r.ok is not None}
+        announced: set[tuple[str, ...]] = set()  # (kind, key with '§', type with '§')
 
-        assert wait_until(lambda: len(tokens()) >= 9, WAIT)
-        announced = {
-            tuple(t.split("/")[3:6]) for t in tokens()
-        }  # (kind, key with '§', type with '§')
+        def complete() -> bool:  # ask until every token has propagated
+            nonlocal announced
+            replies = tool.liveliness().get(f"@/{zid}/@ros2_lv/**", timeout=2.0)
+            keys = {str(r.ok.key_expr) for r in replies if r.ok is not None}
+            announced = {tuple(k.split("/")[3:6]) for k in keys}
+            return len(announced) >= len(STATUSES) + len(INPUTS) + 1
+
+        assert wait_until(complete, WAIT), announced
         for topic, typ in STATUSES.items():
             key = ("leaf" + topic).replace("/", "§")
             assert ("MP", key, typ.replace("/", "§")) in announced

@@ -22,10 +22,13 @@ Two ways of meeting ROS 2 (``zenoh.ros`` in the configuration):
   the bridges create the DDS endpoints, so ROS tools see the topics.
 
 Type hashes are REP-2011 RIHS01 hashes (sha256 over the canonical JSON of the type
-description), computed from the ``.msg`` definitions for the configured ROS distribution. The
-hashes of ``std_msgs/msg/String``, ``nav_msgs/msg/Odometry`` and the
-``example_interfaces/srv/AddTwoInts`` service are checked against published values in
-``tests/test_ros2_names.py``.
+description), computed from the ``.msg`` definitions for the configured ROS distribution.
+``tests/test_ros2_names.py`` checks them against published Jazzy values (``std_msgs/msg/String``
+and the ``example_interfaces/srv/AddTwoInts`` service from the design document,
+``nav_msgs/msg/Odometry`` and seven Autoware messages) and against an independent REP-2011
+implementation. The GID of an entity is 16 bytes derived from its liveliness token (rmw_zenoh
+uses XXH3-128 of the token; the design document fixes only the size, and peers treat it as an
+opaque identity).
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ from typing import Any
 
 import zenoh
 
+from leafgate.errors import TransportError
 from leafgate.transport import ros2
 from leafgate.transport.config import ZenohConfig
 
@@ -130,14 +131,13 @@ class RosFace:
         mime: str,
         express: bool,
         qos: ros2.Qos = ros2.STATUS_QOS,
-        announce: bool = True,
     ) -> RosPublisher:
-        """Declare a publisher for ``role`` (and its MP token unless ``announce`` is false)."""
+        """Declare a publisher for ``role`` and its MP token."""
         key = self.key(role, typename)
         publisher = self._session.declare_publisher(
             key, encoding=zenoh.Encoding(mime), express=express
         )
-        gid = self._announce("MP", role, typename, qos) if announce else ros2.gid_of(key)
+        gid = self._announce("MP", role, typename, qos)
         return RosPublisher(publisher, key, gid if self.rmw_zenoh else None, self._wall)
 
     def subscriber(
@@ -171,7 +171,7 @@ class RosFace:
             return None
         try:
             sequence, _, gid = ros2.parse_attachment(raw.to_bytes())
-        except Exception:
+        except TransportError:  # not rmw_zenoh's (zenoh-bridge-ros2dds sends a request id)
             return None
         return ros2.attachment(sequence, round(self._wall() * 1e9), gid)
 
