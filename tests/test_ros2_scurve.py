@@ -98,7 +98,12 @@ def test_a_ros2_peer_drives_the_s_curve(tmp_path: Path, router: str) -> None:
     lock = threading.Lock()
     seqs: dict[str, list[int]] = {topic: [] for topic in STATUSES}
     modes: list[int] = []
+    reasons: list[str] = []  # the gateway's own account (leaf/gateway/diagnostics), for failures
     try:
+        peer.session.declare_subscriber(
+            "leaf/gateway/diagnostics",
+            lambda sample: reasons.append(json.loads(sample.payload.to_bytes()).get("reason", "")),
+        )
         localization = peer.publisher("/localization/kinematic_state", ODOMETRY)
         peer.subscribe("/sim/ground_truth", ODOMETRY, lambda payload, _: localization(payload))
         for topic, typ in STATUSES.items():
@@ -153,8 +158,9 @@ def test_a_ros2_peer_drives_the_s_curve(tmp_path: Path, router: str) -> None:
             time.sleep(0.2)
         assert finished(), (tmp_path / "gw.log").read_text()[-2000:]
         stop.set()
+        time.sleep(0.5)  # the diagnostics (10 Hz) that say why, should it have failed
         with lock:  # MANUAL: stopped at the end of the trajectory (DISENGAGED would be a fault)
-            assert modes[-1] == MANUAL, (modes[-1], (tmp_path / "gw.log").read_text()[-2000:])
+            assert modes[-1] == MANUAL, (modes[-1], reasons[-3:])
     finally:
         for proc in (daemon, ecu):
             if proc.poll() is None:
