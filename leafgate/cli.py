@@ -159,7 +159,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
             "timeline": [{"t": t, "event": e} for t, e in timeline],
         }
     )
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
+    from leafgate.jsonconv import to_json  # one JSON convention: NaN as null, enums by name
+
+    text = json.dumps(to_json(metrics), indent=2, allow_nan=False)
+    (out / "metrics.json").write_text(text + "\n", encoding="utf-8")
     if not args.no_plots:
         from leafgate.sim.scenarios import OBSTACLES
 
@@ -280,6 +283,14 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     can_do = [n for n in ("lateral", "longitudinal", "gear") if getattr(caps, n)]
     print(f"vehicle profile {profile.name} ({profile.where}): commands {', '.join(can_do)}")
     print(f"frame protection: {profile.protection}")
+    z = cfg.zenoh
+    if z.ros == "rmw_zenoh":
+        print(
+            f"ROS 2: rmw_zenoh node {z.node_namespace.rstrip('/')}/{z.node_name}, "
+            f"domain {z.domain_id}, {z.ros_distro} type hashes"
+        )
+    else:
+        print(f"ROS 2: through zenoh-bridge-ros2dds -n {z.ros_namespace}")
     return 0
 
 

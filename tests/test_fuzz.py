@@ -194,11 +194,14 @@ class StubSession:
         self.subscribers[key] = callback
         return _Entity()
 
-    def declare_queryable(self, key: str, callback: Any) -> _Entity:
+    def declare_queryable(self, key: str, callback: Any, **kwargs: Any) -> _Entity:
         return _Entity()
 
     def declare_publisher(self, key: str, **kwargs: Any) -> _Entity:
         return _Entity()
+
+    def zid(self) -> str:
+        return "0123456789abcdef0123456789abcdef"
 
     def liveliness(self) -> StubSession:
         return self

@@ -246,11 +246,14 @@ def test_zenoh_cdr_input_is_recorded_raw_with_its_ros2msg_schema(tmp_path: Path)
     with path.open("rb") as f:
         reader = make_reader(f)
         messages = {ch.topic: (schema, ch, msg) for schema, ch, msg in reader.iter_messages()}
+        start = next(m for m in reader.iter_metadata() if m.name == "leafgate.session")
     schema, channel, msg = messages["/leaf/localization/kinematic_state"]
     assert channel.message_encoding == "cdr"
     assert schema is not None and schema.encoding == "ros2msg" and schema.name == cdr.ODOMETRY
     assert schema.data.decode() == cdr.msg_definition(cdr.ODOMETRY)
-    assert msg.data == payload and msg.log_time == 3_250_000_000
+    assert msg.data == payload
+    # Unix-epoch log time: the simulated 3.25 s after the recording's wall-clock start.
+    assert msg.log_time - int(start.metadata["epoch_offset_ns"]) == 3_250_000_000
     assert odometry_to_pose(cdr.deserialize(msg.data, cdr.ODOMETRY)).x == 1.5
     assert messages["/leaf/planning/trajectory"][1].message_encoding == "json"
 

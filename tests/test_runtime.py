@@ -268,7 +268,10 @@ def test_stable_plan_keeps_one_object_for_a_republished_plan() -> None:
 def test_tools_connect_to_the_daemons_endpoint_instead_of_listening() -> None:
     cfg = ZenohConfig(listen=("tcp/127.0.0.1:7447",), connect=("tcp/10.0.0.2:7447",))
     tool = tool_view(cfg)
-    assert tool.listen == () and tool.connect == ("tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447")
+    assert tool.connect == ("tcp/127.0.0.1:7447", "tcp/10.0.0.2:7447")
+    # It listens on a port the system picks, on the daemon's interface, so that tools can
+    # reach each other directly (the daemon's gossip names them), never on the daemon's port.
+    assert tool.listen == ("tcp/127.0.0.1:0",) and tool.mode == "peer"
 
 
 if os.name != "posix":  # AF_UNIX datagram sockets

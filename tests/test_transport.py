@@ -40,7 +40,13 @@ from leafgate.messages import (
 from leafgate.transport import client, keys
 from leafgate.transport.config import ZenohConfig
 from leafgate.transport.node import GatewayTransport
-from leafgate.transport.payloads import ControlMode, SteeringStatus, codecs
+from leafgate.transport.payloads import (
+    ControlMode,
+    HazardLights,
+    SteeringStatus,
+    TurnIndicators,
+    codecs,
+)
 from leafgate.transport.session import build_config, open_session
 from tests.conftest import free_port
 
@@ -327,10 +333,7 @@ def test_publish_step_sends_decodable_autoware_statuses(
         with lock:
             received[str(sample.key_expr)] = sample.payload.to_bytes()
 
-    subscribers = [
-        tool.declare_subscriber(configs[1].key("vehicle/status/**"), on_sample),
-        tool.declare_subscriber(configs[1].key(keys.CONTROL_CMD), on_sample),
-    ]
+    subscribers = [tool.declare_subscriber(configs[1].key("**"), on_sample)]
     result = SimpleNamespace(
         commands=Commands(
             steer=SteerCommand(angle=0.25, rate_limit=0.0, enable=True),
@@ -350,7 +353,8 @@ def test_publish_step_sends_decodable_autoware_statuses(
             keys.VELOCITY_STATUS,
             keys.GEAR_STATUS,
             keys.CONTROL_MODE,
-            keys.CONTROL_CMD,
+            keys.TURN_INDICATORS_STATUS,
+            keys.HAZARD_LIGHTS_STATUS,
         )
     }
 
@@ -371,17 +375,52 @@ def test_publish_step_sends_decodable_autoware_statuses(
     assert c.gear.decode(received[configs[1].key(keys.GEAR_STATUS)]).gear == Gear.R
     mode = c.control_mode.decode(received[configs[1].key(keys.CONTROL_MODE)])
     assert mode.mode == ControlMode.AUTONOMOUS
-    command = c.command.decode(received[configs[1].key(keys.CONTROL_CMD)])
+    lamps = c.turn_indicators.decode(received[configs[1].key(keys.TURN_INDICATORS_STATUS)])
+    assert lamps.report == TurnIndicators.DISABLE  # no profile commands the indicators
+    hazard = c.hazard_lights.decode(received[configs[1].key(keys.HAZARD_LIGHTS_STATUS)])
+    assert hazard.report == HazardLights.DISABLE
+    # The command echo is off by default: Autoware's /control/command/control_cmd belongs to
+    # its vehicle_cmd_gate, and leafgate once published there.
+    assert not any("control/command" in key for key in received)
+    assert gateway.publish_errors == {}
+
+
+def test_command_echo_goes_to_its_configured_topic(configs: Any, tool: zenoh.Session) -> None:
+    cfg = ZenohConfig(listen=configs[0].listen, topics={"command_echo": "/leafgate/control_cmd"})
+    received: list[bytes] = []
+    subscriber = tool.declare_subscriber(
+        "leaf/leafgate/control_cmd", lambda s: received.append(s.payload.to_bytes())
+    )
+    result = SimpleNamespace(
+        commands=Commands(
+            steer=SteerCommand(angle=0.25, rate_limit=0.0, enable=True),
+            long=LongCommand(mode=LongMode.SPEED, speed=1.5, gear=Gear.NONE, enable=True),
+        ),
+        diagnostics=None,
+    )
+    reverse = {
+        "long": Stamped(LongReport(-1.25, 0.0, Gear.R, 0.0, 0.0, True, False, False, False), 1.0)
+    }
+
+    def arrived() -> bool:
+        gateway.publish_step(10.0, result, reverse)
+        return bool(received)
+
+    try:
+        with GatewayTransport.open(cfg, Handler(), stamp_clock=lambda: 5.0) as gateway:
+            assert wait_until(arrived)
+    finally:
+        subscriber.undeclare()
+    command = codecs("cdr").command.decode(received[0])
     assert command.steer_angle == 0.25
     assert command.speed == -1.5  # reversing: the engaged gear is R
     assert command.accel_defined is False
-    assert gateway.publish_errors == {}
 
 
 def test_unencodable_status_is_counted_not_raised(gateway: GatewayTransport) -> None:
     gateway.publish_steering(SteeringStatus(0.0, stamp=1e12))  # does not fit a ROS time
     gateway.publish_diagnostics({"bad": math.inf, "fine": 1.0})  # inf becomes null: sent
-    assert gateway.publish_errors == {keys.STEERING_STATUS: 1}
+    assert gateway.publish_errors == {"steering_status": 1}
 
 
 def test_publishing_after_close_is_silent(gateway: GatewayTransport) -> None:

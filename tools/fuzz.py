@@ -578,8 +578,11 @@ class StubSession:
         self.subscribers[key] = callback
         return _StubEntity()
 
-    def declare_queryable(self, key: str, callback: Any) -> _StubEntity:
+    def declare_queryable(self, key: str, callback: Any, **kwargs: Any) -> _StubEntity:
         return _StubEntity()
+
+    def zid(self) -> str:
+        return "0123456789abcdef0123456789abcdef"  # a Zenoh session id, for the ROS tokens
 
     def declare_publisher(self, key: str, **kwargs: Any) -> _StubEntity:
         return _StubEntity()

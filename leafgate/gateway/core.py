@@ -65,6 +65,7 @@ from leafgate.gateway.watchdog import (
     ecu_fault,
     override_active,
 )
+from leafgate.jsonconv import to_json
 from leafgate.messages import (
     Commands,
     ControlOutput,
@@ -150,19 +151,6 @@ class ControllerFigures(NamedTuple):
         )
 
 
-def _json_value(value: Any) -> Any:
-    """JSON-able form: enums by name, non-finite floats as None, containers recursively."""
-    if isinstance(value, enum.Enum):
-        return value.name if isinstance(value, enum.IntEnum) else value.value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _json_value(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_value(v) for v in value]
-    return value
-
-
 @dataclass(frozen=True)
 class Diagnostics:
     """Everything the gateway knows about one tick; published at 10 Hz and recorded."""
@@ -186,7 +174,7 @@ class Diagnostics:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-able dict (enums by name, NaN/inf as null)."""
         return {
-            "time": _json_value(self.time),
+            "time": to_json(self.time),
             "state": self.state.name,
             "reason": self.reason,
             "fault": self.fault,
@@ -195,11 +183,11 @@ class Diagnostics:
             "watchdogs": {
                 c.name: {
                     "status": c.status.value,
-                    "age": _json_value(c.age),
-                    "limit": _json_value(c.limit),
+                    "age": to_json(c.age),
+                    "limit": to_json(c.limit),
                     "reaction": c.reaction.name,
                     "detail": c.detail,
-                    "value": _json_value(c.value),
+                    "value": to_json(c.value),
                 }
                 for c in self.watchdogs
             },
@@ -208,7 +196,7 @@ class Diagnostics:
             "ecu_state": None if self.ecu_state is None else self.ecu_state.name,
             "controller": None
             if self.controller is None
-            else {k: _json_value(getattr(self.controller, k)) for k in ControllerFigures._fields},
+            else {k: to_json(getattr(self.controller, k)) for k in ControllerFigures._fields},
             "gear_change": self.gear_change,
             "clamps": dict(self.clamps),
             "clamped": list(self.clamped),

@@ -40,12 +40,22 @@ log = logging.getLogger(__name__)
 def tool_view(cfg: ZenohConfig) -> ZenohConfig:
     """The Zenoh settings a tool (engage, status, sim-ecu …) uses to reach the daemon.
 
-    The daemon listens on ``listen``; a tool started with the same config must not try to bind
-    the same port, so it listens nowhere and connects to the daemon's endpoints instead.
+    The daemon listens on ``listen``; a tool started with the same config must not bind the
+    same port, so it connects to the daemon's endpoints, as a peer (it waits for a daemon
+    that is not up yet), and listens on a port of the system's choosing on the same
+    interface: the daemon's gossip tells the tools about each other and they connect directly,
+    so every tool receives what any other publishes (rmw_zenoh's topology, with the daemon
+    in the router's place).
     """
     if cfg.config_file is not None:
         return cfg
-    return dataclasses.replace(cfg, listen=(), connect=tuple(cfg.listen) + tuple(cfg.connect))
+    listen = tuple(
+        dict.fromkeys(e.rsplit(":", 1)[0] + ":0" for e in cfg.listen if e.startswith("tcp/"))
+    )
+    mode = "peer" if cfg.mode == "router" else cfg.mode
+    return dataclasses.replace(
+        cfg, mode=mode, listen=listen, connect=tuple(cfg.listen) + tuple(cfg.connect)
+    )
 
 
 def same_plan(a: Trajectory, b: Trajectory) -> bool:

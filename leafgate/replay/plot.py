@@ -22,6 +22,7 @@ from typing import Final, TextIO
 import numpy as np
 
 from leafgate.config import VehicleConfig
+from leafgate.jsonconv import float_from_json
 from leafgate.messages import (
     FloatArray,
     LongCommand,
@@ -69,13 +70,13 @@ def trace_from_session(path: str | Path) -> tuple[Trace, Trajectory | None]:
             if pose is None:
                 continue
             p = pose["value"]
-            t.append(float(data["now"]))
-            x.append(float(p["x"]))
-            y.append(float(p["y"]))
-            heading.append(float(p["heading"]))
-            speed.append(float(p["speed"]))
-            actual.append(math.nan if steer is None else float(steer["value"]["angle"]))
-            target.append(float(data["commands"]["steer"]["angle"]))
+            t.append(float_from_json(data["now"]))
+            x.append(float_from_json(p["x"]))
+            y.append(float_from_json(p["y"]))
+            heading.append(float_from_json(p["heading"]))
+            speed.append(float_from_json(p["speed"]))
+            actual.append(math.nan if steer is None else float_from_json(steer["value"]["angle"]))
+            target.append(float_from_json(data["commands"]["steer"]["angle"]))
     arrays = {
         k: np.asarray(v, dtype=np.float64)[_thin(len(t))]
         for k, v in {

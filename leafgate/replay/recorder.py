@@ -44,7 +44,7 @@ from leafgate.control.base import Controller
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.messages import ControlOutput, Pose, Trajectory
 from leafgate.replay.config import CAN_LOG_SUFFIXES, RecordingConfig
-from leafgate.replay.session import SessionWriter
+from leafgate.replay.session import SessionWriter, epoch_offset
 from leafgate.settings import LeafgateConfig
 
 __all__ = [
@@ -478,7 +478,10 @@ class SessionRecorder:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file = self.path.open("wb")
-            self._writer = SessionWriter(self._file, config, compression, meta)
+            # Unix-epoch MCAP times: the gateway clock's offset now, or for the simulator
+            # (frames stamped with simulated time from 0) the wall-clock time of its start.
+            offset = epoch_offset(clock)
+            self._writer = SessionWriter(self._file, config, compression, meta, offset)
             self._file.flush()
         except Exception as exc:
             self._bg.fail(f"cannot open {self.path}", exc)

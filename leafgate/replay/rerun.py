@@ -36,6 +36,7 @@ from leafgate.replay.session import (
     decode_commands,
     decode_inputs,
     decode_trajectory,
+    encode_commands,
     gateway_mode,
 )
 
@@ -228,7 +229,10 @@ def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) 
             inputs = decode_inputs(data["inputs"], trajectory)
             result = gateway.step(now, inputs)
             recorded = command_signals(decode_commands(data["commands"]), data["state"])
-            rerun = command_signals(result.commands, result.diagnostics.state)
+            # Through the session's JSON form, as the recorded side went: ±inf reads back as
+            # NaN there (leafgate.jsonconv), so the re-run's commands must take the same path.
+            rerun_commands = decode_commands(encode_commands(result.commands))
+            rerun = command_signals(rerun_commands, result.diagnostics.state)
             for diff, a, b in zip(report.signals, recorded, rerun, strict=True):
                 diff.add(now, a, b)
             report.ticks += 1

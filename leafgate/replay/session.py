@@ -5,7 +5,8 @@ Layout (profile ``leafgate``; every JSON record is one object, floats written ex
 =========================== ========= ==============================================================
 topic                       encoding  content
 =========================== ========= ==============================================================
-``/<zenoh key>``            cdr/json  raw Zenoh input payloads as received; CDR channels carry their
+``/<ROS topic>``            cdr/json  raw Zenoh input payloads as received, on their ROS topic names
+                                      (``/localization/kinematic_state`` …); CDR channels carry their
                                       ``ros2msg`` schema so Foxglove and the ``mcap`` CLI decode them
 ``/can``                    json      every CAN frame in and out: ``{t, dir, id, ext, data, channel}``
 ``/leafgate/trajectory``    json      each distinct trajectory once: ``{ref, stamp, x, y, heading,
@@ -18,12 +19,19 @@ topic                       encoding  content
 =========================== ========= ==============================================================
 
 Metadata ``leafgate.config`` holds the configuration as YAML (``{"yaml": …}``) and
-``leafgate.session`` the clock and format version; both are written first, so a file cut
-short by a crash still has them.
+``leafgate.session`` the clock, the format version and ``epoch_offset_ns``; both are written
+first, so a file cut short by a crash still has them.
 
-Times: MCAP ``log_time`` is the gateway clock in ns (the clock that stamps ``received``);
-exact float seconds live inside the JSON, so a re-run sees bit-identical inputs. Non-finite
-floats are written as the strings ``"nan"``, ``"inf"``, ``"-inf"`` (JSON has no NaN).
+Times: MCAP ``log_time`` and ``publish_time`` are Unix-epoch ns on every channel, so a session
+lines up with other recordings (rosbag2, Foxglove): the gateway clock (the clock that stamps
+``received``) plus ``epoch_offset_ns`` (the wall clock minus the gateway clock at the start;
+for a simulated drive, the wall-clock time at which simulated time 0 began). The gateway
+clock's exact float seconds live inside the JSON, so a re-run sees bit-identical inputs; a
+CAN frame keeps its own bus timestamp in ``t``.
+
+JSON follows :mod:`leafgate.jsonconv` (enums by name, NaN and ±inf as null: a non-finite
+input value re-runs as NaN); older files with numeric enums and ``"nan"`` strings still read.
+Every JSON channel's schema lists its properties.
 
 Reading is sequential (:class:`SessionReader`), not through the summary at the end: a file
 truncated by a crash yields every record up to its last complete chunk (the recorder closes a
@@ -37,6 +45,7 @@ import enum
 import hashlib
 import json
 import math
+import time
 import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
@@ -54,6 +63,7 @@ from mcap.writer import CompressionType, Writer
 from leafgate.config import from_mapping, safe_load_yaml, yaml_error_text
 from leafgate.errors import ConfigError, ReplayError
 from leafgate.gateway.core import GatewayInputs, StepResult
+from leafgate.jsonconv import enum_from_json, float_from_json, json_schema, to_json
 from leafgate.messages import (
     Commands,
     FloatArray,
@@ -96,7 +106,7 @@ __all__ = [
 ]
 
 PROFILE: Final = "leafgate"
-FORMAT_VERSION: Final = "1"
+FORMAT_VERSION: Final = "2"  # 2: Unix-epoch times, enums by name, NaN as null
 TOPIC_CAN: Final = "/can"
 TOPIC_TICK: Final = "/leafgate/tick"
 TOPIC_TRAJECTORY: Final = "/leafgate/trajectory"
@@ -110,6 +120,12 @@ _CHUNK_SIZE: Final = 4 * 1024 * 1024  # bytes; chunks are closed by flush() long
 def to_ns(t: float) -> int:
     """Seconds → MCAP nanoseconds (clamped at 0: MCAP times are unsigned)."""
     return max(0, round(t * 1e9)) if math.isfinite(t) else 0
+
+
+def epoch_offset(clock: Callable[[], float] | None) -> float:
+    """Seconds to add to ``clock`` to get Unix time, measured now; for a simulated drive
+    (``clock`` None: simulated time starts at 0) the wall-clock time now."""
+    return time.time() - (clock() if clock is not None else 0.0)
 
 
 def gateway_mode(config: LeafgateConfig) -> LongMode:
@@ -185,27 +201,13 @@ def config_from_yaml(
 # --- values ⇄ JSON ------------------------------------------------------------------------------
 
 
-def _float_out(value: float) -> float | str:
-    return value if math.isfinite(value) else repr(value)  # 'nan', 'inf', '-inf'
-
-
-def _float_in(value: Any) -> float:
-    if isinstance(value, str):
-        return float(value)  # 'nan', 'inf', '-inf'
-    return float(value)
+_float_out = to_json  # floats exact, non-finite as null
+_float_in = float_from_json
 
 
 def encode_flat(value: Any) -> dict[str, Any]:
-    """A flat message dataclass → JSON object: enums by number, floats exact."""
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(value):
-        v = getattr(value, f.name)
-        if isinstance(v, enum.Enum):
-            out[f.name] = v.value
-        elif isinstance(v, float):
-            out[f.name] = _float_out(v)
-        else:
-            out[f.name] = v
+    """A flat message dataclass → JSON object (:mod:`leafgate.jsonconv`: enums by name)."""
+    out: dict[str, Any] = to_json(value)
     return out
 
 
@@ -235,7 +237,7 @@ def _convert(tp: Any, value: Any) -> Any:
     if tp is int:
         return int(value)
     if isinstance(tp, type) and issubclass(tp, enum.Enum):
-        return tp(value)
+        return enum_from_json(tp, value)
     return value
 
 
@@ -330,7 +332,7 @@ def encode_inputs(inputs: GatewayInputs, trajectory: tuple[int, int] | None) -> 
         "system_report": _stamped(inputs.system_report),
         "good_report_frames": inputs.good_report_frames,
         "bad_report_frames": inputs.bad_report_frames,
-        "request": None if inputs.request is None else inputs.request.value,
+        "request": None if inputs.request is None else inputs.request.name,
         "overrun": inputs.overrun,
         "bus_errors": inputs.bus_errors,
         "foreign_command_frames": inputs.foreign_command_frames,
@@ -360,7 +362,7 @@ def decode_inputs(
         system_report=_unstamped(SystemReport, d["system_report"]),
         good_report_frames=int(d["good_report_frames"]),
         bad_report_frames=int(d["bad_report_frames"]),
-        request=None if d["request"] is None else OperatorRequest(d["request"]),
+        request=None if d["request"] is None else enum_from_json(OperatorRequest, d["request"]),
         overrun=bool(d["overrun"]),
         bus_errors=int(d["bus_errors"]),
         # absent in sessions recorded before the gateway watched its command IDs
@@ -426,12 +428,98 @@ def _dumps(value: Any) -> bytes:
 
 # --- writing ------------------------------------------------------------------------------------
 
-_JSON_SCHEMAS: Final = {
-    TOPIC_CAN: "leafgate.CanFrame",
-    TOPIC_TICK: "leafgate.Tick",
-    TOPIC_TRAJECTORY: "leafgate.Trajectory",
-    TOPIC_DIAGNOSTICS: "leafgate.Diagnostics",
-}
+_NUMBER: Final = {"type": ["number", "null"]}  # null: NaN or ±inf (leafgate.jsonconv)
+_NUMBERS: Final = {"type": "array", "items": _NUMBER}
+
+
+def _obj(**properties: Any) -> dict[str, Any]:
+    return {"type": "object", "properties": properties}
+
+
+def _nullable(schema: dict[str, Any]) -> dict[str, Any]:
+    return {"anyOf": [schema, {"type": "null"}]}
+
+
+def _stamped_schema(cls: type) -> dict[str, Any]:
+    return _nullable(_obj(value=json_schema(cls), received=_NUMBER, valid={"type": "boolean"}))
+
+
+def _json_schemas() -> dict[str, tuple[str, dict[str, Any]]]:
+    """Topic → (schema name, JSON Schema with the properties), for Foxglove's field names."""
+    integer, string, boolean = {"type": "integer"}, {"type": "string"}, {"type": "boolean"}
+    commands = _obj(
+        steer=json_schema(SteerCommand),
+        long=json_schema(LongCommand),
+        system=_nullable(json_schema(SystemCommand)),
+        extra={"type": "object", "additionalProperties": _NUMBER},
+    )
+    inputs = _obj(
+        pose=_stamped_schema(Pose),
+        trajectory=_nullable(_obj(ref=integer, obj=integer, received=_NUMBER, valid=boolean)),
+        steer_report=_stamped_schema(SteerReport),
+        long_report=_stamped_schema(LongReport),
+        system_report=_stamped_schema(SystemReport),
+        good_report_frames=integer,
+        bad_report_frames=integer,
+        request=_nullable(json_schema(OperatorRequest)),
+        overrun=boolean,
+        bus_errors=integer,
+        foreign_command_frames=integer,
+        foreign_command_names={"type": "array", "items": string},
+    )
+    return {
+        TOPIC_CAN: (
+            "leafgate.CanFrame",
+            _obj(
+                t=_NUMBER,
+                dir={"type": "string", "enum": ["rx", "tx"]},
+                id=integer,
+                ext=boolean,
+                data=string,
+                channel={"type": ["string", "integer", "null"]},
+                error=boolean,
+                remote=boolean,
+            ),
+        ),
+        TOPIC_TICK: (
+            "leafgate.Tick",
+            _obj(
+                now=_NUMBER,
+                inputs=inputs,
+                commands=commands,
+                state=string,
+                reply=_nullable(_obj(accepted=boolean, state=string, reason=string)),
+            ),
+        ),
+        TOPIC_TRAJECTORY: (
+            "leafgate.Trajectory",
+            _obj(
+                ref=integer, stamp=_NUMBER, x=_NUMBERS, y=_NUMBERS, heading=_NUMBERS, speed=_NUMBERS
+            ),
+        ),
+        TOPIC_DIAGNOSTICS: (
+            "leafgate.Diagnostics",
+            _obj(
+                time=_NUMBER,
+                state=string,
+                reason=string,
+                fault=string,
+                fault_causes={"type": "array", "items": string},
+                engage_phase=string,
+                watchdogs={"type": "object"},
+                error_counter=integer,
+                overruns_in_row=integer,
+                ecu_state=_nullable(string),
+                controller=_nullable({"type": "object"}),
+                gear_change=boolean,
+                clamps={"type": "object", "additionalProperties": integer},
+                clamped={"type": "array", "items": string},
+                transitions={"type": "array", "items": {"type": "object"}},
+                predicted_xy={"type": "array", "items": _NUMBERS},
+            ),
+        ),
+    }
+
 
 _COMPRESSION: Final = {
     "zstd": CompressionType.ZSTD,
@@ -457,45 +545,51 @@ class SessionWriter:
         config: LeafgateConfig,
         compression: str = "zstd",
         session: Mapping[str, str] | None = None,
+        epoch_offset: float = 0.0,
     ) -> None:
         self._writer = Writer(stream, chunk_size=_CHUNK_SIZE, compression=_COMPRESSION[compression])
         self._writer.start(profile=PROFILE, library="leafgate")
         self._writer.add_metadata(META_CONFIG, {"yaml": config_to_yaml(config)})
+        self._offset_ns = round(epoch_offset * 1e9)
         self._writer.add_metadata(
-            META_SESSION, {"format_version": FORMAT_VERSION, **dict(session or {})}
+            META_SESSION,
+            {
+                "format_version": FORMAT_VERSION,
+                "epoch_offset_ns": str(self._offset_ns),
+                "log_time": "unix epoch ns = gateway clock + epoch_offset_ns",
+                **dict(session or {}),
+            },
         )
         self._channels: dict[str, int] = {}
         self._zenoh: dict[tuple[str, str], int] = {}
         self._trajectories = TrajectoryRefs()
         self._sequence = 0
-        for topic, name in _JSON_SCHEMAS.items():
-            schema = json.dumps({"title": name, "type": "object"}).encode()
+        for topic, (name, body) in _json_schemas().items():
+            schema = json.dumps({"title": name, **body}).encode()
             schema_id = self._writer.register_schema(name, "jsonschema", schema)
             self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
 
-    def _add(
-        self, channel_id: int, log_time: int, data: bytes, publish_time: int | None = None
-    ) -> None:
+    def _add(self, channel_id: int, t: int, data: bytes) -> None:
+        """One message at gateway-clock time ``t`` (ns), stamped in Unix-epoch ns."""
         self._sequence += 1
+        stamp = max(0, t + self._offset_ns)
         self._writer.add_message(
             channel_id,
-            log_time=log_time,
+            log_time=stamp,
             data=data,
-            publish_time=log_time if publish_time is None else publish_time,
+            publish_time=stamp,
             sequence=self._sequence & 0xFFFFFFFF,
         )
 
     def can_frame(self, log_time: float, msg: can.Message, rx: bool) -> None:
         """One CAN frame (``log_time`` on the gateway clock; the frame keeps its bus time)."""
         self._add(
-            self._channels[TOPIC_CAN],
-            to_ns(log_time),
-            _dumps(frame_record(msg.timestamp, msg, rx)),
-            to_ns(msg.timestamp),
+            self._channels[TOPIC_CAN], to_ns(log_time), _dumps(frame_record(msg.timestamp, msg, rx))
         )
 
     def zenoh_input(self, key: str, payload: bytes, received: float, typename: str | None) -> None:
-        """A raw Zenoh payload as received; CDR payloads get a ``ros2msg`` schema channel."""
+        """A raw Zenoh payload as received on topic ``key`` (the ROS name the gateway passes,
+        e.g. ``/localization/kinematic_state``); CDR payloads get a ``ros2msg`` schema channel."""
         cdr = typename is not None and payload[:2] in _CDR_HEADERS
         encoding = "cdr" if cdr else "json"
         channel_id = self._zenoh.get((key, encoding))
@@ -573,8 +667,8 @@ class SessionRecord:
     """One message of a session file."""
 
     topic: str
-    log_time: int  # ns, gateway clock
-    publish_time: int  # ns
+    log_time: int  # ns, Unix epoch (format 2; the gateway clock in format 1)
+    publish_time: int  # ns, Unix epoch
     data: bytes
     encoding: str  # "json", "cdr"
     schema: str  # schema name ("" when none)

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from leafgate.errors import ConfigError
+from leafgate.jsonconv import to_json
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.plots import Trace, plot_drive
 from leafgate.sim.runner import SimResult, run, run_direct
@@ -165,7 +166,7 @@ def run_compare(
 
     records = []
     for (s, p, c), r in results.items():
-        metrics = {k: _jsonable(v) for k, v in r.metrics.items() if k != "transitions"}
+        metrics = {k: to_json(v) for k, v in r.metrics.items() if k != "transitions"}
         records.append({"scenario": s, "plant": p, "controller": c, "metrics": metrics})
     report: dict[str, Any] = {
         "loop": "direct (controller → plant)" if direct else "full (CAN, ECU, gateway)",
@@ -185,20 +186,6 @@ def run_compare(
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     (out / "report.md").write_text(_markdown(report, results, figures), encoding="utf-8")
     return report
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, (bool, int, str)) or value is None:
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, (np.floating, np.integer)):
-        return _jsonable(value.item())
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    return str(value)
 
 
 def _best(

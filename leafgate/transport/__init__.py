@@ -6,7 +6,9 @@ and the operator client.
 - :mod:`~leafgate.transport.session` — :func:`open_session` from :class:`ZenohConfig`
 - :mod:`~leafgate.transport.node` — :class:`GatewayTransport` (slots, publishers, engage, alive)
 - :mod:`~leafgate.transport.client` — engage requests, diagnostics watch, input publishers
-- :mod:`~leafgate.transport.keys` — the key expressions after the prefix
+- :mod:`~leafgate.transport.keys` — leafgate's own key expressions after the prefix
+- :mod:`~leafgate.transport.ros2` — rmw_zenoh keys, attachments, liveliness tokens, RIHS01 hashes
+- :mod:`~leafgate.transport.rosnode` — :class:`RosFace`: one process's ROS 2 entities per mode
 
 Nothing is imported here, so loading the configuration does not load Zenoh.
 """

@@ -37,6 +37,11 @@ STEERING_REPORT = "autoware_vehicle_msgs/msg/SteeringReport"
 VELOCITY_REPORT = "autoware_vehicle_msgs/msg/VelocityReport"
 GEAR_REPORT = "autoware_vehicle_msgs/msg/GearReport"
 CONTROL_MODE_REPORT = "autoware_vehicle_msgs/msg/ControlModeReport"
+TURN_INDICATORS_REPORT = "autoware_vehicle_msgs/msg/TurnIndicatorsReport"
+HAZARD_LIGHTS_REPORT = "autoware_vehicle_msgs/msg/HazardLightsReport"
+CONTROL_MODE_COMMAND = "autoware_vehicle_msgs/srv/ControlModeCommand"  # a service
+CONTROL_MODE_COMMAND_REQUEST = CONTROL_MODE_COMMAND + "_Request"
+CONTROL_MODE_COMMAND_RESPONSE = CONTROL_MODE_COMMAND + "_Response"
 
 # Standard types used while building messages.
 TIME = "builtin_interfaces/msg/Time"
@@ -177,6 +182,38 @@ uint8 NOT_READY = 6
 builtin_interfaces/Time stamp
 uint8 mode
 """,
+    TURN_INDICATORS_REPORT: """\
+uint8 DISABLE = 1
+uint8 ENABLE_LEFT = 2
+uint8 ENABLE_RIGHT = 3
+
+builtin_interfaces/Time stamp
+uint8 report
+""",
+    HAZARD_LIGHTS_REPORT: """\
+uint8 DISABLE = 1
+uint8 ENABLE = 2
+
+builtin_interfaces/Time stamp
+uint8 report
+""",
+}
+
+# Services: (request, response) field lists (autoware_msgs 1.x).
+SRV_TEXTS: dict[str, tuple[str, str]] = {
+    CONTROL_MODE_COMMAND: (
+        """\
+uint8 NO_COMMAND = 0
+uint8 AUTONOMOUS = 1
+uint8 AUTONOMOUS_STEER_ONLY = 2
+uint8 AUTONOMOUS_VELOCITY_ONLY = 3
+uint8 MANUAL = 4
+
+builtin_interfaces/Time stamp
+uint8 mode
+""",
+        "bool success\n",
+    ),
 }
 
 # Every type a leafgate key carries (the Zenoh interface table in DESIGN.md).
@@ -187,6 +224,8 @@ KEY_TYPES: tuple[str, ...] = (
     VELOCITY_REPORT,
     GEAR_REPORT,
     CONTROL_MODE_REPORT,
+    TURN_INDICATORS_REPORT,
+    HAZARD_LIGHTS_REPORT,
     CONTROL,
 )
 
@@ -201,6 +240,12 @@ def store() -> Typestore:
     types: dict[str, Any] = {}
     for typename, text in MSG_TEXTS.items():
         types.update(get_types_from_msg(text, typename))
+    for typename, (request, response) in SRV_TEXTS.items():
+        # rosbags names .msg types pkg/msg/Name; a request or response is stored under its
+        # ROS name, pkg/srv/Name_Request and pkg/srv/Name_Response.
+        for suffix, text in (("_Request", request), ("_Response", response)):
+            ((_, fields),) = get_types_from_msg(text, "leafgate_tmp/msg/Tmp").items()
+            types[typename + suffix] = fields
     typestore.register(types)
     return typestore
 

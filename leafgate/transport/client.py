@@ -26,6 +26,8 @@ from leafgate.messages import OperatorRequest, Pose, Trajectory
 from leafgate.transport import keys
 from leafgate.transport.config import ZenohConfig
 from leafgate.transport.payloads import Codec, codecs
+from leafgate.transport.ros2 import INPUT_QOS
+from leafgate.transport.rosnode import RosFace
 from leafgate.transport.session import open_session, zenoh_message
 
 T = TypeVar("T")
@@ -147,14 +149,17 @@ def watch_diagnostics(
 
 
 class _InputPublisher(Generic[T]):
-    """A publisher of one gateway input key in the configured encoding."""
+    """A publisher of one gateway input (a topic role) in the configured encoding and ROS
+    mode; it announces itself as node ``<node_name>_<role>`` in rmw_zenoh mode."""
 
-    def __init__(self, session: zenoh.Session, cfg: ZenohConfig, suffix: str, codec: Codec[T]):
-        self.key = cfg.key(suffix)
+    def __init__(self, session: zenoh.Session, cfg: ZenohConfig, role: str, codec: Codec[T]):
         self._codec = codec
-        self._publisher = session.declare_publisher(
-            self.key, encoding=zenoh.Encoding(codec.mime), express=cfg.express
+        self._face = RosFace(session, cfg, node_name=f"{cfg.node_name}_{role}")
+        self._ros = self._face.publisher(
+            role, codec.typename, mime=codec.mime, express=cfg.express, qos=INPUT_QOS
         )
+        self.key = self._ros.key
+        self._publisher = self._ros.publisher
 
     @property
     def matched(self) -> bool:
@@ -166,11 +171,12 @@ class _InputPublisher(Generic[T]):
         return _wait_matching(self._publisher, time.monotonic() + timeout)
 
     def _put(self, value: T) -> None:
-        self._publisher.put(self._codec.encode(value))
+        self._ros.put(self._codec.encode(value))
 
     def close(self) -> None:
-        """Undeclare the publisher (the session stays the caller's)."""
+        """Undeclare the publisher and its tokens (the session stays the caller's)."""
         self._publisher.undeclare()
+        self._face.close()
 
     def __enter__(self) -> Self:
         return self
@@ -180,14 +186,14 @@ class _InputPublisher(Generic[T]):
 
 
 class OdometryPublisher(_InputPublisher[Pose]):
-    """Publishes ``{prefix}/localization/kinematic_state`` (nav_msgs/msg/Odometry).
+    """Publishes the ``kinematic_state`` topic (nav_msgs/msg/Odometry).
 
     :param session: an open session (the caller closes it)
     :param cfg: the Zenoh section (prefix, encoding)
     """
 
     def __init__(self, session: zenoh.Session, cfg: ZenohConfig) -> None:
-        super().__init__(session, cfg, keys.KINEMATIC_STATE, codecs(cfg.encoding).pose)
+        super().__init__(session, cfg, "kinematic_state", codecs(cfg.encoding).pose)
 
     def publish(self, pose: Pose, stamp: float | None = None) -> None:
         """Publish ``pose``; ``stamp`` (s) replaces the pose's own stamp when given.
@@ -200,14 +206,14 @@ class OdometryPublisher(_InputPublisher[Pose]):
 
 
 class TrajectoryPublisher(_InputPublisher[Trajectory]):
-    """Publishes ``{prefix}/planning/trajectory`` (autoware_planning_msgs/msg/Trajectory).
+    """Publishes the ``trajectory`` topic (autoware_planning_msgs/msg/Trajectory).
 
     :param session: an open session (the caller closes it)
     :param cfg: the Zenoh section (prefix, encoding)
     """
 
     def __init__(self, session: zenoh.Session, cfg: ZenohConfig) -> None:
-        super().__init__(session, cfg, keys.TRAJECTORY, codecs(cfg.encoding).trajectory)
+        super().__init__(session, cfg, "trajectory", codecs(cfg.encoding).trajectory)
 
     def publish(self, trajectory: Trajectory) -> None:
         """Publish ``trajectory``.

@@ -11,8 +11,6 @@ values are counted per key and dropped.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import enum
 import json
 import logging
 import math
@@ -27,6 +25,7 @@ import zenoh
 
 from leafgate.control.reference import trajectory_problem
 from leafgate.errors import TransportError
+from leafgate.jsonconv import to_json
 from leafgate.messages import (
     Gear,
     LongReport,
@@ -37,13 +36,16 @@ from leafgate.messages import (
     Trajectory,
 )
 from leafgate.transport import cdr, keys
+from leafgate.transport.cdr import PayloadError
 from leafgate.transport.config import ZenohConfig
 from leafgate.transport.payloads import (
     Codec,
     ControlModeStatus,
     GearStatus,
+    HazardLightsStatus,
     SentCommand,
     SteeringStatus,
+    TurnIndicatorsStatus,
     VelocityStatus,
     codecs,
     control_mode,
@@ -51,9 +53,12 @@ from leafgate.transport.payloads import (
     steering_status,
     velocity_status,
 )
+from leafgate.transport.rosnode import RosFace, RosPublisher
 from leafgate.transport.session import open_session, zenoh_message
 
 T = TypeVar("T")
+
+DIAGNOSTICS = "diagnostics"  # publisher role of gateway/diagnostics (leafgate's own JSON key)
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +66,12 @@ Clock = Callable[[], float]
 EngageHandler = Callable[[OperatorRequest], Mapping[str, Any]]
 
 REQUEST_PARAMETER = "request"  # selector parameter alternative to the query payload
+# autoware_vehicle_msgs/srv/ControlModeCommand modes → the operator request they stand for.
+_CONTROL_MODE_REQUESTS: dict[int, OperatorRequest] = {
+    1: OperatorRequest.ENGAGE,  # AUTONOMOUS
+    4: OperatorRequest.DISENGAGE,  # MANUAL
+}
+_NO_COMMAND = 0
 QUERY_JOIN_TIMEOUT = 2.0  # s, how long close() waits for an engage handler still running
 
 
@@ -131,34 +142,9 @@ def trajectory_is_valid(trajectory: Trajectory) -> bool:
     return trajectory_problem(trajectory) is None
 
 
-def to_jsonable(value: Any) -> Any:
-    """Make diagnostics JSON-safe: enums by name, NaN/±inf as null, numpy as Python.
-
-    Dataclasses become objects, tuples and arrays lists; anything else unknown becomes its
-    ``str`` so a diagnostics publication never fails on an odd value.
-    """
-    if value is None or isinstance(value, (bool, str)):
-        return value
-    if isinstance(value, enum.Enum):
-        return value.name
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.ndarray):
-        return [to_jsonable(v) for v in value.tolist()]
-    if isinstance(value, Mapping):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, set, frozenset)):
-        return [to_jsonable(v) for v in value]
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: to_jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    return str(value)
-
-
 def _reply_json(reply: Mapping[str, Any]) -> dict[str, Any]:
     """The engage reply with its three fields always present."""
-    out = to_jsonable(dict(reply))
+    out = to_json(dict(reply))
     out["accepted"] = bool(out.get("accepted", False))
     out.setdefault("state", None)
     out["reason"] = str(out.get("reason") or "")
@@ -226,8 +212,9 @@ class GatewayTransport:
         self._codecs = codecs(cfg.encoding)
         self._publish_errors: dict[str, int] = {}
         self._handler_errors = 0
-        # Called with (key, raw payload, receive time, ROS type name or None for JSON) for every
-        # input sample before it is decoded: the session recorder's tap.
+        # Called with (ROS topic name, raw payload, receive time, ROS type name or None for JSON)
+        # for every input sample before it is decoded: the session recorder's tap (its channels
+        # carry the ROS names, so they line up with rosbag2 recordings in either ROS mode).
         self.on_raw: Callable[[str, bytes, float, str | None], None] | None = None
         self._tap_errors = 0
         self._lock = threading.Lock()
@@ -240,46 +227,78 @@ class GatewayTransport:
         )
         self._query_worker.start()
 
-        self.pose: LatestSlot[Pose] = LatestSlot(cfg.key(keys.KINEMATIC_STATE))
-        self.trajectory: LatestSlot[Trajectory] = LatestSlot(cfg.key(keys.TRAJECTORY))
-
         self._declared: list[Any] = []
-        self._publishers: dict[str, tuple[zenoh.Publisher, Codec[Any] | None]] = {}
+        self._publishers: dict[str, tuple[RosPublisher, Codec[Any] | None]] = {}
         try:
+            # The ROS face: keys, attachments and discovery tokens of the configured mode.
+            self.ros = RosFace(session, cfg, wall=stamp_clock)
+            self._declared.append(self.ros)
+            self.pose: LatestSlot[Pose] = LatestSlot(self.ros.key("kinematic_state", cdr.ODOMETRY))
+            self.trajectory: LatestSlot[Trajectory] = LatestSlot(
+                self.ros.key("trajectory", cdr.TRAJECTORY)
+            )
             self._declared.append(
-                session.declare_subscriber(
-                    self.pose.key,
-                    self._subscriber(self.pose, self._codecs.pose, pose_is_valid, cdr.ODOMETRY),
+                self.ros.subscriber(
+                    "kinematic_state",
+                    cdr.ODOMETRY,
+                    self._subscriber(
+                        self.pose,
+                        self._codecs.pose,
+                        pose_is_valid,
+                        cdr.ODOMETRY,
+                        cfg.topic("kinematic_state"),
+                    ),
                 )
             )
             self._declared.append(
-                session.declare_subscriber(
-                    self.trajectory.key,
+                self.ros.subscriber(
+                    "trajectory",
+                    cdr.TRAJECTORY,
                     self._subscriber(
                         self.trajectory,
                         self._codecs.trajectory,
                         trajectory_is_valid,
                         cdr.TRAJECTORY,
+                        cfg.topic("trajectory"),
                     ),
                 )
             )
             self._declared.append(
                 session.declare_queryable(cfg.key(keys.ENGAGE), self._queries.put)
             )
-            for suffix, codec in (
-                (keys.STEERING_STATUS, self._codecs.steering),
-                (keys.VELOCITY_STATUS, self._codecs.velocity),
-                (keys.GEAR_STATUS, self._codecs.gear),
-                (keys.CONTROL_MODE, self._codecs.control_mode),
-                (keys.CONTROL_CMD, self._codecs.command),
-                (keys.DIAGNOSTICS, None),
-            ):
-                mime = codec.mime if codec is not None else "application/json"
-                publisher = session.declare_publisher(
-                    cfg.key(suffix), encoding=zenoh.Encoding(mime), express=cfg.express
+            self._service_key = ""
+            if cfg.encoding == "cdr" and cfg.topic("control_mode_request"):
+                self._service_key = self.ros.key("control_mode_request", cdr.CONTROL_MODE_COMMAND)
+                self._declared.append(
+                    self.ros.service(
+                        "control_mode_request", cdr.CONTROL_MODE_COMMAND, self._queries.put
+                    )
                 )
-                self._declared.append(publisher)
-                self._publishers[suffix] = (publisher, codec)
+            for role, codec in (
+                ("steering_status", self._codecs.steering),
+                ("velocity_status", self._codecs.velocity),
+                ("gear_status", self._codecs.gear),
+                ("control_mode", self._codecs.control_mode),
+                ("turn_indicators_status", self._codecs.turn_indicators),
+                ("hazard_lights_status", self._codecs.hazard_lights),
+                ("command_echo", self._codecs.command),
+            ):
+                if cfg.topic(role):  # "" switches a role off (the command echo by default)
+                    publisher = self.ros.publisher(
+                        role, codec.typename, mime=codec.mime, express=cfg.express
+                    )
+                    self._declared.append(publisher)
+                    self._publishers[role] = (publisher, codec)
+            diagnostics = session.declare_publisher(
+                cfg.key(keys.DIAGNOSTICS),
+                encoding=zenoh.Encoding("application/json"),
+                express=cfg.express,
+            )
+            self._declared.append(diagnostics)
+            self._publishers[DIAGNOSTICS] = (
+                RosPublisher(diagnostics, cfg.key(keys.DIAGNOSTICS), None, stamp_clock),
+                None,
+            )
             self._declared.append(session.liveliness().declare_token(cfg.key(keys.ALIVE)))
         except zenoh.ZError as exc:
             self.close()
@@ -312,17 +331,23 @@ class GatewayTransport:
     # --- inputs ---------------------------------------------------------------------------
 
     def _subscriber(
-        self, slot: LatestSlot[T], codec: Codec[T], valid: Callable[[T], bool], typename: str
+        self,
+        slot: LatestSlot[T],
+        codec: Codec[T],
+        valid: Callable[[T], bool],
+        typename: str,
+        topic: str | None = None,
     ) -> Callable[[zenoh.Sample], None]:
         clock = self._clock
         typename_or_none = typename if self._cfg.encoding == "cdr" else None
+        name = topic or slot.key
 
         def on_sample(sample: zenoh.Sample) -> None:
             received = clock()  # before decoding: the age counts from arrival
             payload = sample.payload.to_bytes()
             if self.on_raw is not None:
                 try:
-                    self.on_raw(slot.key, payload, received, typename_or_none)
+                    self.on_raw(name, payload, received, typename_or_none)
                 except Exception:  # a recorder problem must not stop the inputs
                     self._tap_errors += 1
             try:
@@ -369,8 +394,44 @@ class GatewayTransport:
 
     def _answer_queries(self) -> None:
         while (query := self._queries.get()) is not None:
-            self._reply(query)
+            if self._service_key and str(query.key_expr) == self._service_key:
+                self._reply_control_mode(query)
+            else:
+                self._reply(query)
             del query  # drop our reference before waiting for the next one
+
+    def _reply_control_mode(self, query: zenoh.Query) -> None:
+        """Answer a ROS ``ControlModeCommand`` call (CDR request → the engage handler → CDR
+        response): AUTONOMOUS engages, MANUAL disengages, NO_COMMAND does nothing; the
+        partial modes are refused (the DBW ECU engages steering and speed together)."""
+        try:
+            mode: int | None = None
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                mode = int(cdr.deserialize(payload, cdr.CONTROL_MODE_COMMAND_REQUEST).mode)
+            except PayloadError as exc:
+                log.warning("bad ControlModeCommand request: %s", exc)
+            if mode == _NO_COMMAND:
+                success = True
+            elif mode in _CONTROL_MODE_REQUESTS:
+                success = bool(self.answer(_CONTROL_MODE_REQUESTS[mode])["accepted"])
+            else:
+                success = False
+            types = cdr.store().types
+            response = cdr.serialize(
+                types[cdr.CONTROL_MODE_COMMAND_RESPONSE](success=success),
+                cdr.CONTROL_MODE_COMMAND_RESPONSE,
+            )
+            query.reply(
+                query.key_expr,
+                response,
+                encoding=zenoh.Encoding("application/cdr"),
+                attachment=self.ros.reply_attachment(query),
+            )
+        except (zenoh.ZError, TransportError) as exc:
+            log.warning("could not reply to a ControlModeCommand call: %s", exc)
+        finally:
+            query.drop()
 
     def _reply(self, query: zenoh.Query) -> None:
         try:
@@ -412,12 +473,12 @@ class GatewayTransport:
     # --- outputs --------------------------------------------------------------------------
 
     def _publish(self, suffix: str, value: Any) -> bool:
-        if self._closed:
+        if self._closed or suffix not in self._publishers:  # a role switched off
             return False
         publisher, codec = self._publishers[suffix]
         try:
             if codec is None:
-                payload = json.dumps(to_jsonable(value), allow_nan=False).encode()
+                payload = json.dumps(to_json(value), allow_nan=False).encode()
             else:
                 payload = codec.encode(value)
             publisher.put(payload)
@@ -429,23 +490,29 @@ class GatewayTransport:
 
     def publish_steering(self, status: SteeringStatus) -> None:
         """Publish ``vehicle/status/steering_status``; failures are counted, never raised."""
-        self._publish(keys.STEERING_STATUS, status)
+        self._publish("steering_status", status)
 
     def publish_velocity(self, status: VelocityStatus) -> None:
         """Publish ``vehicle/status/velocity_status``; failures are counted, never raised."""
-        self._publish(keys.VELOCITY_STATUS, status)
+        self._publish("velocity_status", status)
 
     def publish_gear(self, status: GearStatus) -> None:
         """Publish ``vehicle/status/gear_status``; failures are counted, never raised."""
-        self._publish(keys.GEAR_STATUS, status)
+        self._publish("gear_status", status)
 
     def publish_control_mode(self, status: ControlModeStatus) -> None:
         """Publish ``vehicle/status/control_mode``; failures are counted, never raised."""
-        self._publish(keys.CONTROL_MODE, status)
+        self._publish("control_mode", status)
+
+    def publish_lamps(self, stamp: float) -> None:
+        """Publish the turn-indicator and hazard-light statuses: DISABLE, since no vehicle
+        profile commands them (Autoware's vehicle interface expects both topics)."""
+        self._publish("turn_indicators_status", TurnIndicatorsStatus(stamp=stamp))
+        self._publish("hazard_lights_status", HazardLightsStatus(stamp=stamp))
 
     def publish_command(self, command: SentCommand) -> None:
-        """Publish ``control/command/control_cmd`` (what was sent)."""
-        self._publish(keys.CONTROL_CMD, command)
+        """Publish the command echo (what was sent), when ``topics.command_echo`` is set."""
+        self._publish("command_echo", command)
 
     def publish_step(self, now: float, result: Any, reports: Mapping[str, Any]) -> None:
         """Publish the vehicle status and the command of one control tick.
@@ -473,16 +540,17 @@ class GatewayTransport:
         if diagnostics is not None:
             mode = control_mode(diagnostics.state, diagnostics.ecu_state)
             self.publish_control_mode(ControlModeStatus(mode=mode, stamp=stamp))
+            self.publish_lamps(stamp)
         commands = getattr(result, "commands", None)
-        if commands is not None:
+        if commands is not None and "command_echo" in self._publishers:
             reverse = long is not None and long.gear == Gear.R
             self.publish_command(
                 sent_command(commands.steer, commands.long, stamp, reverse=reverse)
             )
 
     def publish_diagnostics(self, diagnostics: Mapping[str, Any]) -> None:
-        """Publish ``gateway/diagnostics`` as a JSON object (see :func:`to_jsonable`)."""
-        self._publish(keys.DIAGNOSTICS, diagnostics)
+        """Publish ``gateway/diagnostics`` as a JSON object (:mod:`leafgate.jsonconv`)."""
+        self._publish(DIAGNOSTICS, diagnostics)
 
     # --- lifecycle ------------------------------------------------------------------------
 

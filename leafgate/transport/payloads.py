@@ -36,6 +36,7 @@ from typing import Any, Generic, Literal, TypeVar, get_type_hints
 import numpy as np
 
 from leafgate.errors import PayloadError, TransportError
+from leafgate.jsonconv import to_json
 from leafgate.messages import (
     EcuState,
     GatewayState,
@@ -73,6 +74,37 @@ class ControlMode(enum.IntEnum):
     MANUAL = 4
     DISENGAGED = 5
     NOT_READY = 6
+
+
+class TurnIndicators(enum.IntEnum):
+    """autoware_vehicle_msgs/msg/TurnIndicatorsReport ``report``."""
+
+    DISABLE = 1
+    ENABLE_LEFT = 2
+    ENABLE_RIGHT = 3
+
+
+class HazardLights(enum.IntEnum):
+    """autoware_vehicle_msgs/msg/HazardLightsReport ``report``."""
+
+    DISABLE = 1
+    ENABLE = 2
+
+
+@dataclass(frozen=True, slots=True)
+class TurnIndicatorsStatus:
+    """``vehicle/status/turn_indicators_status``: DISABLE on profiles without indicators."""
+
+    report: TurnIndicators = TurnIndicators.DISABLE
+    stamp: float = math.nan  # s
+
+
+@dataclass(frozen=True, slots=True)
+class HazardLightsStatus:
+    """``vehicle/status/hazard_lights_status``: DISABLE on profiles without hazard lights."""
+
+    report: HazardLights = HazardLights.DISABLE
+    stamp: float = math.nan  # s
 
 
 @dataclass(frozen=True, slots=True)
@@ -479,6 +511,24 @@ def ros_to_control_mode(msg: Any) -> ControlModeStatus:
     return ControlModeStatus(mode=mode, stamp=from_ros_time(msg.stamp))
 
 
+def _report_to_ros(typename: str) -> Callable[[Any], Any]:
+    def to_ros(status: Any) -> Any:
+        return _types()[typename](stamp=to_ros_time(status.stamp), report=int(status.report))
+
+    return to_ros
+
+
+def _report_from_ros(cls: type[Any], kind: type[enum.IntEnum]) -> Callable[[Any], Any]:
+    def from_ros(msg: Any) -> Any:
+        try:
+            report = kind(int(msg.report))
+        except ValueError:
+            raise PayloadError(f"unknown {cls.__name__} value {msg.report}") from None
+        return cls(report=report, stamp=from_ros_time(msg.stamp))
+
+    return from_ros
+
+
 def command_to_ros(command: SentCommand) -> Any:
     t = _types()
     stamp = to_ros_time(command.stamp)
@@ -521,21 +571,9 @@ def ros_to_command(msg: Any) -> SentCommand:
 # --- JSON -----------------------------------------------------------------------------------
 
 
-def _json_number(value: float) -> float | None:
-    return None if math.isnan(value) else value
-
-
 def _flat_to_dict(value: Any) -> dict[str, Any]:
-    """A flat dataclass → JSON object: enums by name, NaN as null."""
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(value):
-        v = getattr(value, f.name)
-        if isinstance(v, enum.Enum):
-            out[f.name] = v.name
-        elif isinstance(v, float):
-            out[f.name] = _json_number(v)
-        else:
-            out[f.name] = v
+    """A flat dataclass → JSON object in leafgate's convention (enums by name, NaN as null)."""
+    out: dict[str, Any] = to_json(value)
     return out
 
 
@@ -588,7 +626,7 @@ def _flat_from_dict(cls: type[T], data: Any) -> T:
 
 def _trajectory_to_dict(trajectory: Trajectory) -> dict[str, Any]:
     return {
-        "stamp": _json_number(trajectory.stamp),
+        "stamp": to_json(trajectory.stamp),
         "x": trajectory.x.tolist(),
         "y": trajectory.y.tolist(),
         "heading": trajectory.heading.tolist(),
@@ -696,6 +734,8 @@ class Codecs:
     velocity: Codec[VelocityStatus]
     gear: Codec[GearStatus]
     control_mode: Codec[ControlModeStatus]
+    turn_indicators: Codec[TurnIndicatorsStatus]
+    hazard_lights: Codec[HazardLightsStatus]
     command: Codec[SentCommand]
 
 
@@ -729,6 +769,18 @@ def codecs(encoding: Encoding) -> Codecs:
         gear=flat(cdr.GEAR_REPORT, GearStatus, gear_to_ros, ros_to_gear),
         control_mode=flat(
             cdr.CONTROL_MODE_REPORT, ControlModeStatus, control_mode_to_ros, ros_to_control_mode
+        ),
+        turn_indicators=flat(
+            cdr.TURN_INDICATORS_REPORT,
+            TurnIndicatorsStatus,
+            _report_to_ros(cdr.TURN_INDICATORS_REPORT),
+            _report_from_ros(TurnIndicatorsStatus, TurnIndicators),
+        ),
+        hazard_lights=flat(
+            cdr.HAZARD_LIGHTS_REPORT,
+            HazardLightsStatus,
+            _report_to_ros(cdr.HAZARD_LIGHTS_REPORT),
+            _report_from_ros(HazardLightsStatus, HazardLights),
         ),
         command=flat(cdr.CONTROL, SentCommand, command_to_ros, ros_to_command),
     )

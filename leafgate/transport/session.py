@@ -15,7 +15,7 @@ from typing import Any
 import zenoh
 
 from leafgate.errors import TransportError
-from leafgate.transport.config import ZenohConfig
+from leafgate.transport.config import RMW_ZENOHD, ZenohConfig
 
 # TLS settings naming a file (eclipse-zenoh 1.10 ``transport/link/tls``), by the side that uses
 # them: checked before opening, because Zenoh's own error ("Invalid TLS private key file: No such
@@ -23,6 +23,7 @@ from leafgate.transport.config import ZenohConfig
 TLS_LISTEN_FILES = ("root_ca_certificate", "listen_certificate", "listen_private_key")
 TLS_CONNECT_FILES = ("root_ca_certificate", "connect_certificate", "connect_private_key")
 _TLS_SCHEMES = ("tls/", "quic/")  # endpoints that use the TLS settings
+TX_DATA_BATCHES = 16  # batches of the data priority in the transmit queue (Zenoh's maximum)
 
 # Zenoh's messages end with " at /path/to/file.rs:123." and may span lines; keep the gist.
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
@@ -69,8 +70,18 @@ def build_config(cfg: ZenohConfig) -> zenoh.Config:
             # explicit endpoints there is nothing to discover, and the tools wait for a
             # matching subscriber or queryable instead. ``extra`` may set it back.
             _insert(config, "scouting/delay", "0", "zenoh.multicast_scouting")
+        # The gateway publishes its statuses in bursts (six express messages per tick, each a
+        # batch of its own): Zenoh's default of 2 data batches in the transmit queue drops
+        # the burst's tail whenever the transmit thread is a moment late (measured: ~2 % of
+        # the later statuses on a loaded machine). 16 is Zenoh's maximum. ``extra`` may
+        # set it back.
+        _insert(config, "transport/link/tx/queue/size/data", str(TX_DATA_BATCHES), "tx queue")
     for name in ("listen", "connect"):
         endpoints: tuple[str, ...] = getattr(cfg, name)
+        if cfg.ros == "rmw_zenoh" and cfg.config_file is None and not endpoints:
+            # As an rmw_zenoh session: connect to rmw_zenohd, listen on a loopback port of
+            # the system's choosing for the peers the router tells about (gossip).
+            endpoints = (RMW_ZENOHD,) if name == "connect" else ("tcp/127.0.0.1:0",)
         if cfg.config_file is None or endpoints:
             for endpoint in endpoints:  # one at a time, so the error names the culprit
                 _insert(
