@@ -86,7 +86,7 @@ FIELDS: dict[tuple[str, str], tuple[float, Callable[[float], EncodableMessage]]]
         lambda v: SystemReport(EcuState.READY, False, False, False, False, round(v)),
     ),
     ("STEER_ANGLE_SENSOR", "STEER_ANGLE"): (DEG, lambda v: SteeringWheelAngle(v)),
-    ("MOTOR_SPEED", "MOTOR_REVS"): (MPS_PER_COUNT, lambda v: MotorSpeed(v)),
+    ("OUTPUT_SPEED", "OUTPUT_REVS"): (MPS_PER_COUNT, lambda v: MotorSpeed(v)),
     ("WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FL"): (KMH, lambda v: WheelSpeeds(v, 0.0, "front")),
     ("WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FR"): (KMH, lambda v: WheelSpeeds(0.0, v, "front")),
     ("WHEEL_SPEEDS_REAR", "WHEEL_SPEED_RL"): (KMH, lambda v: WheelSpeeds(v, 0.0, "rear")),
@@ -119,7 +119,7 @@ def field_value(decoded: object, message: str, name: str) -> float:
         "BRAKE_PEDAL": "brake_pedal_pct",
         "ACCEL_PEDAL": "accel_pedal_pct",
         "RX_ERROR_COUNT": "rx_error_count",
-        "MOTOR_REVS": "speed",
+        "OUTPUT_REVS": "speed",
         "WHEEL_SPEED_FL": "left",
         "WHEEL_SPEED_RL": "left",
         "WHEEL_SPEED_FR": "right",
@@ -316,11 +316,11 @@ def test_wheel_speeds_round_trip(left_kmh: float, right_kmh: float, axle: str) -
     assert close(out.right, right_kmh * KMH, "WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FR", KMH)
 
 
-@given(within("MOTOR_SPEED", "MOTOR_REVS"))
+@given(within("OUTPUT_SPEED", "OUTPUT_REVS"))
 def test_motor_speed_round_trip(rpm: float) -> None:
     out = roundtrip(MotorSpeed(rpm * MPS_PER_COUNT))
     assert isinstance(out, MotorSpeed)
-    assert close(out.speed, rpm * MPS_PER_COUNT, "MOTOR_SPEED", "MOTOR_REVS", MPS_PER_COUNT)
+    assert close(out.speed, rpm * MPS_PER_COUNT, "OUTPUT_SPEED", "OUTPUT_REVS", MPS_PER_COUNT)
 
 
 @pytest.mark.parametrize("gear", [Gear.P, Gear.R, Gear.N, Gear.D, Gear.NONE])
@@ -357,14 +357,21 @@ def test_wheel_speed_is_big_endian_right_wheel_first() -> None:
 )
 def test_gear_lever_byte_decodes_to_gear(byte0: int, gear: Gear) -> None:
     # 0x38 is B (regenerative drive mode): a forward gear; 0x00 is not a lever position
-    out = CanCodec().decode(can.Message(arbitration_id=0x421, data=[byte0], is_extended_id=False))
+    frame = can.Message(arbitration_id=0x421, data=[byte0, 0, 0], is_extended_id=False)
+    out = CanCodec().decode(frame)
     assert out.valid and out.value == GearPosition(gear)
 
 
+def test_a_one_byte_gear_frame_is_the_wrong_length() -> None:
+    # the AZE0 sends 0x421 with 3 bytes in every frame (issue 15); 1 byte is not the car's
+    out = CanCodec().decode(can.Message(arbitration_id=0x421, data=[0x20], is_extended_id=False))
+    assert out.error == "wrong_length"
+
+
 def test_longer_car_frame_is_accepted_as_model_years_differ() -> None:
-    # Leaf 2018 sends 0x421 with 3 bytes (opendbc), the AZE0 with 1 (dalathegreat)
+    # unprotected car frames may carry trailing bytes a model year adds
     out = CanCodec().decode(
-        can.Message(arbitration_id=0x421, data=[0x20, 0xAA, 0x55], is_extended_id=False)
+        can.Message(arbitration_id=0x421, data=[0x20, 0xAA, 0x55, 0x00], is_extended_id=False)
     )
     assert out.valid and out.value == GearPosition(Gear.D)
 

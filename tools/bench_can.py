@@ -196,7 +196,7 @@ def _naive_decoder(codec: CanCodec) -> Callable[[can.Message], object]:
             int(s["RX_ERROR_COUNT"]),
         ),
         "STEER_ANGLE_SENSOR": lambda s: SteeringWheelAngle(s["STEER_ANGLE"] * deg),
-        "MOTOR_SPEED": lambda s: MotorSpeed(s["MOTOR_REVS"] * 0.004),
+        "OUTPUT_SPEED": lambda s: MotorSpeed(s["OUTPUT_REVS"] * 0.004),
         "WHEEL_SPEEDS_FRONT": lambda s: WheelSpeeds(
             s["WHEEL_SPEED_FL"] / kmh, s["WHEEL_SPEED_FR"] / kmh, "front"
         ),

@@ -84,15 +84,33 @@ DEFAULT_PROFILE: Final = "leafgate-dbw"
 PROFILE_NAMES: Final = ("leafgate-dbw", "sze-hlc", "leaf-ze1-lkas")  # shipped in the package
 
 Direction = Literal["command", "report"]
-E2eScheme = Literal["none", "leafgate", "rolling", "nissan-lkas"]
-E2E_SCHEMES: Final = ("none", "leafgate", "rolling", "nissan-lkas")
-# Signals each scheme fills itself (encode) and checks (decode), by default name.
-E2E_SIGNALS: Final[Mapping[str, tuple[str, ...]]] = {
-    "none": (),
+E2eScheme = Literal[
+    "none", "leafgate", "rolling", "counter", "nissan-lkas", "nissan-nibble", "counter-sum"
+]
+E2E_SCHEMES: Final = (
+    "none",
+    "leafgate",  # leafgate's own: alive counter + CRC-8 over the data ID (e2e.py)
+    "rolling",  # a counter the sender fills; not checked (its behaviour is not known)
+    "counter",  # a counter the sender fills and the receiver checks (+1 per frame)
+    "nissan-lkas",  # counter + CRC-8 in byte 7 (the ZE1's 0x169)
+    "nissan-nibble",  # counter + XOR-of-nibbles checksum (the AZE0's 0x002)
+    "counter-sum",  # 8-bit counter in byte 6, byte 7 = byte 6 + offset (0x284/0x285)
+)
+# Signals each scheme fills itself (encode) and checks (decode), by default name:
+# (counter, checksum).
+E2E_SIGNALS: Final[Mapping[str, tuple[str | None, str | None]]] = {
+    "none": (None, None),
     "leafgate": ("ALIVE_COUNTER", "CRC"),
-    "rolling": ("COUNTER",),
+    "rolling": ("COUNTER", None),
+    "counter": ("COUNTER", None),
     "nissan-lkas": ("COUNTER", "CHECKSUM"),
+    "nissan-nibble": ("COUNTER", "CHECKSUM"),
+    "counter-sum": ("COUNTER", "CHECKSUM"),
 }
+# Schemes whose received counter is checked (leafgate's own one is checked by e2e.py).
+COUNTER_CHECKED: Final = frozenset({"counter", "nissan-lkas", "nissan-nibble", "counter-sum"})
+# Parameters a scheme takes in ``e2e: {scheme: NAME, PARAM: VALUE}`` (integers).
+E2E_PARAMS: Final[Mapping[str, tuple[str, ...]]] = {"counter-sum": ("offset",)}
 
 COMMAND_SOURCES: Final[Mapping[str, type]] = {
     "steer": SteerCommand,
@@ -151,6 +169,8 @@ class FrameSpec:
     checksum_signal: str | None
     signals: tuple[SignalMap, ...]
     refreshes: tuple[str, ...]  # sources a valid frame stamps fresh; others fields fold in
+    e2e_params: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    on_change: bool = False  # also sent soon after its payload changes (an event frame)
 
     @property
     def sources(self) -> tuple[str, ...]:
@@ -398,17 +418,24 @@ def _frame(
     vehicle: VehicleConfig,
 ) -> FrameSpec:
     spec = r.mapping(spec_raw, key)
-    r.keys(spec, key, ("bus", "period", "e2e", "counter", "checksum", "signals", "refreshes"))
+    r.keys(
+        spec,
+        key,
+        ("bus", "period", "e2e", "counter", "checksum", "signals", "refreshes", "on_change"),
+    )
     bus = spec.get("bus", "dbw")
     if bus not in _BUSES:
         raise r.fail(f"{key}.bus", f"expected dbw or car, got {bus!r}")
     period = r.number(spec.get("period"), f"{key}.period", positive=True)
-    e2e = spec.get("e2e", "none")
-    if e2e not in E2E_SCHEMES:
-        raise r.fail(f"{key}.e2e", f"expected one of {', '.join(E2E_SCHEMES)}, got {e2e!r}")
+    e2e, e2e_params = _e2e(r, spec.get("e2e", "none"), f"{key}.e2e")
+    on_change = spec.get("on_change", False)
+    if not isinstance(on_change, bool):
+        raise r.fail(f"{key}.on_change", f"expected true or false, got {on_change!r}")
+    if on_change and e2e != "none":
+        raise r.fail(f"{key}.on_change", "an event frame cannot carry a counter")
     defaults = E2E_SIGNALS[e2e]
-    counter = spec.get("counter", defaults[0] if e2e in ("rolling", "nissan-lkas") else None)
-    checksum = spec.get("checksum", defaults[1] if e2e == "nissan-lkas" else None)
+    counter = spec.get("counter", defaults[0] if e2e != "leafgate" else None)
+    checksum = spec.get("checksum", defaults[1] if e2e != "leafgate" else None)
     sources = COMMAND_SOURCES if direction == "command" else REPORT_SOURCES
     signals_raw = r.mapping(spec.get("signals"), f"{key}.signals")
     signals = tuple(
@@ -440,7 +467,28 @@ def _frame(
         checksum_signal=checksum,
         signals=signals,
         refreshes=refreshes,
+        e2e_params=e2e_params,
+        on_change=on_change,
     )
+
+
+def _e2e(r: _Reader, raw: Any, key: str) -> tuple[E2eScheme, Mapping[str, int]]:
+    """``e2e: NAME`` or ``e2e: {scheme: NAME, PARAM: VALUE}``: the scheme and its parameters."""
+    params_raw: Mapping[str, Any] = {}
+    if isinstance(raw, Mapping):
+        params_raw = {k: v for k, v in raw.items() if k != "scheme"}
+        raw = raw.get("scheme")
+    if raw not in E2E_SCHEMES:
+        raise r.fail(key, f"expected one of {', '.join(E2E_SCHEMES)}, got {raw!r}")
+    wanted = E2E_PARAMS.get(raw, ())
+    r.keys(params_raw, key, ("scheme", *wanted))
+    params: dict[str, int] = {}
+    for name in wanted:
+        value = params_raw.get(name)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise r.fail(f"{key}.{name}", f"expected an integer, got {value!r}")
+        params[name] = value
+    return raw, params
 
 
 def _field_ref(r: _Reader, text: Any, sources: Mapping[str, type], key: str) -> tuple[str, str]:
