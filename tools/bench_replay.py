@@ -131,7 +131,7 @@ def time_logreader(path: Path) -> tuple[int, float]:
 
 def time_check(path: Path) -> tuple[int, float, dict[str, object]]:
     t = time.perf_counter()
-    report = check_log(path)
+    report = check_log(path, profile="leafgate-dbw")
     elapsed = time.perf_counter() - t
     summary = report.to_dict()
     return report.frames, elapsed, {k: summary[k] for k in ("violations", "e2e_errors", "gaps")}

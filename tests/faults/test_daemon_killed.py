@@ -33,7 +33,7 @@ COMMAND_RATE = 50 + 50 + 10  # command frames per second (steer, long, system)
 def replay_check(path: str) -> dict:
     """``leafgate replay check --json``: a report, whatever its findings (exit 0 or 1)."""
     result = subprocess.run(
-        [*CLI, "replay", "check", path, "--json"],
+        [*CLI, "replay", "check", path, "--profile", "leafgate-dbw", "--json"],
         capture_output=True,
         text=True,
         timeout=60,
