@@ -18,6 +18,7 @@ Worked examples (the facts: 2016 AZE0 Leaf and e-NV200 recordings, issue 15):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 import subprocess
@@ -33,7 +34,9 @@ from cantools.database.can import Database
 
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec
+from leafgate.can.profile import Profile
 from leafgate.config import VehicleConfig
+from leafgate.gateway.safety import SafetyLimits
 from leafgate.messages import (
     Gear,
     GearPosition,
@@ -66,6 +69,19 @@ def frame(frame_id: int, hex_bytes: str, t: float = 0.0) -> can.Message:
     return can.Message(
         timestamp=t, arbitration_id=frame_id, data=bytes.fromhex(hex_bytes), is_extended_id=False
     )
+
+
+def replaced(msg: can.Message, **changes: object) -> can.Message:
+    """A copy of a recorded frame with its timestamp or data changed."""
+    fields: dict[str, object] = {
+        "timestamp": msg.timestamp,
+        "arbitration_id": msg.arbitration_id,
+        "data": bytes(msg.data),
+        "is_extended_id": False,
+        "channel": msg.channel,
+        **changes,
+    }
+    return can.Message(**fields)  # type: ignore[arg-type]
 
 
 # --- the table, byte by byte ---------------------------------------------------------------------
@@ -260,12 +276,16 @@ def recorded(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFa
     return Recorded(profile, log, session.path, list(FrameSource(log)))
 
 
-def _check(rec: Recorded, frames: list[can.Message]) -> CheckReport:
-    cfg = with_profile(LeafgateConfig(), rec.profile)
-    from leafgate.gateway.safety import SafetyLimits
-
+@functools.cache
+def _limits_of(profile: str) -> tuple[SafetyLimits, Profile]:
+    cfg = with_profile(LeafgateConfig(), profile)
     limits = SafetyLimits.from_config(cfg.gateway.safety, cfg.vehicle, cfg.gateway.period)
-    return check_frames(frames, limits, cfg.profile)
+    return limits, cfg.profile
+
+
+def _check(rec: Recorded, frames: list[can.Message]) -> CheckReport:
+    limits, profile = _limits_of(rec.profile)
+    return check_frames(frames, limits, profile)
 
 
 def test_a_simulated_recording_checks_ok_with_its_engaged_frames_checked(rec: Recorded) -> None:
@@ -316,13 +336,7 @@ def test_one_planted_over_limit_frame_fails_the_check_naming_it(rec: Recorded) -
         data[6] = (data[6] & 0xF0) | (target.data[6] & 0x0F)
         data[7] = e2e.crc8_nissan_lkas(data)
     planted = list(rec.frames)
-    planted[index] = can.Message(
-        timestamp=target.timestamp,
-        arbitration_id=target.arbitration_id,
-        data=bytes(data),
-        is_extended_id=False,
-        channel=target.channel,
-    )
+    planted[index] = replaced(target, data=bytes(data))
     report = _check(rec, planted)
     limits = [f for f in report.findings if f.kind == "limit"]
     assert not report.ok
@@ -354,13 +368,7 @@ def test_one_corrupt_0x002_checksum_nibble_is_exactly_one_finding(rec: Recorded)
     i = [k for k, m in enumerate(frames) if m.arbitration_id == 0x002][500]
     data = bytearray(frames[i].data)
     data[4] ^= 0x10  # one bit of the checksum nibble
-    frames[i] = can.Message(
-        timestamp=frames[i].timestamp,
-        arbitration_id=0x002,
-        data=bytes(data),
-        is_extended_id=False,
-        channel=frames[i].channel,
-    )
+    frames[i] = replaced(frames[i], data=bytes(data))
     assert _only_finding(_check(rec, frames)) == ("e2e", 0x002)
 
 
@@ -370,16 +378,7 @@ def test_one_repeated_counter_is_exactly_one_finding(rec: Recorded) -> None:
     frames = list(rec.frames)
     i = [k for k, m in enumerate(frames) if m.arbitration_id == frame_id][300]
     repeat = frames[i]
-    frames.insert(
-        i + 1,
-        can.Message(
-            timestamp=repeat.timestamp + 0.0002,
-            arbitration_id=frame_id,
-            data=bytes(repeat.data),
-            is_extended_id=False,
-            channel=repeat.channel,
-        ),
-    )
+    frames.insert(i + 1, replaced(repeat, timestamp=repeat.timestamp + 0.0002))
     assert _only_finding(_check(rec, frames)) == ("e2e", frame_id)
 
 
@@ -391,15 +390,7 @@ def test_gear_frames_delayed_to_100_ms_are_exactly_one_period_finding(rec: Recor
     for k in range(int((t1 - t0) / 0.1) + 1):  # every 100 ms, the payload the car had then
         t = t0 + k * 0.1
         latest = [g for g in gears if g.timestamp <= t + 1e-9][-1]
-        delayed.append(
-            can.Message(
-                timestamp=t,
-                arbitration_id=0x421,
-                data=bytes(latest.data),
-                is_extended_id=False,
-                channel=latest.channel,
-            )
-        )
+        delayed.append(replaced(latest, timestamp=t))
     frames = sorted(others + delayed, key=lambda m: m.timestamp)
     report = _check(rec, frames)
     assert _only_finding(report) == ("period", 0x421)
@@ -438,15 +429,8 @@ def test_a_log_of_another_vehicle_or_an_empty_log_is_not_ok(tmp_path: Path) -> N
     report = check_log(empty, profile="leafgate-dbw")
     assert not report.ok and report.findings[0].kind == "coverage"
     sze = [frame(0x001, "01 0C FD DA 00 00 00 00", t * 0.02) for t in range(20)]
-    other = check_frames(sze, _limits(), "leafgate-dbw")
+    other = check_frames(sze, _limits_of("leafgate-dbw")[0], "leafgate-dbw")
     assert not other.ok and "another vehicle" in other.findings[-1].detail
-
-
-def _limits():  # type: ignore[no-untyped-def]
-    from leafgate.gateway.safety import SafetyLimits
-
-    cfg = LeafgateConfig()
-    return SafetyLimits.from_config(cfg.gateway.safety, cfg.vehicle, cfg.gateway.period)
 
 
 def test_a_log_without_a_profile_is_an_error_naming_the_option(tmp_path: Path) -> None:

@@ -50,6 +50,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, Final, Literal
 
 from leafgate.config import VehicleConfig, load_yaml, safe_load_yaml
@@ -293,8 +294,10 @@ def _resolve_profile_path(name_or_path: str) -> tuple[str, Path | None]:
     return str(path), path
 
 
-def _field_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
+@functools.cache
+def _field_types(cls: type) -> Mapping[str, Any]:
+    """The resolved field types of a message class (cached: every codec asks for them)."""
+    return MappingProxyType(typing.get_type_hints(cls))
 
 
 def load_profile(
@@ -618,7 +621,7 @@ def _derived(r: _Reader, raw: Any) -> Mapping[str, tuple[tuple[str, str, float],
                 raise r.fail(where, f"{cls.__name__}.{flag} is not a flag")
             spec = r.mapping(rule, where)
             r.keys(spec, where, ("field", "above"))
-            field = spec.get("field")
+            field = str(spec.get("field"))
             if field not in types or types[field] is bool:
                 raise r.fail(f"{where}.field", f"{cls.__name__} has no number field {field!r}")
             rules.append((str(flag), str(field), r.number(spec.get("above"), f"{where}.above")))
