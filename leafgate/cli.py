@@ -36,13 +36,16 @@ def _replace_path(cfg: Any, dotted: str, value: Any) -> Any:
 
 
 def _with_overrides(cfg: LeafgateConfig, overrides: dict[str, Any]) -> LeafgateConfig:
+    explicit = dict(cfg.explicit)  # the file's keys, and now the command line's
     for dotted, value in overrides.items():
         if value is not None:
             try:
                 cfg = _replace_path(cfg, dotted, value)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(f"command line: {dotted}: {exc}") from None
-    return apply_profile(cfg, "command line")  # the vehicle still decides (e.g. speed-only)
+            explicit[dotted] = "command line"
+    # the vehicle still decides, but may not overrule what was asked for explicitly
+    return apply_profile(cfg, "command line", explicit)
 
 
 # --- sim ----------------------------------------------------------------------------------------
@@ -280,7 +283,10 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     caps = profile.capabilities
     can_do = [n for n in ("lateral", "longitudinal", "gear") if getattr(caps, n)]
     print(f"vehicle profile {profile.name} ({profile.where}): commands {', '.join(can_do)}")
-    print(f"frame protection: {profile.protection}")
+    print(f"frame protection: {' '.join(profile.protection.split())}")
+    print(f"profile adjustments: {len(cfg.adjustments) or 'none'}")
+    for line in cfg.adjustments:
+        print(f"  {line}")
     return 0
 
 
@@ -557,6 +563,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _naming_the_file(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
+    """A config error that names the config file of the command (every entry point)."""
+    path = getattr(args, "config", None) or getattr(args, "file", None)
+    text = str(exc)
+    sources = (str(path), "command line", "--profile", "--config")
+    if path is None or any(text.startswith(s) for s in sources):
+        return exc
+    return ConfigError(f"{path}: {text}")
+
+
 def setup_logging(fmt: str, verbose: bool) -> None:
     handler = logging.StreamHandler(sys.stdout)
     if fmt == "json":
@@ -587,7 +603,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(["sim", *(argv or [])])
     setup_logging(args.log_format, args.verbose)
     try:
-        return int(args.func(args))
+        try:
+            return int(args.func(args))
+        except ConfigError as exc:
+            raise _naming_the_file(exc, args) from None
     except BrokenPipeError:  # `leafgate decode LOG | head`: the reader has gone, stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # no second error when Python flushes at exit
