@@ -35,9 +35,7 @@ class LeafgateConfig:
     # Not read from a file: the dotted keys the user set explicitly and where (a file name or
     # "command line"), which a profile may not overrule; and what the profile changed, one
     # line each (``check-config`` prints them, the daemon logs them).
-    explicit: Mapping[str, str] = field(
-        default_factory=dict, init=False, compare=False, repr=False
-    )
+    explicit: Mapping[str, str] = field(default_factory=dict, init=False, compare=False, repr=False)
     adjustments: tuple[str, ...] = field(default=(), init=False, compare=False, repr=False)
 
     @property

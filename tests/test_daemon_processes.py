@@ -105,7 +105,7 @@ def status(config: Path) -> dict:
 def ecu_state(config: Path) -> EcuState | None:
     """Listen on the bus for DBW_SYSTEM_RPT and return the ECU's state."""
     cfg = yaml.safe_load(config.read_text())["can"]["dbw"]
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     with can.Bus(interface="udp_multicast", channel=cfg["channel"], **cfg["kwargs"]) as bus:
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:

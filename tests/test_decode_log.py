@@ -16,7 +16,7 @@ from leafgate.messages import Gear, GearPosition, LongCommand, LongMode, SteerCo
 
 def recording() -> list[can.Message]:
     """Five good steering commands with one lost, a bad CRC, a short frame, others."""
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     steer = [codec.encode(SteerCommand(0.01 * i, enable=True)) for i in range(6)]
     corrupt = bytearray(codec.encode(SteerCommand(0.3)).data)
     corrupt[2] ^= 0x40
@@ -85,7 +85,7 @@ def test_summary_counts_frames_and_faults_per_id(tmp_path: Path) -> None:
 
 
 def test_frames_of_two_channels_have_separate_counter_state(tmp_path: Path) -> None:
-    codec_a, codec_b = CanCodec(), CanCodec()
+    codec_a, codec_b = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
     frames = []
     for i in range(3):  # both channels carry 0x0A0 with their own counters
         for channel, codec in (("can0", codec_a), ("can1", codec_b)):

@@ -137,7 +137,7 @@ def test_every_clamp_kind_of_the_gate_is_rechecked() -> None:
 
 def _edited(frames: list[can.Message]) -> tuple[list[can.Message], float, float, float]:
     """The drive with an over-limit steering frame, a bad CRC and a 300 ms gap, far apart."""
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     engaged = [
         i
         for i, f in enumerate(frames)
@@ -149,7 +149,9 @@ def _edited(frames: list[can.Message]) -> tuple[list[can.Message], float, float,
     over = next(i for i in engaged if frames[i].timestamp >= t0 + 6.0)
     value = codec.decode(frames[over]).value
     assert isinstance(value, SteerCommand)
-    edited = CanCodec().encode(SteerCommand(0.6, value.rate_limit, True, value.clear_override))
+    edited = CanCodec(profile="leafgate-dbw").encode(
+        SteerCommand(0.6, value.rate_limit, True, value.clear_override)
+    )
     data = e2e.apply(0x0A0, edited.data, e2e.counter_of(frames[over].data))
     frames[over] = can.Message(
         timestamp=frames[over].timestamp,

@@ -26,7 +26,7 @@ cantools). Tests check them against cantools on random payloads and values for e
 with values packed around every signal's limits.
 
 >>> from leafgate.messages import SteerCommand
->>> gw, ecu = CanCodec(), CanCodec()
+>>> gw, ecu = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
 >>> frame = gw.encode(SteerCommand(angle=0.1, enable=True))
 >>> hex(frame.arbitration_id), len(frame.data)
 ('0xa0', 8)
@@ -65,7 +65,6 @@ from leafgate.can import e2e
 from leafgate.can.profile import (
     COMMAND_SOURCES,
     COUNTER_CHECKED,
-    DEFAULT_PROFILE,
     REPORT_SOURCES,
     UNITS,
     FrameSpec,
@@ -878,7 +877,8 @@ class CanCodec:
         profile); None keeps the profile's
     :param car_dbc: replaces the profile's second DBC (the CAR-CAN one); None keeps it
     :param profile: the vehicle profile (a :class:`~leafgate.can.profile.Profile` or a
-        name/path for :func:`~leafgate.can.profile.load_profile`); None: ``leafgate-dbw``
+        name/path for :func:`~leafgate.can.profile.load_profile`); required, there is no
+        default
     :raises CanCodecError: a DBC is unreadable, invalid, or lacks a frame or signal the
         profile maps (the message names the file and the frame)
     :raises ConfigError: the profile is missing or invalid
@@ -895,8 +895,12 @@ class CanCodec:
         car_dbc: str | Path | None = None,
         profile: Profile | str | None = None,
     ) -> None:
+        if profile is None:  # no default: a log of one car read as another's is all unknown
+            raise CanCodecError(
+                "a CAN codec needs a vehicle profile (a name such as leafgate-dbw, or a file)"
+            )
         if not isinstance(profile, Profile):
-            profile = load_profile(profile or DEFAULT_PROFILE)
+            profile = load_profile(profile)
         paths = list(profile.dbc)
         for index, override in ((0, dbw_dbc), (1, car_dbc)):
             if override is not None:

@@ -1,28 +1,40 @@
 """``leafgate replay check LOG``: the offline safety check of a recorded drive.
 
-For every frame of the log (any python-can format, or a session's ``/can`` topic):
+The frames are read with a vehicle profile (``--profile``, ``--config``, or a session's
+recorded configuration; there is no default), which gives the command IDs, the signals, the
+periods and the E2E schemes. For every frame of the log (any python-can format, or a
+session's ``/can`` topic):
 
-1. decode it with the leafgate DBCs, running the gateway's E2E checks (CRC, alive counter,
-   length) with one codec per recorded channel;
-2. collect per-ID period statistics and find *gaps*: an interval longer than ``gap_periods``
-   nominal periods (the DBC's ``GenMsgCycleTime``, else the ID's median interval), or one over
-   1.5 periods that ends in a skipped alive counter (frames were lost). Gaps of several IDs that
-   overlap in time are one finding (the bus or the logger stalled), and the counter skip after
-   a gap is part of it, as is the counter skip after a frame with a bad CRC: one corrupted or
-   lost stretch, one finding;
-3. re-check every command frame sent with ENABLE=1 against the safety gate's limits
+1. decode it, running the gateway's E2E checks (checksums, counters, length, including the
+   car's own on CAR-CAN) with one codec per recorded channel;
+2. collect per-ID period statistics: a *median* interval more than 10 % off the profile's
+   period is a finding with both values (event frames, such as 0x421's after a gear change,
+   make the mean misleading). A stretch in which the whole bus fell silent (longer than
+   ``gap_periods`` of the fastest period) is one finding, with its start, length and the IDs
+   overdue. Per ID, a *gap* is an interval longer than ``gap_periods`` periods, or one over 1.5
+   periods that ends in a skipped counter (frames were lost); gaps the bus silence explains are
+   part of it, the others are reported (overlapping ones together), and the counter skip
+   after a gap is part of the gap, as is the counter skip after a frame with a bad checksum:
+   one corrupted or lost stretch, one finding;
+3. re-check every command frame sent enabled against the safety gate's limits
    (:func:`leafgate.gateway.safety.check`: angle, angle rate by speed, lateral acceleration,
-   acceleration, jerk, speed, gear at standstill), measured state from the latest valid
-   DBW_LONG_RPT before the frame, previous command from the frame before it. After a violating
-   frame the check continues from the value the gate would have allowed, so one bad frame is one
-   finding, not a cascade of rate violations. A value beyond the angle or acceleration envelope
-   is reported as that even when a rate bound is nearer; across a gap the rate bounds allow
-   the time that passed.
+   acceleration, jerk, speed, gear at standstill), measured state from the latest valid long
+   report before the frame, previous command from the frame before it. After a violating
+   frame the check continues from the value the gate would have allowed. A value beyond the
+   angle or acceleration envelope is reported as that even when a rate bound is nearer; across
+   a short gap the rate bounds allow the time that passed. What cannot be checked is counted
+   as *not checkable*, never as a violation: frames before the vehicle state is known (no long
+   report with a known gear yet), and the rates of the first command of a log or after a gap
+   (the previous command is not in the log), which are checked against the envelope only.
 
-Tolerances are 1.5 quantisation steps of the command signal (read from the DBC): the gate
-bounds the float command, the frame carries it rounded.
+An empty log, a log with no frame of the profile (another vehicle's?) and a log whose
+command frames could none be checked are findings, never "OK". Timestamps that go backwards
+are warned about.
 
-Exit status: 0 when there is no finding, 1 otherwise (a limit violation, an E2E error or a gap).
+Tolerances are 1.5 quantisation steps of the command signals (read from the DBC, through the
+profile's unit and scale): the gate bounds the float command, the frame carries it rounded.
+
+Exit status: 0 when there is no finding, 1 otherwise.
 """
 
 from __future__ import annotations

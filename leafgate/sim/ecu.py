@@ -159,7 +159,8 @@ class SimulatedEcu:
     :param config: the ECU's settings
     :param plant: the plant to actuate (it is owned and stepped by the ECU)
     :param vehicle: the vehicle's limits (steering angle, acceleration)
-    :param codec: the ECU's own codec (alive counters are per codec); a new one when None
+    :param codec: the ECU's own codec (alive counters are per codec); when None, a new one for
+        ``vehicle.profile``
     """
 
     def __init__(
@@ -172,7 +173,7 @@ class SimulatedEcu:
         self.config = config
         self.vehicle = vehicle
         self.plant = plant
-        self.codec = codec if codec is not None else CanCodec()
+        self.codec = codec if codec is not None else CanCodec(profile=vehicle.profile)
         self.counters = EcuCounters()
         profile = self.codec.profile
         self._command_ids = self.codec.receive_ids("commands")
