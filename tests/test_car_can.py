@@ -46,6 +46,7 @@ from leafgate.messages import (
     Pose,
     SteerCommand,
     SteeringWheelAngle,
+    SteerReport,
     WheelSpeeds,
 )
 from leafgate.replay.check import CheckReport, check_frames, check_log
@@ -166,6 +167,22 @@ def test_a_repeated_counter_of_a_car_frame_is_rejected(
 def test_sze_hlc_says_the_feedback_check_is_its_only_e2e_check() -> None:
     protection = CanCodec(profile="sze-hlc").profile.protection
     assert "only end-to-end check" in protection
+
+
+def test_the_ze1_reads_its_measured_angle_from_0x185_not_0x002() -> None:
+    # 0x185, +10.00 deg at the wheel: raw (1310 - 10) / 0.01 = 130000 = data[2] << 10 |
+    # data[3] << 2 | data[4] >> 6 → 7E F4 00 in bytes 2-4; driver torque 0 → raw 2047 = 7F F.
+    # 0x002 says −5.0 deg (32 00): the coarse sensor, kept apart as the steering-wheel angle.
+    codec = CanCodec(profile="leaf-ze1-lkas")
+    ratio = VehicleConfig().steering_ratio
+    coarse = codec.decode(frame(0x002, "32 00 00 07 00"))
+    assert coarse.valid and coarse.values == (SteeringWheelAngle(angle=-5.0 * DEG),)
+    fine = codec.decode(frame(0x185, "7F F0 7E F4 00 00 00 00"))
+    assert fine.valid
+    steer = fine.values[0]
+    assert isinstance(steer, SteerReport)
+    assert steer.angle == pytest.approx(10.0 * DEG / ratio, abs=1e-12)
+    assert steer.driver_torque == pytest.approx(0.0, abs=1e-9)
 
 
 # --- cantools reads the shipped DBCs on real-shaped frames --------------------------------------
