@@ -1,7 +1,8 @@
 """``leafgate decode LOG``: print a recorded CAN log decoded with the leafgate DBCs.
 
 Reads any format python-can's :class:`can.LogReader` reads (``.log`` candump, ``.asc``,
-``.blf``, ``.trc``, ``.csv``, ``.mf4`` with asammdf, and the same gzip-compressed), prints one
+``.blf``, ``.trc``, ``.csv``, ``.mf4`` with asammdf, and the same gzip-compressed) and the
+``/can`` topic of a session (``.mcap``), through :class:`leafgate.replay.logs.FrameSource`; prints one
 line per frame and, at the end, how many frames of each ID were received and how many failed
 each check. The frames are read with a vehicle profile (``--profile``, ``--config``, or a
 session's recorded configuration), whose checks include the car's own counters and checksums
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TextIO
 
@@ -29,29 +29,8 @@ import can
 
 from leafgate.can.codec import CanCodec, Decoded, FrameStats
 from leafgate.can.profile import Profile
-from leafgate.errors import ReplayError
 
 __all__ = ["decode_log", "format_frame", "format_summary"]
-
-
-def _read(path: Path) -> Iterator[can.Message]:
-    """Frames of a log, with every reader error turned into a one-line ReplayError."""
-    if not path.is_file():
-        raise ReplayError(f"{path}: no such file")
-    count = 0
-    try:
-        for msg in can.LogReader(path):
-            count += 1
-            yield msg
-    except ReplayError:
-        raise
-    except Exception as exc:  # each reader has its own errors (ValueError, BLFParseError, …)
-        reason = " ".join((str(exc) or type(exc).__name__).split())
-        if count == 0 and isinstance(exc, ValueError) and "unknown log format" in reason:
-            raise ReplayError(
-                f"{path}: {reason} (python-can reads .log, .asc, .blf, .trc, .csv, .mf4)"
-            ) from None
-        raise ReplayError(f"{path}: unreadable after {count} frames: {reason}") from None
 
 
 def _value_text(value: object, unit: str | None) -> str:
@@ -153,7 +132,9 @@ def decode_log(
     latest = -math.inf
     backwards = 0
     worst = 0.0
-    for msg in _read(path):
+    from leafgate.replay.logs import FrameSource  # the one reader of logs and sessions
+
+    for msg in FrameSource(path):
         codec = codec_for(msg.channel)
         line = format_frame(codec, msg, codec.decode(msg))
         if msg.timestamp < latest:

@@ -505,6 +505,8 @@ class SessionRecorder:
         daemon passes the runtime's clock); None uses each frame's own timestamp (simulator)
     :param tap: the controller wrapper whose output gives the predicted path (optional)
     :param diagnostics: also record ``Diagnostics.to_dict()`` every tick
+    :param channel: the channel name written for sent frames, which carry none (None: none)
+    :param one_bus: every frame is on one bus: every frame is written under ``channel``
     """
 
     def __init__(
@@ -519,9 +521,13 @@ class SessionRecorder:
         diagnostics: bool = True,
         tap: ControllerTap | None = None,
         session: dict[str, str] | None = None,
+        channel: str | None = None,
+        one_bus: bool = False,
     ) -> None:
         self.path = Path(path)
         self.clock = clock
+        self.channel = channel  # written for sent frames (they carry none); see CanLogRecorder
+        self.one_bus = one_bus
         self.tap = tap
         self.record_diagnostics = diagnostics
         self.ticks = 0
@@ -586,6 +592,10 @@ class SessionRecorder:
         kind = item[0]
         if kind == "can":
             _, t, msg, rx = item
+            if self.channel is not None and (
+                msg.channel is None or (self.one_bus and msg.channel != self.channel)
+            ):
+                msg = _copy(msg, channel=self.channel)  # one bus, one channel name
             writer.can_frame(t, msg, rx)
         elif kind == "tick":
             _, now, inputs, result, xy = item
@@ -734,6 +744,8 @@ def open_recording(
                 queue_size=cfg.queue_size,
                 compression=cfg.compression,
                 diagnostics=cfg.diagnostics,
+                channel=config.can.dbw.channel,
+                one_bus=config.can.car is None,
             )
         )
     return Recording(recorders)
