@@ -525,6 +525,14 @@ def test_a_shared_bus_is_written_under_one_channel_name(tmp_path: Path) -> None:
     assert {m.channel for m in FrameSource(rec.files[0])} == {"can0"}
 
 
+def test_a_session_names_a_shared_bus_once_too(tmp_path: Path) -> None:
+    path = tmp_path / "s.mcap"
+    with SessionRecorder(path, LeafgateConfig(), channel="can0", one_bus=True) as rec:
+        rec.on_can_frame(can.Message(timestamp=1.0, arbitration_id=0x0B0, channel="sim-7"), "rx")
+        rec.on_can_frame(can.Message(timestamp=1.001, arbitration_id=0x0A0), "tx")
+    assert {m.channel for m in FrameSource(path)} == {"can0"}
+
+
 def test_decode_and_check_warn_about_a_log_that_goes_backwards(tmp_path: Path) -> None:
     path = tmp_path / "back.log"
     path.write_text(
