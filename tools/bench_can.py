@@ -132,7 +132,7 @@ def _cantools_encoder(codec: CanCodec) -> Callable[[float, int, EncodableMessage
     def encode(t: float, frame_id: int, value: EncodableMessage) -> can.Message:
         counter = counters.get(frame_id, 0)
         data = codec._encode_with_cantools(value, counter)
-        counters[frame_id] = (counter + 1) % e2e.COUNTER_MODULO
+        counters[frame_id] = counter + 1  # taken modulo the frame's counter width
         return can.Message(
             timestamp=t, arbitration_id=frame_id, is_extended_id=False, dlc=len(data), data=data
         )

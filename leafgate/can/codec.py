@@ -1050,6 +1050,7 @@ class CanCodec:
         except (KeyError, TypeError, AttributeError) as exc:
             raise EncodeError(f"{name}: {exc}") from None
         signals: dict[str, Any] = dict(zip(entry.names, physical, strict=False))
+        counter %= entry.modulo or 1  # the frame's own counter width (8 bits on 0x284)
         if entry.e2e == "leafgate":
             signals.update(ALIVE_COUNTER=0, CRC=0)  # set with the CRC by e2e.apply below
         elif entry.modulo:
