@@ -6,6 +6,10 @@ init 0xFF, xor-out 0xFF, not reflected) computed over a *data ID* — the low by
 ID — followed by bytes 0–6. Mixing the ID into the CRC catches a frame delivered under the
 wrong ID, which a CRC over the payload alone would not.
 
+The checksums of the car's own frames live here too (:data:`SEALS`): the ZE1's LKAS CRC, the
+AZE0's 0x002 XOR-of-nibbles and 0x284/0x285 counter-plus-offset; a vehicle profile names the
+scheme per frame (:mod:`leafgate.can.profile`).
+
 Pure functions and a small per-ID state machine; no clock, no bus.
 
 >>> hex(crc8_j1850(b"123456789"))

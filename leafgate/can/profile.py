@@ -28,6 +28,15 @@ Signal mappings, in a frame's ``signals``::
     GEAR_SHIFTER: {field: gear.gear, map: {P: 1, R: 2, N: 3, D: [4, 7]}, unknown: NONE}
     MAX_TORQUE: {value: 1}                            # a constant the sender always puts
 
+A frame's protection is ``e2e: NAME`` or, with parameters, ``e2e: {scheme: NAME, ...}``
+(:data:`E2E_SCHEMES`; the checksums are computed in :mod:`leafgate.can.e2e`, where a new
+scheme is one function and one table entry): ``leafgate`` (alive counter + CRC over the data
+ID), ``nissan-lkas`` (counter + CRC-8 in byte 7), ``nissan-nibble`` (the AZE0's 0x002: counter
+and XOR-of-nibbles checksum in byte 4), ``counter-sum`` (the AZE0's 0x284/0x285: 8-bit counter
+in byte 6, byte 7 = byte 6 + ``offset``), ``counter`` (a checked counter alone), ``rolling`` (a
+counter filled when sending, not checked) or ``none``. ``on_change: true`` marks a frame the
+car also sends soon after its payload changes (0x421 after a gear change).
+
 ``field`` is ``SOURCE.ATTRIBUTE``. Command frames draw on the sources ``steer``, ``long`` and
 ``system`` (:class:`~leafgate.messages.SteerCommand` …); report frames on ``steer``, ``long``,
 ``system`` (the ECU reports), ``steering_wheel``, ``wheels_front``, ``wheels_rear``, ``gear``
