@@ -83,7 +83,7 @@ class Finding:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "time": self.time,
+            "time": _num(self.time),
             "kind": self.kind,
             "id": None if self.frame_id is None else f"0x{self.frame_id:03X}",
             "name": self.name,
@@ -174,6 +174,7 @@ class CheckReport:
             "gaps": self.count("gap"),
             "bus_silences": self.count("silence"),
             "period_findings": self.count("period"),
+            "coverage_findings": self.count("coverage"),
             "backwards_timestamps": self.backwards,
             "worst_backwards_s": self.worst_backwards,
             "truncated": self.truncated,
@@ -217,6 +218,7 @@ class CheckReport:
             f"checked (not checkable: {not_checkable or 'none'}), {self.count('limit')} limit "
             f"violations, {self.count('e2e')} E2E errors, {self.count('gap')} gaps, "
             f"{self.count('silence')} bus silences, {self.count('period')} period findings"
+            + (f", {self.count('coverage')} coverage findings" if self.count("coverage") else "")
         )
         return lines
 
