@@ -4,6 +4,9 @@
 got (for a progress bar): python-can's readers for ``.log``, ``.asc``, ``.blf``, ``.trc``,
 ``.csv``, ``.mf4`` (and gzip), :class:`~leafgate.replay.session.SessionReader` for ``.mcap``.
 
+A session's frames carry the time they were recorded at on the gateway clock (MCAP log time),
+so received and sent frames share one clock; in a simulated session it is the frame's own time.
+
 Files cut short by a crash read up to the cut: a session up to its last complete chunk, a BLF
 up to its last complete object (python-can's reader stops there), a text log (``.log``,
 ``.asc``) up to its last complete line — a line without its newline is dropped, since its
@@ -120,7 +123,12 @@ class FrameSource:
             self._position = session.position
             for record in session.records(frozenset({TOPIC_CAN})):
                 self.frames += 1
-                yield frame_from_record(json.loads(record.data))
+                msg = frame_from_record(json.loads(record.data))
+                # One clock for frames in and out: the record's log time (the gateway clock).
+                # A frame's own time is the kernel's for a received frame, the gateway's for
+                # a sent one: two clocks on one bus would make silences out of nothing.
+                msg.timestamp = record.log_time * 1e-9
+                yield msg
             self.truncated = session.truncated
 
     def _log_frames(self) -> Iterator[can.Message]:
