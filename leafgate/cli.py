@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -35,13 +36,16 @@ def _replace_path(cfg: Any, dotted: str, value: Any) -> Any:
 
 
 def _with_overrides(cfg: LeafgateConfig, overrides: dict[str, Any]) -> LeafgateConfig:
+    explicit = dict(cfg.explicit)  # the file's keys, and now the command line's
     for dotted, value in overrides.items():
         if value is not None:
             try:
                 cfg = _replace_path(cfg, dotted, value)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(f"command line: {dotted}: {exc}") from None
-    return apply_profile(cfg, "command line")  # the vehicle still decides (e.g. speed-only)
+            explicit[dotted] = "command line"
+    # the vehicle still decides, but may not overrule what was asked for explicitly
+    return apply_profile(cfg, "command line", explicit)
 
 
 # --- sim ----------------------------------------------------------------------------------------
@@ -282,7 +286,10 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     caps = profile.capabilities
     can_do = [n for n in ("lateral", "longitudinal", "gear") if getattr(caps, n)]
     print(f"vehicle profile {profile.name} ({profile.where}): commands {', '.join(can_do)}")
-    print(f"frame protection: {profile.protection}")
+    print(f"frame protection: {' '.join(profile.protection.split())}")
+    print(f"profile adjustments: {len(cfg.adjustments) or 'none'}")
+    for line in cfg.adjustments:
+        print(f"  {line}")
     z = cfg.zenoh
     if z.ros == "rmw_zenoh":
         print(
@@ -341,7 +348,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
         from leafgate.replay.check import main_check
 
         return main_check(
-            args.log, config=args.config, as_json=args.json, gap_periods=args.gap_periods
+            args.log,
+            config=args.config,
+            profile=args.profile,
+            as_json=args.json,
+            gap_periods=args.gap_periods,
         )
     if args.replay_command == "play":
         from leafgate.replay.play import main_play
@@ -354,6 +365,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
             start=args.start,
             ids=args.ids,
             bitrate=args.bitrate,
+            config=args.config,
+            profile=args.profile,
         )
     if args.replay_command == "rerun":
         from leafgate.replay.rerun import main_rerun
@@ -361,16 +374,31 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return main_rerun(args.session, overrides=args.set, as_json=args.json)
     from leafgate.replay.plot import main_plot
 
-    return main_plot(args.log, out=args.out)
+    return main_plot(args.log, out=args.out, config=args.config, profile=args.profile)
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
     from leafgate.can.decode import decode_log
+    from leafgate.replay.logs import recording_context
 
-    return decode_log(args.log, summary=not args.no_summary)
+    context = recording_context(args.log, config=args.config, profile=args.profile)
+    return decode_log(
+        args.log,
+        summary=not args.no_summary,
+        profile=context.profile,
+        dbw_dbc=context.config.can.dbw_dbc,
+        car_dbc=context.config.can.car_dbc,
+    )
 
 
 # --- the command line -------------------------------------------------------------------------
+
+
+PROFILE_HELP = (
+    "vehicle profile NAME (leafgate-dbw, sze-hlc, leaf-ze1-lkas) or FILE; default: the "
+    "--config's, or the one a session recorded"
+)
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, as a shell tool killed by a closed pipe
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -479,7 +507,8 @@ def build_parser() -> argparse.ArgumentParser:
         "check", help="offline safety check of a CAN log or session (exit 1 on any finding)"
     )
     r.add_argument("log", help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap)")
-    r.add_argument("--config", help="the deployment config whose limits apply (default: built-in)")
+    r.add_argument("--config", help="the deployment config whose limits and profile apply")
+    r.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
     r.add_argument("--json", action="store_true", help="machine-readable report")
     r.add_argument(
         "--gap-periods", type=float, default=3.0, help="a gap is this many periods of silence"
@@ -492,7 +521,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--channel", required=True)
     r.add_argument("--speed", type=float, default=1.0, help="speed factor (0: as fast as possible)")
     r.add_argument("--start", type=float, default=0.0, help="s into the log to start at")
-    r.add_argument("--ids", help="only these IDs, hex, comma-separated (e.g. 0A0,0A1)")
+    r.add_argument(
+        "--ids",
+        help="only these IDs, hex, comma-separated (e.g. 0A0,0A1), or 'commands' / 'reports': "
+        "the profile's command or report frames",
+    )
+    r.add_argument("--config", help="the deployment config naming the vehicle profile")
+    r.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
     r.add_argument("--bitrate", type=int, default=500_000)
     r = rsub.add_parser("rerun", help="re-run a recorded session through Gateway.step and compare")
     r.add_argument("session", help="session .mcap")
@@ -507,6 +542,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = rsub.add_parser("plot", help="path, steering and speed plots of a recorded drive")
     r.add_argument("log", help="CAN log or session .mcap")
     r.add_argument("--out", required=True, help="output directory")
+    r.add_argument("--config", help="the deployment config naming the vehicle profile")
+    r.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("check-config", help="load and check a config file")
@@ -530,9 +567,21 @@ def build_parser() -> argparse.ArgumentParser:
         "decode", help="decode a CAN log (.log/.asc/.blf/.trc/.csv) with the leafgate DBCs"
     )
     p.add_argument("log")
+    p.add_argument("--config", help="the deployment config naming the vehicle profile and DBCs")
+    p.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
     p.add_argument("--no-summary", action="store_true")
     p.set_defaults(func=cmd_decode)
     return parser
+
+
+def _naming_the_file(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
+    """A config error that names the config file of the command (every entry point)."""
+    path = getattr(args, "config", None) or getattr(args, "file", None)
+    text = str(exc)
+    sources = (str(path), "command line", "--profile", "--config")
+    if path is None or any(text.startswith(s) for s in sources):
+        return exc
+    return ConfigError(f"{path}: {text}")
 
 
 def setup_logging(fmt: str, verbose: bool) -> None:
@@ -565,7 +614,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(["sim", *(argv or [])])
     setup_logging(args.log_format, args.verbose)
     try:
-        return int(args.func(args))
+        try:
+            return int(args.func(args))
+        except ConfigError as exc:
+            raise _naming_the_file(exc, args) from None
+    except BrokenPipeError:  # `leafgate decode LOG | head`: the reader has gone, stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # no second error when Python flushes at exit
+        return EXIT_BROKEN_PIPE
     except LeafgateError as exc:
         print(f"leafgate: error: {exc}", file=sys.stderr)
         return EXIT_USAGE if isinstance(exc, ConfigError) else EXIT_ERROR

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from leafgate.can.config import CanConfig
 from leafgate.can.profile import Profile, SteerRateTable, load_profile
-from leafgate.config import VehicleConfig, from_mapping, load_yaml
+from leafgate.config import _UNIT_SUFFIXES, VehicleConfig, from_mapping, load_yaml
 from leafgate.control.config import ControllerConfig
 from leafgate.errors import ConfigError
 from leafgate.gateway.config import GatewayConfig, SafetyConfig
@@ -30,6 +32,11 @@ class LeafgateConfig:
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    # Not read from a file: the dotted keys the user set explicitly and where (a file name or
+    # "command line"), which a profile may not overrule; and what the profile changed, one
+    # line each (``check-config`` prints them, the daemon logs them).
+    explicit: Mapping[str, str] = field(default_factory=dict, init=False, compare=False, repr=False)
+    adjustments: tuple[str, ...] = field(default=(), init=False, compare=False, repr=False)
 
     @property
     def profile(self) -> Profile:
@@ -51,7 +58,28 @@ def load_config(path: str | Path | None) -> LeafgateConfig:
     """
     if path is None:
         return apply_profile(LeafgateConfig())
-    return apply_profile(from_mapping(LeafgateConfig, load_yaml(path), str(path)), str(path))
+    data = load_yaml(path)
+    cfg = from_mapping(LeafgateConfig, data, str(path))
+    explicit = dict.fromkeys(explicit_keys(data), str(path))
+    return apply_profile(cfg, str(path), explicit)
+
+
+def explicit_keys(data: Any, prefix: str = "") -> list[str]:
+    """The dotted keys a parsed config file sets (unit suffixes removed: ``rate_hz`` stays,
+    ``max_steer_angle_deg`` is ``max_steer_angle``)."""
+    if not isinstance(data, Mapping):
+        return []
+    keys = []
+    for raw, value in data.items():
+        key = str(raw)
+        for suffix in _UNIT_SUFFIXES:
+            if key.endswith(suffix):
+                key = key[: -len(suffix)]
+                break
+        dotted = f"{prefix}{key}"
+        keys.append(dotted)
+        keys.extend(explicit_keys(value, dotted + "."))
+    return keys
 
 
 def with_profile(cfg: LeafgateConfig, profile: str) -> LeafgateConfig:
@@ -60,10 +88,13 @@ def with_profile(cfg: LeafgateConfig, profile: str) -> LeafgateConfig:
     :raises ConfigError: the profile is unknown or invalid
     """
     vehicle = dataclasses.replace(cfg.vehicle, profile=profile)
-    return apply_profile(dataclasses.replace(cfg, vehicle=vehicle), "--profile")
+    explicit = {k: v for k, v in cfg.explicit.items() if k != "vehicle.profile"}
+    return apply_profile(dataclasses.replace(cfg, vehicle=vehicle), "--profile", explicit)
 
 
-def apply_profile(cfg: LeafgateConfig, where: str = "config") -> LeafgateConfig:
+def apply_profile(
+    cfg: LeafgateConfig, where: str = "config", explicit: Mapping[str, str] | None = None
+) -> LeafgateConfig:
     """Fit the gateway to what the vehicle profile says about the car; the rest is unchanged.
 
     - the loop ticks at least as fast as the fastest command frame (``leaf-ze1-lkas``: 100 Hz);
@@ -73,8 +104,15 @@ def apply_profile(cfg: LeafgateConfig, where: str = "config") -> LeafgateConfig:
     - a profile that cannot request a gear refuses trajectories with reverse segments;
     - the vehicle's own steering-angle rate tables bound the safety gate's, where stricter.
 
-    :raises ConfigError: the profile cannot be loaded, or lacks a steering or speed report
+    Every change is listed in the result's ``adjustments``. A change to a value the user set
+    explicitly (``explicit``: dotted key → where it was set; by default the config's own) is
+    an error instead, naming the file, the key and the profile; only the safety gate's rate
+    tables may be tightened by the vehicle's, as a stricter limit honours the user's.
+
+    :raises ConfigError: the profile cannot be loaded, lacks a steering or speed report, or
+        contradicts an explicit value
     """
+    explicit = dict(cfg.explicit if explicit is None else explicit)
     try:
         profile = load_profile(cfg.vehicle.profile, cfg.vehicle)
     except ConfigError as exc:
@@ -110,7 +148,56 @@ def apply_profile(cfg: LeafgateConfig, where: str = "config") -> LeafgateConfig:
         controller = dataclasses.replace(
             controller, mpc=dataclasses.replace(controller.mpc, mode="velocity")
         )
-    return dataclasses.replace(cfg, gateway=gateway, controller=controller)
+    out = dataclasses.replace(cfg, gateway=gateway, controller=controller)
+    adjustments = _adjustments(cfg, out, profile, explicit)
+    object.__setattr__(out, "explicit", explicit)  # frozen: set once, here
+    object.__setattr__(out, "adjustments", adjustments)
+    return out
+
+
+def _get(cfg: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def _adjustments(
+    before: LeafgateConfig, after: LeafgateConfig, profile: Profile, explicit: Mapping[str, str]
+) -> tuple[str, ...]:
+    """What :func:`apply_profile` changed, one line each; raise on a change of an explicit
+    value."""
+    name = profile.name
+    caps = profile.capabilities
+    why = {
+        "controller.mpc.mode": "speed-only interface",
+        "gateway.rate_hz": f"its fastest command frame is sent every "
+        f"{profile.command_period * 1e3:g} ms",
+        "gateway.engage.allow_reverse": "it cannot request a gear",
+        "gateway.watchdog.steer_report_period": "its report frames' period",
+        "gateway.watchdog.long_report_period": "its report frames' period",
+        "gateway.watchdog.system_report_period": "its report frames' period"
+        if caps.ecu_status
+        else "no ECU state report",
+    }
+    lines = []
+    for key, reason in why.items():
+        old, new = _get(before, key), _get(after, key)
+        if old == new:
+            continue
+        if key in explicit:
+            text = (
+                f"{old} is not available with profile {name} ({reason})"
+                if key == "controller.mpc.mode"
+                else f"{old} contradicts profile {name} ({reason}: it needs {new})"
+            )
+            raise ConfigError(f"{explicit[key]}: {key}: {text}")
+        lines.append(f"{key}: {old} -> {new} (profile {name}: {reason})")
+    if before.gateway.safety != after.gateway.safety:
+        lines.append(
+            f"gateway.safety rate tables lowered to the vehicle's own steering-angle rate "
+            f"limits where stricter (profile {name}: {profile.where})"
+        )
+    return tuple(lines)
 
 
 def _bounded_rates(safety: SafetyConfig, table: SteerRateTable) -> SafetyConfig:

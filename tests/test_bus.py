@@ -35,14 +35,18 @@ def drain(bus: can.BusABC, timeout: float = 0.05) -> list[int]:
 
 def test_virtual_round_trip_delivers_only_the_decoded_ids() -> None:
     channel = f"leafgate-test-{uuid.uuid4().hex}"
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     with (
         open_bus(virtual(channel), codec.receive_ids("reports")) as gateway,
         open_bus(virtual(channel), codec.receive_ids("commands")) as ecu,
     ):
-        gateway.send(CanCodec().encode(SteerCommand(0.1, enable=True)))
+        gateway.send(CanCodec(profile="leafgate-dbw").encode(SteerCommand(0.1, enable=True)))
         ecu.send(frame(0x123))  # decoded by nobody
-        ecu.send(CanCodec().encode(SteerReport(0.1, 0.0, 0.0, True, False, False, False)))
+        ecu.send(
+            CanCodec(profile="leafgate-dbw").encode(
+                SteerReport(0.1, 0.0, 0.0, True, False, False, False)
+            )
+        )
         assert drain(gateway) == [0x0B0]
         assert drain(ecu) == [0x0A0]
 

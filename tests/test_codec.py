@@ -41,7 +41,9 @@ from leafgate.messages import (
     WheelSpeeds,
 )
 
-CODEC = CanCodec()  # for DBC look-ups only; tests that encode/decode make their own
+CODEC = CanCodec(
+    profile="leafgate-dbw"
+)  # for DBC look-ups only; tests that encode/decode make their own
 DBW, CAR = CODEC.databases
 DEG = math.pi / 180.0  # rad/deg
 KMH = 1 / 3.6  # (m/s)/(km/h)
@@ -86,7 +88,7 @@ FIELDS: dict[tuple[str, str], tuple[float, Callable[[float], EncodableMessage]]]
         lambda v: SystemReport(EcuState.READY, False, False, False, False, round(v)),
     ),
     ("STEER_ANGLE_SENSOR", "STEER_ANGLE"): (DEG, lambda v: SteeringWheelAngle(v)),
-    ("MOTOR_SPEED", "MOTOR_REVS"): (MPS_PER_COUNT, lambda v: MotorSpeed(v)),
+    ("OUTPUT_SPEED", "OUTPUT_REVS"): (MPS_PER_COUNT, lambda v: MotorSpeed(v)),
     ("WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FL"): (KMH, lambda v: WheelSpeeds(v, 0.0, "front")),
     ("WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FR"): (KMH, lambda v: WheelSpeeds(0.0, v, "front")),
     ("WHEEL_SPEEDS_REAR", "WHEEL_SPEED_RL"): (KMH, lambda v: WheelSpeeds(v, 0.0, "rear")),
@@ -119,7 +121,7 @@ def field_value(decoded: object, message: str, name: str) -> float:
         "BRAKE_PEDAL": "brake_pedal_pct",
         "ACCEL_PEDAL": "accel_pedal_pct",
         "RX_ERROR_COUNT": "rx_error_count",
-        "MOTOR_REVS": "speed",
+        "OUTPUT_REVS": "speed",
         "WHEEL_SPEED_FL": "left",
         "WHEEL_SPEED_RL": "left",
         "WHEEL_SPEED_FR": "right",
@@ -130,8 +132,8 @@ def field_value(decoded: object, message: str, name: str) -> float:
 
 
 def roundtrip(value: EncodableMessage) -> object:
-    msg = CanCodec().encode(value)
-    decoded = CanCodec().decode(msg)
+    msg = CanCodec(profile="leafgate-dbw").encode(value)
+    decoded = CanCodec(profile="leafgate-dbw").decode(msg)
     assert decoded.valid, decoded
     return decoded.value
 
@@ -170,7 +172,7 @@ def test_out_of_range_encode_raises_encode_error(message: str, name: str, side: 
     lsb = abs(signal(message, name).scale)
     dbc_value = lo - lsb if side == "below_min" else hi + lsb
     with pytest.raises(EncodeError) as info:
-        CanCodec().encode(make(dbc_value * factor))
+        CanCodec(profile="leafgate-dbw").encode(make(dbc_value * factor))
     assert isinstance(info.value, CanCodecError)
     assert isinstance(info.value, cantools.database.EncodeError)
     assert name in str(info.value)
@@ -179,19 +181,19 @@ def test_out_of_range_encode_raises_encode_error(message: str, name: str, side: 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_values_raise_encode_error(bad: float) -> None:
     with pytest.raises(EncodeError, match="not finite"):
-        CanCodec().encode(SteerCommand(angle=bad))
+        CanCodec(profile="leafgate-dbw").encode(SteerCommand(angle=bad))
 
 
 def test_enum_code_outside_the_value_table_raises_encode_error() -> None:
     with pytest.raises(EncodeError):
-        CanCodec().encode(LongCommand(gear=5))  # type: ignore[arg-type]
+        CanCodec(profile="leafgate-dbw").encode(LongCommand(gear=5))  # type: ignore[arg-type]
 
 
 def test_unknown_axle_and_unknown_type_raise_encode_error() -> None:
     with pytest.raises(EncodeError, match="axle"):
-        CanCodec().encode(WheelSpeeds(1.0, 1.0, "middle"))
+        CanCodec(profile="leafgate-dbw").encode(WheelSpeeds(1.0, 1.0, "middle"))
     with pytest.raises(EncodeError, match="str"):
-        CanCodec().encode("not a message")  # type: ignore[arg-type]
+        CanCodec(profile="leafgate-dbw").encode("not a message")  # type: ignore[arg-type]
 
 
 # --- round trips ----------------------------------------------------------------------------
@@ -316,11 +318,11 @@ def test_wheel_speeds_round_trip(left_kmh: float, right_kmh: float, axle: str) -
     assert close(out.right, right_kmh * KMH, "WHEEL_SPEEDS_FRONT", "WHEEL_SPEED_FR", KMH)
 
 
-@given(within("MOTOR_SPEED", "MOTOR_REVS"))
+@given(within("OUTPUT_SPEED", "OUTPUT_REVS"))
 def test_motor_speed_round_trip(rpm: float) -> None:
     out = roundtrip(MotorSpeed(rpm * MPS_PER_COUNT))
     assert isinstance(out, MotorSpeed)
-    assert close(out.speed, rpm * MPS_PER_COUNT, "MOTOR_SPEED", "MOTOR_REVS", MPS_PER_COUNT)
+    assert close(out.speed, rpm * MPS_PER_COUNT, "OUTPUT_SPEED", "OUTPUT_REVS", MPS_PER_COUNT)
 
 
 @pytest.mark.parametrize("gear", [Gear.P, Gear.R, Gear.N, Gear.D, Gear.NONE])
@@ -332,13 +334,13 @@ def test_gear_position_round_trip(gear: Gear) -> None:
 
 
 def test_steering_wheel_left_is_a_negative_raw_int16_little_endian() -> None:
-    msg = CanCodec().encode(SteeringWheelAngle(10.0 * DEG))  # 10° to the left
+    msg = CanCodec(profile="leafgate-dbw").encode(SteeringWheelAngle(10.0 * DEG))  # 10° to the left
     assert len(msg.data) == 5
     assert int.from_bytes(msg.data[0:2], "little", signed=True) == -100  # 0.1° per bit
 
 
 def test_wheel_speed_is_big_endian_right_wheel_first() -> None:
-    msg = CanCodec().encode(WheelSpeeds(left=1.0, right=2.0, axle="front"))
+    msg = CanCodec(profile="leafgate-dbw").encode(WheelSpeeds(left=1.0, right=2.0, axle="front"))
     assert msg.arbitration_id == 0x284
     assert int.from_bytes(msg.data[0:2], "big") == round(2.0 * 3.6 / 0.005)
     assert int.from_bytes(msg.data[2:4], "big") == round(1.0 * 3.6 / 0.005)
@@ -357,20 +359,29 @@ def test_wheel_speed_is_big_endian_right_wheel_first() -> None:
 )
 def test_gear_lever_byte_decodes_to_gear(byte0: int, gear: Gear) -> None:
     # 0x38 is B (regenerative drive mode): a forward gear; 0x00 is not a lever position
-    out = CanCodec().decode(can.Message(arbitration_id=0x421, data=[byte0], is_extended_id=False))
+    frame = can.Message(arbitration_id=0x421, data=[byte0, 0, 0], is_extended_id=False)
+    out = CanCodec(profile="leafgate-dbw").decode(frame)
     assert out.valid and out.value == GearPosition(gear)
 
 
+def test_a_one_byte_gear_frame_is_the_wrong_length() -> None:
+    # the AZE0 sends 0x421 with 3 bytes in every frame (issue 15); 1 byte is not the car's
+    out = CanCodec(profile="leafgate-dbw").decode(
+        can.Message(arbitration_id=0x421, data=[0x20], is_extended_id=False)
+    )
+    assert out.error == "wrong_length"
+
+
 def test_longer_car_frame_is_accepted_as_model_years_differ() -> None:
-    # Leaf 2018 sends 0x421 with 3 bytes (opendbc), the AZE0 with 1 (dalathegreat)
-    out = CanCodec().decode(
-        can.Message(arbitration_id=0x421, data=[0x20, 0xAA, 0x55], is_extended_id=False)
+    # unprotected car frames may carry trailing bytes a model year adds
+    out = CanCodec(profile="leafgate-dbw").decode(
+        can.Message(arbitration_id=0x421, data=[0x20, 0xAA, 0x55, 0x00], is_extended_id=False)
     )
     assert out.valid and out.value == GearPosition(Gear.D)
 
 
 def test_encoded_frames_are_standard_8_byte_with_timestamp_and_e2e() -> None:
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     for frame_id in sorted(codec.receive_ids("commands") | codec.receive_ids("reports")):
         name = codec.name_of(frame_id)
         values: dict[str, EncodableMessage] = {
@@ -389,13 +400,13 @@ def test_encoded_frames_are_standard_8_byte_with_timestamp_and_e2e() -> None:
 
 
 def test_alive_counters_are_per_instance_and_per_id_and_wrap() -> None:
-    gateway, ecu = CanCodec(), CanCodec()
+    gateway, ecu = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
     steer = [gateway.encode(SteerCommand(0.0)) for _ in range(18)]
     long = gateway.encode(LongCommand())
     assert [e2e.counter_of(m.data) for m in steer] == [n % 16 for n in range(18)]
     assert e2e.counter_of(long.data) == 0  # its own counter
     assert e2e.counter_of(ecu.encode(SteerCommand(0.0)).data) == 0  # another instance
-    decoder = CanCodec()
+    decoder = CanCodec(profile="leafgate-dbw")
     assert all(decoder.decode(m).valid for m in steer)  # 15 → 0 accepted
 
 
@@ -403,7 +414,7 @@ def test_alive_counters_are_per_instance_and_per_id_and_wrap() -> None:
 
 
 def test_bad_crc_is_detected_counted_and_value_kept_for_logging() -> None:
-    tx, rx = CanCodec(), CanCodec()
+    tx, rx = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
     msg = tx.encode(SteerCommand(0.25, enable=True))
     data = bytearray(msg.data)
     data[0] ^= 0x01
@@ -414,7 +425,7 @@ def test_bad_crc_is_detected_counted_and_value_kept_for_logging() -> None:
 
 
 def test_repeated_counter_is_detected_and_counted() -> None:
-    tx, rx = CanCodec(), CanCodec()
+    tx, rx = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
     msg = tx.encode(SteerReport(0.0, 0.0, 0.0, True, False, False, False))
     assert rx.decode(msg).valid
     out = rx.decode(msg)
@@ -424,7 +435,7 @@ def test_repeated_counter_is_detected_and_counted() -> None:
 
 
 def test_skipped_counter_is_detected_and_counted() -> None:
-    tx, rx = CanCodec(), CanCodec()
+    tx, rx = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
     frames = [tx.encode(SystemCommand(GatewayState.ENGAGED)) for _ in range(3)]
     assert rx.decode(frames[0]).valid
     assert rx.decode(frames[2]).error == "bad_counter"  # frame 1 lost
@@ -433,21 +444,21 @@ def test_skipped_counter_is_detected_and_counted() -> None:
 
 @pytest.mark.parametrize("length", [0, 1, 7])
 def test_wrong_length_is_detected_counted_and_has_no_value(length: int) -> None:
-    rx = CanCodec()
+    rx = CanCodec(profile="leafgate-dbw")
     out = rx.decode(can.Message(arbitration_id=0x0B1, data=bytes(length), is_extended_id=False))
     assert (out.valid, out.error, out.value) == (False, "wrong_length", None)
     assert rx.stats[0x0B1].wrong_length == 1
 
 
 def test_short_car_frame_is_wrong_length() -> None:
-    rx = CanCodec()
+    rx = CanCodec(profile="leafgate-dbw")
     out = rx.decode(can.Message(arbitration_id=0x284, data=bytes(3), is_extended_id=False))
     assert out.error == "wrong_length"
     assert rx.stats[0x284].wrong_length == 1
 
 
 def test_unknown_id_and_extended_id_are_counted_as_unknown() -> None:
-    rx = CanCodec()
+    rx = CanCodec(profile="leafgate-dbw")
     out = rx.decode(can.Message(arbitration_id=0x555, data=bytes(8), is_extended_id=False))
     assert (out.valid, out.error, out.name, out.value) == (False, "unknown_id", None, None)
     ext = rx.decode(can.Message(arbitration_id=0x0A0, data=bytes(8), is_extended_id=True))
@@ -457,7 +468,7 @@ def test_unknown_id_and_extended_id_are_counted_as_unknown() -> None:
 
 
 def test_value_outside_a_value_table_in_a_valid_frame_is_a_decode_error() -> None:
-    rx = CanCodec()
+    rx = CanCodec(profile="leafgate-dbw")
     data = bytearray(8)
     data[3] = 6 << 4  # DBW_LONG_RPT.GEAR (bits 28..30) = 6, not a gear
     msg = can.Message(
@@ -479,7 +490,7 @@ def test_value_outside_a_value_table_in_a_valid_frame_is_a_decode_error() -> Non
 def test_decode_never_raises(
     frame_id: int, data: bytes, extended: bool, remote: bool, error: bool
 ) -> None:
-    rx = CanCodec()
+    rx = CanCodec(profile="leafgate-dbw")
     msg = can.Message(
         arbitration_id=frame_id if extended else frame_id & 0x7FF,
         data=data,
@@ -509,7 +520,7 @@ def test_compiled_decoder_matches_cantools_on_random_payloads(name: str, data: b
 
 
 def test_receive_ids_per_direction() -> None:
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     assert codec.receive_ids("reports") == {0x0B0, 0x0B1, 0x0B2}
     assert codec.receive_ids("commands") == {0x0A0, 0x0A1, 0x0A2}
     assert codec.receive_ids("car") == {0x002, 0x176, 0x284, 0x285, 0x421}
@@ -519,7 +530,7 @@ def test_receive_ids_per_direction() -> None:
 
 def test_missing_dbc_file_is_a_codec_error_naming_it(tmp_path: Path) -> None:
     with pytest.raises(CanCodecError, match=r"nope\.dbc: no such DBC file"):
-        CanCodec(dbw_dbc=tmp_path / "nope.dbc")
+        CanCodec(dbw_dbc=tmp_path / "nope.dbc", profile="leafgate-dbw")
 
 
 def test_dbc_lacking_a_frame_is_a_codec_error_naming_it(tmp_path: Path) -> None:
@@ -530,18 +541,18 @@ def test_dbc_lacking_a_frame_is_a_codec_error_naming_it(tmp_path: Path) -> None:
     with pytest.raises(
         CanCodecError, match=r"frame DBW_SYSTEM_RPT is in no DBC of the profile \(.*renamed\.dbc"
     ):
-        CanCodec(dbw_dbc=path)
+        CanCodec(dbw_dbc=path, profile="leafgate-dbw")
 
 
 def test_invalid_dbc_is_a_codec_error(tmp_path: Path) -> None:
     path = tmp_path / "broken.dbc"
     path.write_text("BO_ this is not a dbc\n", encoding="utf-8")
     with pytest.raises(CanCodecError, match=r"broken\.dbc: invalid DBC"):
-        CanCodec(car_dbc=path)
+        CanCodec(car_dbc=path, profile="leafgate-dbw")
 
 
 def test_failed_encode_does_not_advance_the_alive_counter() -> None:
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     assert e2e.counter_of(codec.encode(SteerCommand(0.0)).data) == 0
     with pytest.raises(EncodeError):
         codec.encode(SteerCommand(5.0))  # far outside the angle range
@@ -550,7 +561,7 @@ def test_failed_encode_does_not_advance_the_alive_counter() -> None:
 
 def test_non_number_field_raises_encode_error() -> None:
     with pytest.raises(EncodeError, match="not a number"):
-        CanCodec().encode(SteerCommand(angle="left"))  # type: ignore[arg-type]
+        CanCodec(profile="leafgate-dbw").encode(SteerCommand(angle="left"))  # type: ignore[arg-type]
 
 
 # --- the compiled encoder against cantools' strict encode ------------------------------------
@@ -712,7 +723,7 @@ def test_codec_encode_matches_cantools_from_message_to_frame(
     (message, name), dbc_value = case
     factor, make = FIELDS[(message, name)]
     value = make(dbc_value * factor)
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     for _ in range(counter):  # bring the alive counter to `counter`
         codec.encode(make(0.0))
     try:
@@ -755,7 +766,7 @@ def test_compiled_encoder_matches_cantools_on_exotic_layouts(data: st.DataObject
 
 def test_out_of_range_error_names_frame_id_signal_value_and_range() -> None:
     with pytest.raises(EncodeError) as info:
-        CanCodec().encode(SteerCommand(angle=0.9))
+        CanCodec(profile="leafgate-dbw").encode(SteerCommand(angle=0.9))
     assert str(info.value) == (
         "DBW_STEER_CMD (0x0A0) STEER_ANGLE_CMD: value 0.9 is outside its range [-0.8, 0.8] rad"
     )
@@ -764,13 +775,15 @@ def test_out_of_range_error_names_frame_id_signal_value_and_range() -> None:
 def test_numpy_scalars_encode_like_python_numbers() -> None:
     import numpy as np
 
-    as_numpy = CanCodec().encode(
+    as_numpy = CanCodec(profile="leafgate-dbw").encode(
         SystemReport(EcuState.READY, False, False, False, False, np.int64(7))  # type: ignore[arg-type]
     )
-    as_python = CanCodec().encode(SystemReport(EcuState.READY, False, False, False, False, 7))
+    as_python = CanCodec(profile="leafgate-dbw").encode(
+        SystemReport(EcuState.READY, False, False, False, False, 7)
+    )
     assert as_numpy.data == as_python.data
-    steer = CanCodec().encode(SteerCommand(angle=np.float32(0.25)))  # type: ignore[arg-type]
-    assert steer.data == CanCodec().encode(SteerCommand(angle=0.25)).data
+    steer = CanCodec(profile="leafgate-dbw").encode(SteerCommand(angle=np.float32(0.25)))  # type: ignore[arg-type]
+    assert steer.data == CanCodec(profile="leafgate-dbw").encode(SteerCommand(angle=0.25)).data
 
 
 def test_dbc_with_a_signal_leafgate_does_not_fill_decodes_but_refuses_to_encode(
@@ -783,9 +796,9 @@ def test_dbc_with_a_signal_leafgate_does_not_fill_decodes_but_refuses_to_encode(
     )
     path = tmp_path / "spare.dbc"
     path.write_text(text, encoding="utf-8")
-    codec = CanCodec(dbw_dbc=path)
+    codec = CanCodec(dbw_dbc=path, profile="leafgate-dbw")
     with pytest.raises(EncodeError, match=r"DBW_SYSTEM_CMD \(0x0A2\).*SPARE"):
         codec.encode(SystemCommand(GatewayState.ENGAGED))
-    frame = CanCodec().encode(SystemCommand(GatewayState.ENGAGED))
+    frame = CanCodec(profile="leafgate-dbw").encode(SystemCommand(GatewayState.ENGAGED))
     assert codec.decode(frame).value == SystemCommand(GatewayState.ENGAGED)
     assert codec.encode(SteerCommand(0.1)).arbitration_id == 0x0A0  # other frames still encode

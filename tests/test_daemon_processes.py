@@ -46,6 +46,9 @@ def profile(request: pytest.FixtureRequest) -> str:
 def sim_config(tmp_path: Path, profile: str) -> Path:
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg.setdefault("vehicle", {})["profile"] = profile
+    if profile != "leafgate-dbw":  # values the profile decides: leave them to it
+        cfg["controller"]["mpc"].pop("mode", None)
+        cfg["gateway"].pop("rate_hz", None)
     cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
     cfg["can"]["dbw"]["channel"] = f"239.74.{random.randint(164, 250)}.{random.randint(1, 250)}"
     cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
@@ -88,7 +91,7 @@ def status(config: Path) -> dict:
 def ecu_state(config: Path) -> EcuState | None:
     """Listen on the bus for DBW_SYSTEM_RPT and return the ECU's state."""
     cfg = yaml.safe_load(config.read_text())["can"]["dbw"]
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     with can.Bus(interface="udp_multicast", channel=cfg["channel"], **cfg["kwargs"]) as bus:
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:

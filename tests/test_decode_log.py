@@ -16,7 +16,7 @@ from leafgate.messages import Gear, GearPosition, LongCommand, LongMode, SteerCo
 
 def recording() -> list[can.Message]:
     """Five good steering commands with one lost, a bad CRC, a short frame, others."""
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     steer = [codec.encode(SteerCommand(0.01 * i, enable=True)) for i in range(6)]
     corrupt = bytearray(codec.encode(SteerCommand(0.3)).data)
     corrupt[2] ^= 0x40
@@ -49,7 +49,7 @@ def write_log(path: Path, frames: list[can.Message]) -> Path:
 def test_every_frame_gets_a_line_with_its_e2e_status(tmp_path: Path, suffix: str) -> None:
     path = write_log(tmp_path / f"drive{suffix}", recording())
     out = io.StringIO()
-    assert decode_log(path, out, summary=False) == 0
+    assert decode_log(path, out, summary=False, profile="leafgate-dbw") == 0
     lines = out.getvalue().splitlines()
     assert len(lines) == 10
     statuses = [line.rsplit("  ", 1)[1] for line in lines]
@@ -74,7 +74,7 @@ def test_every_frame_gets_a_line_with_its_e2e_status(tmp_path: Path, suffix: str
 def test_summary_counts_frames_and_faults_per_id(tmp_path: Path) -> None:
     path = write_log(tmp_path / "drive.log", recording())
     out = io.StringIO()
-    decode_log(path, out)
+    decode_log(path, out, profile="leafgate-dbw")
     summary = [line for line in out.getvalue().splitlines() if line.startswith("#")]
     rows = {line.split()[1]: line.split()[2:] for line in summary[2:]}
     # columns: name frames bad_crc bad_cnt bad_len unknown decode
@@ -85,7 +85,7 @@ def test_summary_counts_frames_and_faults_per_id(tmp_path: Path) -> None:
 
 
 def test_frames_of_two_channels_have_separate_counter_state(tmp_path: Path) -> None:
-    codec_a, codec_b = CanCodec(), CanCodec()
+    codec_a, codec_b = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
     frames = []
     for i in range(3):  # both channels carry 0x0A0 with their own counters
         for channel, codec in (("can0", codec_a), ("can1", codec_b)):
@@ -94,20 +94,20 @@ def test_frames_of_two_channels_have_separate_counter_state(tmp_path: Path) -> N
             frames.append(msg)
     path = write_log(tmp_path / "two.log", frames)
     out = io.StringIO()
-    decode_log(path, out, summary=False)
+    decode_log(path, out, summary=False, profile="leafgate-dbw")
     assert all(line.endswith("  ok") for line in out.getvalue().splitlines())
 
 
 def test_missing_file_is_a_replay_error(tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match=r"nothing\.log: no such file"):
-        decode_log(tmp_path / "nothing.log", io.StringIO())
+        decode_log(tmp_path / "nothing.log", io.StringIO(), profile="leafgate-dbw")
 
 
 def test_unknown_format_is_a_one_line_replay_error(tmp_path: Path) -> None:
     path = tmp_path / "drive.xyz"
     path.write_text("hello\n", encoding="utf-8")
     with pytest.raises(ReplayError, match=r"drive\.xyz: .*unknown log format") as info:
-        decode_log(path, io.StringIO())
+        decode_log(path, io.StringIO(), profile="leafgate-dbw")
     assert "\n" not in str(info.value)
 
 
@@ -119,5 +119,5 @@ def test_corrupt_log_is_a_one_line_replay_error(tmp_path: Path, name: str, conte
     path = tmp_path / name
     path.write_bytes(content)
     with pytest.raises(ReplayError, match=f"{name}: unreadable") as info:
-        decode_log(path, io.StringIO())
+        decode_log(path, io.StringIO(), profile="leafgate-dbw")
     assert "\n" not in str(info.value)

@@ -58,8 +58,8 @@ class Rig:
         plant_cfg = plant or PlantConfig(kind="kinematic", input_delay=0.0)
         self.plant = make_plant(plant_cfg, VEHICLE, start or Pose(0.0, 0.0, 0.0, 0.0))
         self.ecu = SimulatedEcu(ecu or EcuConfig(), self.plant, VEHICLE)
-        self.tx = CanCodec()  # the gateway's codec: encodes commands
-        self.rx = CanCodec()  # … and decodes reports
+        self.tx = CanCodec(profile="leafgate-dbw")  # the gateway's codec: encodes commands
+        self.rx = CanCodec(profile="leafgate-dbw")  # … and decodes reports
         self.tick = 0
         self.frames: list[tuple[float, can.Message]] = []
 
@@ -99,12 +99,14 @@ class Rig:
         assert self.ecu.state == EcuState.ENGAGED
 
     def decoded(self, frame_type: type[T], since: float = -math.inf) -> list[T]:
-        """The valid report frames of one type received since ``since``, decoded."""
+        """The valid report frames of one type received since ``since``, decoded (by a fresh
+        codec each time: the car's frames carry counters, each frame is decoded once)."""
         out = []
+        rx = CanCodec(profile="leafgate-dbw")
         for t, msg in self.frames:
             if t < since:
                 continue
-            d = self.rx.decode(msg)
+            d = rx.decode(msg)
             if d.valid and isinstance(d.value, frame_type):
                 out.append(d.value)
         return out
@@ -375,7 +377,7 @@ def test_report_periods_over_one_second() -> None:
         0x002: 100,  # 10 ms
         0x284: 50,  # 20 ms
         0x285: 50,  # 20 ms
-        0x421: 10,  # 100 ms
+        0x421: 17,  # 60 ms: 0, 60, …, 960 ms (no gear change, no event frame)
         0x176: 100,  # 10 ms
     }
 
@@ -522,7 +524,7 @@ def test_realtime_ecu_reports_on_virtual_buses_and_stops_cleanly(separate_car_bu
     car_cfg = BusConfig(interface="virtual", channel=channel + "-car") if separate_car_bus else None
     can_cfg = CanConfig(dbw=BusConfig(interface="virtual", channel=channel), car=car_cfg)
     config = LeafgateConfig(can=can_cfg, sim=replace(SimConfig(), ecu=EcuConfig()))
-    car_ids = CanCodec().receive_ids("car")
+    car_ids = CanCodec(profile="leafgate-dbw").receive_ids("car")
     stop = threading.Event()
     result: list[RealtimeStats] = []
     gateway = can.Bus(interface="virtual", channel=channel)
@@ -532,7 +534,7 @@ def test_realtime_ecu_reports_on_virtual_buses_and_stops_cleanly(separate_car_bu
             target=lambda: result.append(run_ecu_realtime(config, stop)), daemon=True
         )
         thread.start()
-        codec = CanCodec()
+        codec = CanCodec(profile="leafgate-dbw")
         seen: Counter[int] = Counter()
         for _ in range(2000):
             msg = gateway.recv(timeout=1.0)
@@ -542,7 +544,7 @@ def test_realtime_ecu_reports_on_virtual_buses_and_stops_cleanly(separate_car_bu
             seen[msg.arbitration_id] += 1
             if seen[0x0B2] >= 2:
                 break
-        gateway.send(CanCodec().encode(SteerCommand(0.0)))
+        gateway.send(CanCodec(profile="leafgate-dbw").encode(SteerCommand(0.0)))
         car_frame = car.recv(timeout=1.0) if car is not None else None
         stop.set()
         thread.join(timeout=5.0)

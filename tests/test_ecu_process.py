@@ -68,7 +68,7 @@ def drive_ecu(bus_kwargs: dict, tmp_path: Path) -> None:
         stderr=subprocess.STDOUT,
         cwd=ROOT,
     )
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     target = math.radians(10.0)  # rad, road-wheel
     steer_seen: list[float] = []
     states: list[EcuState] = []

@@ -49,7 +49,7 @@ FILES = settings(
 )
 
 _ERRORS = {"bad_crc", "bad_counter", "wrong_length", "unknown_id", "decode_error"}
-_REFERENCE = CanCodec()
+_REFERENCE = CanCodec(profile="leafgate-dbw")
 DBW_IDS = sorted(_REFERENCE.receive_ids("commands") | _REFERENCE.receive_ids("reports"))
 KNOWN_IDS = sorted(set(DBW_IDS) | _REFERENCE.receive_ids("car"))
 REPORT_IDS = sorted(_REFERENCE.receive_ids("reports"))
@@ -113,7 +113,7 @@ def assert_counts_add_up(codec: CanCodec, fed: int, valid_per_id: dict[int, int]
 @FAST
 @given(st.lists(frames(), max_size=40))
 def test_codec_never_raises_and_counts_every_frame(batch: list[can.Message]) -> None:
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     valid: dict[int, int] = {}
     for msg in batch:
         out = codec.decode(msg)
@@ -132,7 +132,7 @@ def test_codec_never_raises_and_counts_every_frame(batch: list[can.Message]) -> 
 def test_frames_with_valid_e2e_reach_the_content_decoder(
     frame_id: int, first: int, payloads: list[bytes]
 ) -> None:
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     valid = 0
     for k, payload in enumerate(payloads):
         msg = e2e_frame(frame_id, payload, first + k)
@@ -162,7 +162,7 @@ def test_frames_with_valid_e2e_reach_the_content_decoder(
 def test_gateway_receiver_never_raises_and_keeps_only_valid_reports(
     batch: list[can.Message],
 ) -> None:
-    receiver = CanReceiver(CanCodec(), clock=lambda: 2.0)
+    receiver = CanReceiver(CanCodec(profile="leafgate-dbw"), clock=lambda: 2.0)
     for msg in batch:
         receiver.on_message_received(msg)
         for slot, kind in (

@@ -64,7 +64,7 @@ def tick(steer: SteerCommand, long: LongCommand | None = None) -> Commands:
 
 
 def test_leafgate_dbw_steer_frame_is_byte_exact_and_decodes_back() -> None:
-    gw, ecu = CanCodec(), CanCodec()
+    gw, ecu = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
     cmd = SteerCommand(angle=0.1, rate_limit=0.5, enable=True)
     frame = gw.encode(cmd)
     body = bytes.fromhex("E8 03 F4 01 01 00 00")
@@ -218,7 +218,7 @@ def test_profiles_set_loop_rate_report_watchdogs_and_mode() -> None:
 
 
 def test_system_frames_only_when_the_tick_has_one() -> None:
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     cmds = Commands(SteerCommand(angle=0.0), LongCommand(), SystemCommand(GatewayState.STANDBY))
     assert [f.arbitration_id for f in codec.encode_commands(cmds)] == [0x0A0, 0x0A1, 0x0A2]
     assert [f.arbitration_id for f in codec.encode_commands(tick(SteerCommand(0.0)))] == [

@@ -102,7 +102,7 @@ def test_candump_log_is_read_by_cantools_decode(drive: Drive) -> None:
 
 
 def test_check_of_recorded_drive_finds_nothing_and_counts_frames(drive: Drive) -> None:
-    report = check_log(drive.logs[".blf"])
+    report = check_log(drive.logs[".blf"], profile="leafgate-dbw")
     assert report.findings == []
     assert (
         report.frames
@@ -115,14 +115,19 @@ def test_check_of_recorded_drive_finds_nothing_and_counts_frames(drive: Drive) -
 
 def test_check_of_session_agrees_with_check_of_log(drive: Drive) -> None:
     a = check_log(drive.session).to_dict()
-    b = check_log(drive.logs[".log"]).to_dict()
+    b = check_log(drive.logs[".log"], profile="leafgate-dbw").to_dict()
     for key in ("frames", "engaged_command_frames", "violations", "e2e_errors", "gaps"):
         assert a[key] == b[key], key
 
 
 def test_check_exit_status_and_json(drive: Drive) -> None:
     out = io.StringIO()
-    assert main_check(drive.logs[".log"], as_json=True, out=out, err=io.StringIO()) == 0
+    assert (
+        main_check(
+            drive.logs[".log"], profile="leafgate-dbw", as_json=True, out=out, err=io.StringIO()
+        )
+        == 0
+    )
     assert '"ok": true' in out.getvalue()
 
 
@@ -132,7 +137,7 @@ def test_every_clamp_kind_of_the_gate_is_rechecked() -> None:
 
 def _edited(frames: list[can.Message]) -> tuple[list[can.Message], float, float, float]:
     """The drive with an over-limit steering frame, a bad CRC and a 300 ms gap, far apart."""
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     engaged = [
         i
         for i, f in enumerate(frames)
@@ -144,7 +149,9 @@ def _edited(frames: list[can.Message]) -> tuple[list[can.Message], float, float,
     over = next(i for i in engaged if frames[i].timestamp >= t0 + 6.0)
     value = codec.decode(frames[over]).value
     assert isinstance(value, SteerCommand)
-    edited = CanCodec().encode(SteerCommand(0.6, value.rate_limit, True, value.clear_override))
+    edited = CanCodec(profile="leafgate-dbw").encode(
+        SteerCommand(0.6, value.rate_limit, True, value.clear_override)
+    )
     data = e2e.apply(0x0A0, edited.data, e2e.counter_of(frames[over].data))
     frames[over] = can.Message(
         timestamp=frames[over].timestamp,
@@ -181,9 +188,9 @@ def test_edited_log_reports_exactly_the_three_edits_with_their_times(
     with can.Logger(path) as writer:
         for f in frames:
             writer.on_message_received(f)
-    report = check_log(path)
+    report = check_log(path, profile="leafgate-dbw")
     assert [(f.kind, f.detail) for f in report.findings] == [
-        ("gap", report.findings[0].detail),
+        ("silence", report.findings[0].detail),  # the whole bus, once
         ("limit", "angle"),
         ("e2e", "bad_crc"),
     ]
@@ -193,7 +200,7 @@ def test_edited_log_reports_exactly_the_three_edits_with_their_times(
     assert limit.time == pytest.approx(t_over, abs=1e-6) and limit.frame_id == 0x0A0
     assert limit.value == pytest.approx(0.6) and limit.bound == pytest.approx(math.radians(31))
     assert crc.time == pytest.approx(t_crc, abs=1e-6) and crc.frame_id == 0x0B1
-    assert main_check(path, out=io.StringIO(), err=io.StringIO()) == 1
+    assert main_check(path, profile="leafgate-dbw", out=io.StringIO(), err=io.StringIO()) == 1
 
 
 # --- rerun -------------------------------------------------------------------------------------
@@ -225,7 +232,7 @@ def test_rerun_with_changed_weight_reports_divergence(drive: Drive) -> None:
 @pytest.mark.parametrize("source", ["session", ".blf"])
 def test_plot_writes_path_steering_and_speed(drive: Drive, tmp_path: Path, source: str) -> None:
     path = drive.session if source == "session" else drive.logs[source]
-    assert main_plot(path, out=tmp_path, stdout=io.StringIO()) == 0
+    assert main_plot(path, out=tmp_path, profile="leafgate-dbw", stdout=io.StringIO()) == 0
     for name in ("path", "steering", "speed"):
         png = tmp_path / f"{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

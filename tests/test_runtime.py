@@ -88,7 +88,7 @@ def feed_reports(receiver: CanReceiver, ecu_codec: CanCodec) -> None:
 
 
 def make_runtime(bus: can.BusABC, clock) -> tuple[Runtime, CanReceiver]:  # type: ignore[no-untyped-def]
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     receiver = CanReceiver(codec, clock)
     gateway = Gateway(GatewayConfig(), VehicleConfig(), HoldController())
     return Runtime(gateway, codec, bus, receiver, Inputs(clock), 0.02, clock=clock), receiver
@@ -96,8 +96,8 @@ def make_runtime(bus: can.BusABC, clock) -> tuple[Runtime, CanReceiver]:  # type
 
 def test_receiver_fills_slots_and_counts_good_and_bad_frames() -> None:
     now = [5.0]
-    receiver = CanReceiver(CanCodec(), lambda: now[0])
-    ecu_codec = CanCodec()
+    receiver = CanReceiver(CanCodec(profile="leafgate-dbw"), lambda: now[0])
+    ecu_codec = CanCodec(profile="leafgate-dbw")
     feed_reports(receiver, ecu_codec)
     steer = receiver.steer.get()
     assert steer is not None and steer.received == 5.0 and steer.valid
@@ -143,7 +143,7 @@ def test_tick_sends_steer_long_and_periodic_system_frames() -> None:
         ids = []
         for k in range(10):
             now[0] = k * 0.02
-            feed_reports(receiver, CanCodec())
+            feed_reports(receiver, CanCodec(profile="leafgate-dbw"))
             runtime.tick(now[0])
             while (msg := listener.recv(timeout=0)) is not None:
                 ids.append(msg.arbitration_id)
@@ -157,7 +157,7 @@ def test_bus_send_errors_become_a_fault_not_an_exception() -> None:
     runtime, receiver = make_runtime(FailingBus(), lambda: now[0])
     for k in range(5):
         now[0] = k * 0.02
-        feed_reports(receiver, CanCodec())
+        feed_reports(receiver, CanCodec(profile="leafgate-dbw"))
         runtime.tick(now[0])  # must not raise
     assert runtime.stats.send_errors >= 2
     assert runtime.gateway.state == GatewayState.FAULT
@@ -179,7 +179,7 @@ def test_encode_error_is_counted_and_faults() -> None:
         runtime.gateway.step = bad_step  # type: ignore[method-assign]
         for k in range(3):
             now[0] = k * 0.02
-            feed_reports(receiver, CanCodec())
+            feed_reports(receiver, CanCodec(profile="leafgate-dbw"))
             runtime.tick(now[0])
         runtime.gateway.step = real  # type: ignore[method-assign]
         runtime.tick(0.06)
@@ -195,7 +195,7 @@ def test_run_ticks_in_real_time_and_disengages_on_stop() -> None:
         runtime, receiver = make_runtime(bus, time.perf_counter)
         stop = threading.Event()
         ready = threading.Event()
-        ecu_codec = CanCodec()
+        ecu_codec = CanCodec(profile="leafgate-dbw")
         feeder_stop = threading.Event()
 
         def feeder() -> None:
@@ -222,7 +222,11 @@ def test_run_ticks_in_real_time_and_disengages_on_stop() -> None:
             frames.append(msg)
     assert reply["state"] in ("ENGAGED", "STANDBY")  # answered by the control thread
     assert runtime.stats.ticks > 10
-    last_steer = [CanCodec().decode(m).value for m in frames if m.arbitration_id == 0x0A0][-1]
+    last_steer = [
+        CanCodec(profile="leafgate-dbw").decode(m).value
+        for m in frames
+        if m.arbitration_id == 0x0A0
+    ][-1]
     assert isinstance(last_steer, SteerCommand) and last_steer.enable is False  # disengaged on stop
 
 

@@ -22,6 +22,7 @@ from leafgate.messages import (
     ControlOutput,
     EcuState,
     GatewayState,
+    Gear,
     OperatorRequest,
     Pose,
     Trajectory,
@@ -184,6 +185,8 @@ REFUSALS: list[tuple[str, Setup, str]] = [
     ("system_report_missing", _never("system"), "system_report missing"),
     ("ecu_fault", _set(fault=True), "ECU reports state FAULT, actuator fault; reset first"),
     ("ecu_not_ready", _set(state=EcuState.NOT_READY), "ECU not ready (state NOT_READY)"),
+    # the car has sent no gear yet (issue 15: no plausible default before it does)
+    ("gear_unknown", _set(gear=Gear.NONE), "gear unknown: no gear received from the car yet"),
     ("off_path", _set(pose_offset=(0.0, 1.05)), "1.05 m from the trajectory"),
     ("off_heading", _set(heading=math.radians(31.0)), "heading 31.0° off the trajectory"),
     ("fault_latched", _fault, "fault latched (control loop overran 3 ticks in a row)"),

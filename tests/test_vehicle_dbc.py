@@ -16,12 +16,14 @@ from collections.abc import Callable, Mapping
 from importlib import resources
 from typing import NamedTuple
 
+import can
 import cantools
 import pytest
 from cantools.database.can import Database, Message, Signal
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from leafgate.can.codec import CanCodec
 from leafgate.can.e2e import crc8_nissan_lkas
 
 # Frames of leaf_ze1_lkas.dbc that opendbc's Leaf 2018 database also describes.
@@ -418,7 +420,7 @@ def test_opendbc_safety_model_scales_lkas_angle_like_our_dbc(ze1: Database) -> N
 
 def test_sze_dbc_has_the_hlc_frames_and_the_feedback_it_reads(sze: Database) -> None:
     periods = {m.frame_id: m.cycle_time for m in sze.messages}
-    assert periods == {0x001: 20, 0x005: 20, 0x002: 10, 0x176: 10, 0x421: 100}
+    assert periods == {0x001: 20, 0x005: 20, 0x002: 10, 0x176: 10, 0x421: 60}
     assert sze.get_message_by_frame_id(0x001).name == "HLC_AUTONOMOUS"
     assert sze.get_message_by_frame_id(0x005).name == "HLC_SPEED_REF_KMPH"
     assert all(m.comment for m in sze.messages)
@@ -475,23 +477,31 @@ def test_hlc_tire_angle_is_minus_int16_hundredths_of_a_degree(sze: Database, raw
     assert math.isclose(decode(message, frame)["TIRE_ANGLE"], -raw / 100, abs_tol=1e-9)
 
 
-# MOTOR_SPEED (0x176): km/h = (byte0 << 8 | byte1) / 8.570637
-#   01 AD = 429 → 429 / 8.570637 = 50.0547 km/h; 50 km/h → 50 × 8.570637 = 428.53 → 429 = 01 AD
-def test_sze_vehicle_speed_uses_the_driver_scale(sze: Database) -> None:
-    message = sze.get_message_by_name("MOTOR_SPEED")
-    frame = bytes.fromhex("01 AD 00 00 00 00 00")
-    assert math.isclose(decode(message, frame)["VEHICLE_SPEED"], 429 / 8.570637, rel_tol=1e-12)
-    assert message.encode({"VEHICLE_SPEED": 50.0}, strict=True) == frame
+# OUTPUT_SPEED (0x176): output-shaft (wheel) rpm = byte0 << 8 | byte1, 8.570637 per km/h
+#   01 AD = 429 rpm → 429 / 8.570637 = 50.0547 km/h; 50 km/h → 428.53 → 429 = 01 AD
+def test_sze_output_speed_is_wheel_rpm_at_the_driver_scale() -> None:
+    codec = CanCodec(profile="sze-hlc")
+    frame = can.Message(
+        arbitration_id=0x176, data=bytes.fromhex("01 AD 00 00 00 00 00"), is_extended_id=False
+    )
+    decoded = codec.decode(frame)
+    assert decoded.valid and decoded.value is not None
+    assert math.isclose(decoded.value.speed, 429 / 8.570637 / 3.6, rel_tol=1e-12)
 
 
 @given(raw=st.integers(min_value=0, max_value=0xFFFF))
-def test_sze_vehicle_speed_is_big_endian_counts_over_8_570637(sze: Database, raw: int) -> None:
-    message = sze.get_message_by_name("MOTOR_SPEED")
+def test_0x176_is_big_endian_rpm_with_one_name_and_unit(
+    sze: Database, aze0: Database, raw: int
+) -> None:
     frame = raw.to_bytes(2, "big") + bytes(5)
-    assert math.isclose(decode(message, frame)["VEHICLE_SPEED"], raw / 8.570637, rel_tol=1e-12)
+    for db in (sze, aze0):
+        message = db.get_message_by_frame_id(0x176)
+        assert message.name == "OUTPUT_SPEED"
+        assert message.get_signal_by_name("OUTPUT_REVS").unit == "rpm"
+        assert decode(message, frame)["OUTPUT_REVS"] == raw
 
 
-@pytest.mark.parametrize("frame_id", [0x002, 0x421])
+@pytest.mark.parametrize("frame_id", [0x002, 0x176, 0x421])
 def test_sze_steering_and_gear_frames_equal_the_aze0_dbc(
     sze: Database, aze0: Database, frame_id: int
 ) -> None:
@@ -524,12 +534,15 @@ def test_sze_steering_and_gear_frames_equal_the_aze0_dbc(
     assert ours.signals[0].choices == theirs.signals[0].choices
 
 
-# STEER_ANGLE_SENSOR: +90.0 deg → raw −900 = 0xFC7C, little-endian → 7C FC.
-# GEAR_POSITION: D = 4 in bits 7..3 → 0x20 (the driver's D).
+# STEER_ANGLE_SENSOR: +90.0 deg → raw −900 = 0xFC7C, little-endian → 7C FC; byte 3 07.
+# GEAR_POSITION: D = 4 in bits 7..3 → 0x20 (the driver's D), 3 bytes.
 def test_sze_steering_and_gear_worked_examples(sze: Database) -> None:
     steer = sze.get_message_by_name("STEER_ANGLE_SENSOR")
-    frame = steer.encode({"STEER_ANGLE": 90.0, "STEER_ANGLE_RATE": 0, "COUNTER": 0}, strict=True)
-    assert frame == bytes.fromhex("7C FC 00 00 00")
+    frame = steer.encode(
+        {"STEER_ANGLE": 90.0, "STEER_ANGLE_RATE": 0, "SET_ME_X07": 7, "COUNTER": 0, "CHECKSUM": 0},
+        strict=True,
+    )
+    assert frame == bytes.fromhex("7C FC 00 07 00")
     gear = sze.get_message_by_name("GEAR_POSITION")
-    assert gear.encode({"GEAR_SHIFTER": 4}, strict=True) == bytes([0x20])
-    assert decode(gear, bytes([0x10]))["GEAR_SHIFTER"] == 2  # R
+    assert gear.encode({"GEAR_SHIFTER": 4}, strict=True) == bytes([0x20, 0, 0])
+    assert decode(gear, bytes([0x10, 0, 0]))["GEAR_SHIFTER"] == 2  # R

@@ -133,7 +133,7 @@ def _cantools_encoder(codec: CanCodec) -> Callable[[float, int, EncodableMessage
     def encode(t: float, frame_id: int, value: EncodableMessage) -> can.Message:
         counter = counters.get(frame_id, 0)
         data = codec._encode_with_cantools(value, counter)
-        counters[frame_id] = (counter + 1) % e2e.COUNTER_MODULO
+        counters[frame_id] = counter + 1  # taken modulo the frame's counter width
         return can.Message(
             timestamp=t, arbitration_id=frame_id, is_extended_id=False, dlc=len(data), data=data
         )
@@ -197,7 +197,7 @@ def _naive_decoder(codec: CanCodec) -> Callable[[can.Message], object]:
             int(s["RX_ERROR_COUNT"]),
         ),
         "STEER_ANGLE_SENSOR": lambda s: SteeringWheelAngle(s["STEER_ANGLE"] * deg),
-        "MOTOR_SPEED": lambda s: MotorSpeed(s["MOTOR_REVS"] * 0.004),
+        "OUTPUT_SPEED": lambda s: MotorSpeed(s["OUTPUT_REVS"] * 0.004),
         "WHEEL_SPEEDS_FRONT": lambda s: WheelSpeeds(
             s["WHEEL_SPEED_FL"] / kmh, s["WHEEL_SPEED_FR"] / kmh, "front"
         ),
@@ -232,9 +232,9 @@ def _best_interleaved(runs: dict[str, Callable[[], None]], repeat: int) -> dict[
 
 
 def bench(seconds: float, repeat: int) -> dict[str, object]:
-    values = traffic_values(CanCodec(), seconds)
-    frames = traffic(CanCodec(), seconds)
-    dbw, car = CanCodec().databases
+    values = traffic_values(CanCodec(profile="leafgate-dbw"), seconds)
+    frames = traffic(CanCodec(profile="leafgate-dbw"), seconds)
+    dbw, car = CanCodec(profile="leafgate-dbw").databases
     car_ids = {m.frame_id for m in car.messages}
     plain = [
         (car if f.arbitration_id in car_ids else dbw, f.arbitration_id, bytes(f.data))
@@ -244,7 +244,9 @@ def bench(seconds: float, repeat: int) -> dict[str, object]:
     encoded: dict[str, list[bytes]] = {}
 
     def run_codec() -> None:
-        codec = CanCodec()  # fresh counter state: every frame of the recording is valid
+        codec = CanCodec(
+            profile="leafgate-dbw"
+        )  # fresh counter state: every frame of the recording is valid
         for f in frames:
             codec.decode(f)
         invalid.append(sum(s.errors for s in codec.stats.values()))
@@ -254,16 +256,16 @@ def bench(seconds: float, repeat: int) -> dict[str, object]:
             db.decode_message(frame_id, data, decode_choices=False)
 
     def run_naive() -> None:
-        decode = _naive_decoder(CanCodec())
+        decode = _naive_decoder(CanCodec(profile="leafgate-dbw"))
         for f in frames:
             decode(f)
 
     def run_encode_codec() -> None:
-        codec = CanCodec()
+        codec = CanCodec(profile="leafgate-dbw")
         encoded["codec"] = [bytes(codec.encode(v, timestamp=t).data) for t, _, v in values]
 
     def run_encode_cantools() -> None:
-        encode = _cantools_encoder(CanCodec())
+        encode = _cantools_encoder(CanCodec(profile="leafgate-dbw"))
         encoded["cantools"] = [bytes(encode(t, i, v).data) for t, i, v in values]
 
     best = _best_interleaved(
@@ -388,7 +390,7 @@ def ecu_jitter(seconds: float, startup_timeout: float = 60.0) -> dict[str, objec
 
     :raises BenchError: the ECU did not start or sent too few frames
     """
-    message = CanCodec().message(STEER_RPT)
+    message = CanCodec(profile="leafgate-dbw").message(STEER_RPT)
     assert message is not None and message.cycle_time, "the DBW DBC gives 0x0B0 a cycle time"
     period = message.cycle_time / 1000.0  # s, from the DBC
     with tempfile.TemporaryDirectory(prefix="leafgate-bench-") as tmp:

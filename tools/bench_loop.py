@@ -65,8 +65,8 @@ def bench_compute() -> dict[str, Any]:
     clock = [0.0]
     gateway = build_gateway(cfg)
     plant = make_plant(cfg.sim.plant, cfg.vehicle, scenario.start)
-    ecu = SimulatedEcu(cfg.sim.ecu, plant, cfg.vehicle, CanCodec())
-    codec = CanCodec()
+    ecu = SimulatedEcu(cfg.sim.ecu, plant, cfg.vehicle, CanCodec(profile="leafgate-dbw"))
+    codec = CanCodec(profile="leafgate-dbw")
     receiver = CanReceiver(codec, lambda: clock[0])
 
     class Inputs:

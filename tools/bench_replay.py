@@ -89,7 +89,10 @@ def _value(kind: str, t: float) -> object:
 
 def generate(path: Path, seconds: float, rate: float) -> int:
     """Write the traffic to a candump log; return the number of frames."""
-    sender, ecu = CanCodec(), CanCodec()  # separate alive counters, as on the car
+    sender, ecu = (
+        CanCodec(profile="leafgate-dbw"),
+        CanCodec(profile="leafgate-dbw"),
+    )  # separate alive counters, as on the car
     t0 = 1_700_000_000.0  # s, an epoch time as a logger writes
     rows: list[tuple[float, int, object]] = []  # (t, order, what)
     for kind, period in DECODED.items():
@@ -131,7 +134,7 @@ def time_logreader(path: Path) -> tuple[int, float]:
 
 def time_check(path: Path) -> tuple[int, float, dict[str, object]]:
     t = time.perf_counter()
-    report = check_log(path)
+    report = check_log(path, profile="leafgate-dbw")
     elapsed = time.perf_counter() - t
     summary = report.to_dict()
     return report.frames, elapsed, {k: summary[k] for k in ("violations", "e2e_errors", "gaps")}

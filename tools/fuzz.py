@@ -336,10 +336,10 @@ class CanFrames:
     """Frame generator shared by the CAN targets; tracks the receiver's alive counters."""
 
     def __init__(self) -> None:
-        ref = CanCodec()
+        ref = CanCodec(profile="leafgate-dbw")
         self.dbw_ids = sorted(ref.receive_ids("commands") | ref.receive_ids("reports"))
         self.known_ids = sorted(set(self.dbw_ids) | ref.receive_ids("car"))
-        self.sender = CanCodec()
+        self.sender = CanCodec(profile="leafgate-dbw")
         self.last_counter: dict[int, int] = {}  # what the receiving codec last saw, per ID
 
     def generate(self, rng: random.Random) -> CanCase:
@@ -438,7 +438,7 @@ class CanCodecTarget(Target):
 
     def __init__(self) -> None:
         self.frames = CanFrames()
-        self.codec = CanCodec()
+        self.codec = CanCodec(profile="leafgate-dbw")
         self.fed = 0
         self.valid: Counter[int] = Counter()
         self.kinds: Counter[str] = Counter()

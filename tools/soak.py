@@ -589,7 +589,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     # Peers do not forward between peers: this process listens too, so that the ECU (told of
     # it by the daemon's gossip) connects and its localization reaches us directly.
     zcfg = dataclasses.replace(tool_view(cfg.zenoh), listen=(f"tcp/127.0.0.1:{free_port()}",))
-    codec = CanCodec(cfg.can.dbw_dbc, cfg.can.car_dbc)
+    codec = CanCodec.for_config(cfg)
     command_ids = sorted(codec.receive_ids("commands"))
     report_ids = sorted(codec.receive_ids("reports"))
     system_id = next(i for i in report_ids if codec.name_of(i) == "DBW_SYSTEM_RPT")

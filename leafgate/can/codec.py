@@ -26,7 +26,7 @@ cantools). Tests check them against cantools on random payloads and values for e
 with values packed around every signal's limits.
 
 >>> from leafgate.messages import SteerCommand
->>> gw, ecu = CanCodec(), CanCodec()
+>>> gw, ecu = CanCodec(profile="leafgate-dbw"), CanCodec(profile="leafgate-dbw")
 >>> frame = gw.encode(SteerCommand(angle=0.1, enable=True))
 >>> hex(frame.arbitration_id), len(frame.data)
 ('0xa0', 8)
@@ -64,7 +64,7 @@ from cantools.database.conversion import (
 from leafgate.can import e2e
 from leafgate.can.profile import (
     COMMAND_SOURCES,
-    DEFAULT_PROFILE,
+    COUNTER_CHECKED,
     REPORT_SOURCES,
     UNITS,
     FrameSpec,
@@ -603,6 +603,8 @@ class _TxEntry:
     encode: _Encode  # physical values (+ the counter) -> payload, compiled from the DBC
     e2e: str  # the frame's scheme (leafgate.can.profile.E2E_SCHEMES)
     sources: tuple[str, ...]
+    modulo: int  # of the frame's counter (0: none); but for leafgate's, the encoder's last value
+    params: Mapping[str, int]  # of the checksum scheme
 
 
 @dataclass(frozen=True, slots=True)
@@ -614,8 +616,10 @@ class _RxEntry:
     exact: bool  # a protected frame: exactly ``length`` bytes (others: at least)
     e2e: str
     decode: _Decode  # (payload, latest) -> the values it refreshes
-    counter: Callable[[bytes | bytearray], int] | None  # checked alive counter (nissan-lkas)
+    counter: Callable[[bytes | bytearray], int] | None  # reads a checked counter signal
     direction: str
+    modulo: int  # of the checked counter
+    params: Mapping[str, int]  # of the checksum scheme
 
 
 def _load_database(path: str | Path) -> tuple[Database, str]:
@@ -653,6 +657,19 @@ def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
     for protection in (spec.counter_signal, spec.checksum_signal):
         if protection is not None and protection not in {s.name for s in message.signals}:
             raise CanCodecError(f"{where}: {message.name}.{protection} is missing")
+    for scheme, place in _SCHEME_PLACES.items():
+        if spec.e2e != scheme:
+            continue
+        for role, signal, bits in (
+            ("counter", spec.counter_signal, place[0]),
+            ("checksum", spec.checksum_signal, place[1]),
+        ):
+            assert signal is not None
+            if message.length < e2e.SEAL_LENGTH[scheme] or _bits(message, signal) != bits:
+                raise CanCodecError(
+                    f"{where}: {message.name}.{signal} must be the {role} where {scheme} puts "
+                    f"it (bits {min(bits)}..{max(bits)} counted from byte 0 bit 0)"
+                )
     if spec.e2e == "nissan-lkas":
         assert spec.checksum_signal is not None
         sig = message.get_signal_by_name(spec.checksum_signal)
@@ -664,6 +681,26 @@ def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
             raise CanCodecError(
                 f"{where}: {message.name}.{spec.checksum_signal} must be byte 7 of an 8-byte frame"
             )
+
+
+# Where a checksum scheme expects its counter and checksum: payload bit indices (byte·8 + bit).
+_SCHEME_PLACES: Final[Mapping[str, tuple[frozenset[int], frozenset[int]]]] = {
+    "nissan-nibble": (frozenset(range(32, 36)), frozenset(range(36, 40))),
+    "counter-sum": (frozenset(range(48, 56)), frozenset(range(56, 64))),
+}
+
+
+def _bits(message: DbcMessage, name: str) -> frozenset[int]:
+    """The payload bits (byte·8 + bit) a signal occupies."""
+    sig = message.get_signal_by_name(name)
+    if sig.byte_order == "little_endian":
+        return frozenset(range(sig.start, sig.start + sig.length))
+    out = set()
+    pos = sig.start  # MSB; walk down within the byte, then to the next byte's bit 7
+    for _ in range(sig.length):
+        out.add(pos)
+        pos = pos - 1 if pos % 8 else pos + 15
+    return frozenset(out)
 
 
 _SourceKey = tuple[str, int, int]  # (path, mtime in ns, size in bytes)
@@ -743,6 +780,7 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
         try:
             _check_e2e(message, spec, where)
             encoders[spec.name] = _tx_entry(message, spec, profile)
+            checked = spec.e2e in COUNTER_CHECKED and spec.counter_signal is not None
             rx[message.frame_id] = _RxEntry(
                 name=spec.name,
                 length=message.length,
@@ -751,10 +789,12 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
                 decode=_compile_decoder(message, spec, profile, shared[spec.direction]),
                 counter=(
                     _counter_reader(message, spec.counter_signal)
-                    if spec.e2e == "nissan-lkas" and spec.counter_signal
+                    if checked and spec.counter_signal
                     else None
                 ),
                 direction=spec.direction,
+                modulo=_counter_modulo(message, spec) if checked else 0,
+                params=MappingProxyType(dict(spec.e2e_params)),
             )
         except CanCodecError as exc:  # name the profile file as well as the DBC
             text = str(exc)
@@ -790,7 +830,8 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
     """The compiled encoder of a frame. Strict as cantools: every signal of the message must
     be filled, by the profile or by the frame's E2E scheme; otherwise encoding it raises."""
     names, getter = _compile_getter(spec, profile)
-    counter = (spec.counter_signal,) if spec.e2e in ("rolling", "nissan-lkas") else ()
+    modulo = _counter_modulo(message, spec)
+    counter = (spec.counter_signal,) if modulo and spec.e2e != "leafgate" else ()
     filled = set(names) | set(counter)
     if spec.e2e == "leafgate":
         filled |= set(_E2E_SIGNALS)
@@ -815,7 +856,18 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
         encode=encode,
         e2e=spec.e2e,
         sources=spec.sources,
+        modulo=modulo,
+        params=MappingProxyType(dict(spec.e2e_params)),
     )
+
+
+def _counter_modulo(message: DbcMessage, spec: FrameSpec) -> int:
+    """How far the frame's counter signal counts (16 for 4 bits); 0 without a counter."""
+    if spec.e2e == "leafgate":
+        return e2e.COUNTER_MODULO
+    if spec.counter_signal is None or spec.e2e == "none":
+        return 0
+    return 1 << message.get_signal_by_name(spec.counter_signal).length
 
 
 class CanCodec:
@@ -825,7 +877,8 @@ class CanCodec:
         profile); None keeps the profile's
     :param car_dbc: replaces the profile's second DBC (the CAR-CAN one); None keeps it
     :param profile: the vehicle profile (a :class:`~leafgate.can.profile.Profile` or a
-        name/path for :func:`~leafgate.can.profile.load_profile`); None: ``leafgate-dbw``
+        name/path for :func:`~leafgate.can.profile.load_profile`); required, there is no
+        default
     :raises CanCodecError: a DBC is unreadable, invalid, or lacks a frame or signal the
         profile maps (the message names the file and the frame)
     :raises ConfigError: the profile is missing or invalid
@@ -842,8 +895,12 @@ class CanCodec:
         car_dbc: str | Path | None = None,
         profile: Profile | str | None = None,
     ) -> None:
+        if profile is None:  # no default: a log of one car read as another's is all unknown
+            raise CanCodecError(
+                "a CAN codec needs a vehicle profile (a name such as leafgate-dbw, or a file)"
+            )
         if not isinstance(profile, Profile):
-            profile = load_profile(profile or DEFAULT_PROFILE)
+            profile = load_profile(profile)
         paths = list(profile.dbc)
         for index, override in ((0, dbw_dbc), (1, car_dbc)):
             if override is not None:
@@ -960,16 +1017,16 @@ class CanCodec:
         frame_id = entry.frame_id
         scheme = entry.e2e
         counter = self._tx_counters.get(frame_id, 0)
-        if scheme == "rolling" or scheme == "nissan-lkas":
+        if scheme == "leafgate":
+            data = e2e.apply(frame_id, entry.encode(*physical), counter)
+        elif entry.modulo:  # the counter is a DBC signal, the encoder's last value
             data = entry.encode(*physical, counter)
-            if scheme == "nissan-lkas":
-                data = data[:7] + bytes((e2e.crc8_nissan_lkas(data[:7]),))
+            if scheme in e2e.SEALS:
+                data = e2e.seal(scheme, frame_id, data, entry.params)
         else:
             data = entry.encode(*physical)
-            if scheme == "leafgate":
-                data = e2e.apply(frame_id, data, counter)
-        if scheme != "none":  # only a frame actually produced uses a count
-            self._tx_counters[frame_id] = (counter + 1) % e2e.COUNTER_MODULO
+        if entry.modulo:  # only a frame actually produced uses a count
+            self._tx_counters[frame_id] = (counter + 1) % entry.modulo
         return can.Message(
             timestamp=timestamp,
             arbitration_id=frame_id,
@@ -993,9 +1050,10 @@ class CanCodec:
         except (KeyError, TypeError, AttributeError) as exc:
             raise EncodeError(f"{name}: {exc}") from None
         signals: dict[str, Any] = dict(zip(entry.names, physical, strict=False))
+        counter %= entry.modulo or 1  # the frame's own counter width (8 bits on 0x284)
         if entry.e2e == "leafgate":
             signals.update(ALIVE_COUNTER=0, CRC=0)  # set with the CRC by e2e.apply below
-        elif entry.e2e in ("rolling", "nissan-lkas"):
+        elif entry.modulo:
             signals[entry.names[-1]] = counter
         spec = self.profile.frame(name)
         if spec.checksum_signal is not None:
@@ -1006,9 +1064,7 @@ class CanCodec:
             raise EncodeError(f"{name}: {exc}") from None
         if entry.e2e == "leafgate":
             return e2e.apply(entry.frame_id, data, counter)
-        if entry.e2e == "nissan-lkas":
-            return data[:7] + bytes((e2e.crc8_nissan_lkas(data[:7]),))
-        return data
+        return e2e.seal(entry.e2e, entry.frame_id, data, entry.params)
 
     # --- decode ---------------------------------------------------------------------------
 
@@ -1047,11 +1103,11 @@ class CanCodec:
                     status = self._rx_counters.check(frame_id, data[e2e.COUNTER_BYTE] & 0x0F)
                     if status is not _COUNTER_OK and status is not _COUNTER_FIRST:
                         error = "bad_counter"
-            elif scheme == "nissan-lkas" and entry.counter is not None:
-                if data[7] != e2e.crc8_nissan_lkas(bytes(data[:7])):
+            elif entry.counter is not None:  # a checked counter, maybe a checksum
+                if scheme in e2e.SEALS and not e2e.sealed_ok(scheme, frame_id, data, entry.params):
                     error = "bad_crc"
                 else:
-                    status = self._rx_counters.check(frame_id, entry.counter(data))
+                    status = self._rx_counters.check(frame_id, entry.counter(data), entry.modulo)
                     if status is not _COUNTER_OK and status is not _COUNTER_FIRST:
                         error = "bad_counter"
             latest = self._latest[entry.direction]

@@ -1,9 +1,12 @@
 """``leafgate decode LOG``: print a recorded CAN log decoded with the leafgate DBCs.
 
 Reads any format python-can's :class:`can.LogReader` reads (``.log`` candump, ``.asc``,
-``.blf``, ``.trc``, ``.csv``, ``.mf4`` with asammdf, and the same gzip-compressed), prints one
+``.blf``, ``.trc``, ``.csv``, ``.mf4`` with asammdf, and the same gzip-compressed) and the
+``/can`` topic of a session (``.mcap``), through :class:`leafgate.replay.logs.FrameSource`; prints one
 line per frame and, at the end, how many frames of each ID were received and how many failed
-each check. The E2E checks are those of the gateway (:class:`~leafgate.can.codec.CanCodec`),
+each check. The frames are read with a vehicle profile (``--profile``, ``--config``, or a
+session's recorded configuration), whose checks include the car's own counters and checksums
+(0x002, 0x176, 0x284, 0x285 on the AZE0). The E2E checks are those of the gateway (:class:`~leafgate.can.codec.CanCodec`),
 run with one codec per recorded channel, so a dropped frame in the log shows up as a
 ``bad_counter`` on the frame after it.
 
@@ -17,37 +20,17 @@ i.e. timestamp (s), channel, ID, length, then the signals in the style of ``cant
 
 from __future__ import annotations
 
+import math
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import TextIO
 
 import can
 
 from leafgate.can.codec import CanCodec, Decoded, FrameStats
-from leafgate.errors import ReplayError
+from leafgate.can.profile import Profile
 
 __all__ = ["decode_log", "format_frame", "format_summary"]
-
-
-def _read(path: Path) -> Iterator[can.Message]:
-    """Frames of a log, with every reader error turned into a one-line ReplayError."""
-    if not path.is_file():
-        raise ReplayError(f"{path}: no such file")
-    count = 0
-    try:
-        for msg in can.LogReader(path):
-            count += 1
-            yield msg
-    except ReplayError:
-        raise
-    except Exception as exc:  # each reader has its own errors (ValueError, BLFParseError, …)
-        reason = " ".join((str(exc) or type(exc).__name__).split())
-        if count == 0 and isinstance(exc, ValueError) and "unknown log format" in reason:
-            raise ReplayError(
-                f"{path}: {reason} (python-can reads .log, .asc, .blf, .trc, .csv, .mf4)"
-            ) from None
-        raise ReplayError(f"{path}: unreadable after {count} frames: {reason}") from None
 
 
 def _value_text(value: object, unit: str | None) -> str:
@@ -110,36 +93,62 @@ def format_summary(stats: dict[int, FrameStats], names: dict[int, str | None]) -
 
 def decode_log(
     path: str | Path,
-    out: TextIO = sys.stdout,
+    out: TextIO | None = None,
     *,
+    profile: Profile | str,
     summary: bool = True,
     dbw_dbc: str | Path | None = None,
     car_dbc: str | Path | None = None,
+    err: TextIO | None = None,
 ) -> int:
     """Decode a CAN log, one line per frame, then a per-ID summary.
 
     :param path: the log file; its suffix selects the reader
-    :param out: where the lines go
+    :param out: where the lines go (standard output when None)
+    :param profile: the vehicle profile the frames follow (no default: a log of one car read
+        with another car's profile shows every frame as an unknown ID)
     :param summary: print the per-ID counts at the end
-    :param dbw_dbc: another drive-by-wire DBC than the packaged one
-    :param car_dbc: another CAR-CAN DBC than the packaged one
+    :param dbw_dbc: another drive-by-wire DBC than the profile's first
+    :param car_dbc: another CAR-CAN DBC than the profile's second
+    :param err: where a warning about timestamps going backwards goes (standard error)
     :return: the exit status, 0 (bad frames are reported, not failures)
     :raises ReplayError: the file is missing, of an unknown format or unreadable
     :raises CanCodecError: a given DBC is unreadable or invalid
     """
+    out = out if out is not None else sys.stdout
+    err = err if err is not None else sys.stderr
     path = Path(path)
-    template = CanCodec(dbw_dbc, car_dbc)  # fails early on a bad DBC
+    template = CanCodec(dbw_dbc, car_dbc, profile)  # fails early on a bad DBC
     codecs: dict[object, CanCodec] = {}  # one per recorded channel: separate counter state
 
     def codec_for(channel: object) -> CanCodec:
         codec = codecs.get(channel)
         if codec is None:
-            codec = codecs[channel] = CanCodec(dbw_dbc, car_dbc) if codecs else template
+            codec = codecs[channel] = (
+                CanCodec(dbw_dbc, car_dbc, template.profile) if codecs else template
+            )
         return codec
 
-    for msg in _read(path):
+    latest = -math.inf
+    backwards = 0
+    worst = 0.0
+    from leafgate.replay.logs import FrameSource  # the one reader of logs and sessions
+
+    for msg in FrameSource(path):
         codec = codec_for(msg.channel)
-        out.write(format_frame(codec, msg, codec.decode(msg)) + "\n")
+        line = format_frame(codec, msg, codec.decode(msg))
+        if msg.timestamp < latest:
+            backwards += 1
+            worst = max(worst, latest - msg.timestamp)
+            line += "  (timestamp goes backwards)"
+        else:
+            latest = msg.timestamp
+        out.write(line + "\n")
+    if backwards:
+        err.write(
+            f"leafgate: warning: {path}: timestamps go backwards at {backwards} frames "
+            f"(by up to {worst * 1e3:.1f} ms)\n"
+        )
     if summary:
         merged: dict[int, FrameStats] = {}
         names: dict[int, str | None] = {}
@@ -148,7 +157,10 @@ def decode_log(
                 if s.frames:
                     merged[frame_id] = merged.get(frame_id, FrameStats()) + s
                     names[frame_id] = codec.name_of(frame_id)
-        out.write(f"# {path.name}: {sum(s.frames for s in merged.values())} frames\n")
+        out.write(
+            f"# {path.name}: {sum(s.frames for s in merged.values())} frames, "
+            f"profile {template.profile.name}\n"
+        )
         for line in format_summary(merged, names):
             out.write("# " + line + "\n")
     return 0

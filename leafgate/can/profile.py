@@ -28,6 +28,15 @@ Signal mappings, in a frame's ``signals``::
     GEAR_SHIFTER: {field: gear.gear, map: {P: 1, R: 2, N: 3, D: [4, 7]}, unknown: NONE}
     MAX_TORQUE: {value: 1}                            # a constant the sender always puts
 
+A frame's protection is ``e2e: NAME`` or, with parameters, ``e2e: {scheme: NAME, ...}``
+(:data:`E2E_SCHEMES`; the checksums are computed in :mod:`leafgate.can.e2e`, where a new
+scheme is one function and one table entry): ``leafgate`` (alive counter + CRC over the data
+ID), ``nissan-lkas`` (counter + CRC-8 in byte 7), ``nissan-nibble`` (the AZE0's 0x002: counter
+and XOR-of-nibbles checksum in byte 4), ``counter-sum`` (the AZE0's 0x284/0x285: 8-bit counter
+in byte 6, byte 7 = byte 6 + ``offset``), ``counter`` (a checked counter alone), ``rolling`` (a
+counter filled when sending, not checked) or ``none``. ``on_change: true`` marks a frame the
+car also sends soon after its payload changes (0x421 after a gear change).
+
 ``field`` is ``SOURCE.ATTRIBUTE``. Command frames draw on the sources ``steer``, ``long`` and
 ``system`` (:class:`~leafgate.messages.SteerCommand` …); report frames on ``steer``, ``long``,
 ``system`` (the ECU reports), ``steering_wheel``, ``wheels_front``, ``wheels_rear``, ``gear``
@@ -50,6 +59,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, Final, Literal
 
 from leafgate.config import VehicleConfig, load_yaml, safe_load_yaml
@@ -84,15 +94,33 @@ DEFAULT_PROFILE: Final = "leafgate-dbw"
 PROFILE_NAMES: Final = ("leafgate-dbw", "sze-hlc", "leaf-ze1-lkas")  # shipped in the package
 
 Direction = Literal["command", "report"]
-E2eScheme = Literal["none", "leafgate", "rolling", "nissan-lkas"]
-E2E_SCHEMES: Final = ("none", "leafgate", "rolling", "nissan-lkas")
-# Signals each scheme fills itself (encode) and checks (decode), by default name.
-E2E_SIGNALS: Final[Mapping[str, tuple[str, ...]]] = {
-    "none": (),
+E2eScheme = Literal[
+    "none", "leafgate", "rolling", "counter", "nissan-lkas", "nissan-nibble", "counter-sum"
+]
+E2E_SCHEMES: Final = (
+    "none",
+    "leafgate",  # leafgate's own: alive counter + CRC-8 over the data ID (e2e.py)
+    "rolling",  # a counter the sender fills; not checked (its behaviour is not known)
+    "counter",  # a counter the sender fills and the receiver checks (+1 per frame)
+    "nissan-lkas",  # counter + CRC-8 in byte 7 (the ZE1's 0x169)
+    "nissan-nibble",  # counter + XOR-of-nibbles checksum (the AZE0's 0x002)
+    "counter-sum",  # 8-bit counter in byte 6, byte 7 = byte 6 + offset (0x284/0x285)
+)
+# Signals each scheme fills itself (encode) and checks (decode), by default name:
+# (counter, checksum).
+E2E_SIGNALS: Final[Mapping[str, tuple[str | None, str | None]]] = {
+    "none": (None, None),
     "leafgate": ("ALIVE_COUNTER", "CRC"),
-    "rolling": ("COUNTER",),
+    "rolling": ("COUNTER", None),
+    "counter": ("COUNTER", None),
     "nissan-lkas": ("COUNTER", "CHECKSUM"),
+    "nissan-nibble": ("COUNTER", "CHECKSUM"),
+    "counter-sum": ("COUNTER", "CHECKSUM"),
 }
+# Schemes whose received counter is checked (leafgate's own one is checked by e2e.py).
+COUNTER_CHECKED: Final = frozenset({"counter", "nissan-lkas", "nissan-nibble", "counter-sum"})
+# Parameters a scheme takes in ``e2e: {scheme: NAME, PARAM: VALUE}`` (integers).
+E2E_PARAMS: Final[Mapping[str, tuple[str, ...]]] = {"counter-sum": ("offset",)}
 
 COMMAND_SOURCES: Final[Mapping[str, type]] = {
     "steer": SteerCommand,
@@ -151,6 +179,8 @@ class FrameSpec:
     checksum_signal: str | None
     signals: tuple[SignalMap, ...]
     refreshes: tuple[str, ...]  # sources a valid frame stamps fresh; others fields fold in
+    e2e_params: Mapping[str, int] = dataclasses.field(default_factory=dict)
+    on_change: bool = False  # also sent soon after its payload changes (an event frame)
 
     @property
     def sources(self) -> tuple[str, ...]:
@@ -273,8 +303,10 @@ def _resolve_profile_path(name_or_path: str) -> tuple[str, Path | None]:
     return str(path), path
 
 
-def _field_types(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
+@functools.cache
+def _field_types(cls: type) -> Mapping[str, Any]:
+    """The resolved field types of a message class (cached: every codec asks for them)."""
+    return MappingProxyType(typing.get_type_hints(cls))
 
 
 def load_profile(
@@ -398,17 +430,24 @@ def _frame(
     vehicle: VehicleConfig,
 ) -> FrameSpec:
     spec = r.mapping(spec_raw, key)
-    r.keys(spec, key, ("bus", "period", "e2e", "counter", "checksum", "signals", "refreshes"))
+    r.keys(
+        spec,
+        key,
+        ("bus", "period", "e2e", "counter", "checksum", "signals", "refreshes", "on_change"),
+    )
     bus = spec.get("bus", "dbw")
     if bus not in _BUSES:
         raise r.fail(f"{key}.bus", f"expected dbw or car, got {bus!r}")
     period = r.number(spec.get("period"), f"{key}.period", positive=True)
-    e2e = spec.get("e2e", "none")
-    if e2e not in E2E_SCHEMES:
-        raise r.fail(f"{key}.e2e", f"expected one of {', '.join(E2E_SCHEMES)}, got {e2e!r}")
+    e2e, e2e_params = _e2e(r, spec.get("e2e", "none"), f"{key}.e2e")
+    on_change = spec.get("on_change", False)
+    if not isinstance(on_change, bool):
+        raise r.fail(f"{key}.on_change", f"expected true or false, got {on_change!r}")
+    if on_change and e2e != "none":
+        raise r.fail(f"{key}.on_change", "an event frame cannot carry a counter")
     defaults = E2E_SIGNALS[e2e]
-    counter = spec.get("counter", defaults[0] if e2e in ("rolling", "nissan-lkas") else None)
-    checksum = spec.get("checksum", defaults[1] if e2e == "nissan-lkas" else None)
+    counter = spec.get("counter", defaults[0] if e2e != "leafgate" else None)
+    checksum = spec.get("checksum", defaults[1] if e2e != "leafgate" else None)
     sources = COMMAND_SOURCES if direction == "command" else REPORT_SOURCES
     signals_raw = r.mapping(spec.get("signals"), f"{key}.signals")
     signals = tuple(
@@ -440,7 +479,28 @@ def _frame(
         checksum_signal=checksum,
         signals=signals,
         refreshes=refreshes,
+        e2e_params=e2e_params,
+        on_change=on_change,
     )
+
+
+def _e2e(r: _Reader, raw: Any, key: str) -> tuple[E2eScheme, Mapping[str, int]]:
+    """``e2e: NAME`` or ``e2e: {scheme: NAME, PARAM: VALUE}``: the scheme and its parameters."""
+    params_raw: Mapping[str, Any] = {}
+    if isinstance(raw, Mapping):
+        params_raw = {k: v for k, v in raw.items() if k != "scheme"}
+        raw = raw.get("scheme")
+    if raw not in E2E_SCHEMES:
+        raise r.fail(key, f"expected one of {', '.join(E2E_SCHEMES)}, got {raw!r}")
+    wanted = E2E_PARAMS.get(raw, ())
+    r.keys(params_raw, key, ("scheme", *wanted))
+    params: dict[str, int] = {}
+    for name in wanted:
+        value = params_raw.get(name)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise r.fail(f"{key}.{name}", f"expected an integer, got {value!r}")
+        params[name] = value
+    return raw, params
 
 
 def _field_ref(r: _Reader, text: Any, sources: Mapping[str, type], key: str) -> tuple[str, str]:
@@ -570,7 +630,7 @@ def _derived(r: _Reader, raw: Any) -> Mapping[str, tuple[tuple[str, str, float],
                 raise r.fail(where, f"{cls.__name__}.{flag} is not a flag")
             spec = r.mapping(rule, where)
             r.keys(spec, where, ("field", "above"))
-            field = spec.get("field")
+            field = str(spec.get("field"))
             if field not in types or types[field] is bool:
                 raise r.fail(f"{where}.field", f"{cls.__name__} has no number field {field!r}")
             rules.append((str(flag), str(field), r.number(spec.get("above"), f"{where}.above")))

@@ -226,6 +226,8 @@ def run_daemon(
             cfg.zenoh.prefix,
         )
         log_profile(codec.profile)
+        for line in cfg.adjustments:  # what the profile changed in the configuration
+            log.info("config adjusted: %s", line)
 
         def ready() -> None:
             sd_notify("READY=1")

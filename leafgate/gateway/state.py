@@ -19,7 +19,7 @@ import numpy as np
 
 from leafgate.gateway.config import EngageConfig
 from leafgate.gateway.watchdog import Status, WatchdogReport, ecu_fault
-from leafgate.messages import EcuState, GatewayState, Pose, Trajectory
+from leafgate.messages import EcuState, GatewayState, Gear, Pose, Trajectory
 
 
 class Event(enum.Enum):
@@ -153,6 +153,8 @@ def engage_refusal(
     steer, long = watchdogs.steer.value, watchdogs.long.value
     # A vehicle without an ECU state report (a profile without one) has no system sample.
     system = None if watchdogs.system is None else watchdogs.system.value
+    if long.gear == Gear.NONE:
+        return "gear unknown: no gear received from the car yet"
     fault = ecu_fault(steer, long, system)
     if fault is not None:
         return f"{fault}; reset first"

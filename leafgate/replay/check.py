@@ -1,28 +1,40 @@
 """``leafgate replay check LOG``: the offline safety check of a recorded drive.
 
-For every frame of the log (any python-can format, or a session's ``/can`` topic):
+The frames are read with a vehicle profile (``--profile``, ``--config``, or a session's
+recorded configuration; there is no default), which gives the command IDs, the signals, the
+periods and the E2E schemes. For every frame of the log (any python-can format, or a
+session's ``/can`` topic):
 
-1. decode it with the leafgate DBCs, running the gateway's E2E checks (CRC, alive counter,
-   length) with one codec per recorded channel;
-2. collect per-ID period statistics and find *gaps*: an interval longer than ``gap_periods``
-   nominal periods (the DBC's ``GenMsgCycleTime``, else the ID's median interval), or one over
-   1.5 periods that ends in a skipped alive counter (frames were lost). Gaps of several IDs that
-   overlap in time are one finding (the bus or the logger stalled), and the counter skip after
-   a gap is part of it, as is the counter skip after a frame with a bad CRC: one corrupted or
-   lost stretch, one finding;
-3. re-check every command frame sent with ENABLE=1 against the safety gate's limits
+1. decode it, running the gateway's E2E checks (checksums, counters, length, including the
+   car's own on CAR-CAN) with one codec per recorded channel;
+2. collect per-ID period statistics: a *median* interval more than 10 % off the profile's
+   period is a finding with both values (event frames, such as 0x421's after a gear change,
+   make the mean misleading). A stretch in which the whole bus fell silent (longer than
+   ``gap_periods`` of the fastest period) is one finding, with its start, length and the IDs
+   overdue. Per ID, a *gap* is an interval longer than ``gap_periods`` periods, or one over 1.5
+   periods that ends in a skipped counter (frames were lost); gaps the bus silence explains are
+   part of it, the others are reported (overlapping ones together), and the counter skip
+   after a gap is part of the gap, as is the counter skip after a frame with a bad checksum:
+   one corrupted or lost stretch, one finding;
+3. re-check every command frame sent enabled against the safety gate's limits
    (:func:`leafgate.gateway.safety.check`: angle, angle rate by speed, lateral acceleration,
-   acceleration, jerk, speed, gear at standstill), measured state from the latest valid
-   DBW_LONG_RPT before the frame, previous command from the frame before it. After a violating
-   frame the check continues from the value the gate would have allowed, so one bad frame is one
-   finding, not a cascade of rate violations. A value beyond the angle or acceleration envelope
-   is reported as that even when a rate bound is nearer; across a gap the rate bounds allow
-   the time that passed.
+   acceleration, jerk, speed, gear at standstill), measured state from the latest valid long
+   report before the frame, previous command from the frame before it. After a violating
+   frame the check continues from the value the gate would have allowed. A value beyond the
+   angle or acceleration envelope is reported as that even when a rate bound is nearer; across
+   a short gap the rate bounds allow the time that passed. What cannot be checked is counted
+   as *not checkable*, never as a violation: frames before the vehicle state is known (no long
+   report with a known gear yet), and the rates of the first command of a log or after a gap
+   (the previous command is not in the log), which are checked against the envelope only.
 
-Tolerances are 1.5 quantisation steps of the command signal (read from the DBC): the gate
-bounds the float command, the frame carries it rounded.
+An empty log, a log with no frame of the profile (another vehicle's?) and a log whose
+command frames could none be checked are findings, never "OK". Timestamps that go backwards
+are warned about.
 
-Exit status: 0 when there is no finding, 1 otherwise (a limit violation, an E2E error or a gap).
+Tolerances are 1.5 quantisation steps of the command signals (read from the DBC, through the
+profile's unit and scale): the gate bounds the float command, the frame carries it rounded.
+
+Exit status: 0 when there is no finding, 1 otherwise.
 """
 
 from __future__ import annotations
@@ -41,11 +53,11 @@ import can
 import numpy as np
 
 from leafgate.can.codec import CanCodec, FrameStats
+from leafgate.can.profile import Profile
 from leafgate.gateway.safety import Measured, SafetyLimits, Violation, apply_limits, check
 from leafgate.messages import Gear, LongCommand, LongReport, SteerCommand
-from leafgate.replay.logs import FrameSource, is_session
-from leafgate.replay.session import SessionReader
-from leafgate.settings import LeafgateConfig, load_config
+from leafgate.replay.logs import FrameSource, recording_context
+from leafgate.settings import LeafgateConfig
 
 __all__ = ["CheckReport", "Finding", "IdStats", "check_frames", "check_log", "main_check"]
 
@@ -71,7 +83,7 @@ class Finding:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "time": self.time,
+            "time": _num(self.time),
             "kind": self.kind,
             "id": None if self.frame_id is None else f"0x{self.frame_id:03X}",
             "name": self.name,
@@ -88,13 +100,16 @@ class IdStats:
     frame_id: int
     name: str | None
     frames: int
-    nominal_period: float | None  # s, DBC cycle time, else the median interval
+    nominal_period: float | None  # s, the profile's period, else the median interval
     mean_period: float  # s (NaN with fewer than two frames)
     min_period: float
     max_period: float
     p99_period: float
     gaps: int
     e2e: FrameStats  # decode outcomes (bad CRC, counter, length …)
+    profile_period: float | None = None  # s, the period the profile gives the frame
+    median_period: float = math.nan  # s
+    intervals: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -102,6 +117,7 @@ class IdStats:
             "name": self.name,
             "frames": self.frames,
             "nominal_period_s": _num(self.nominal_period),
+            "median_period_s": _num(self.median_period),
             "mean_period_s": _num(self.mean_period),
             "min_period_s": _num(self.min_period),
             "max_period_s": _num(self.max_period),
@@ -119,10 +135,18 @@ class CheckReport:
     """The result of checking one log."""
 
     path: str
+    profile: str = ""  # the vehicle profile the frames were read with
     frames: int = 0
     start: float = math.nan  # s, first timestamp
     end: float = math.nan  # s, last timestamp
     engaged_frames: int = 0  # command frames with ENABLE=1 re-checked against the limits
+    command_frames: int = 0  # frames on the profile's command IDs
+    # engaged command frames that could not be (fully) checked, by why: the vehicle state is
+    # not known yet (state_unknown); the previous command is not in the log, on the first
+    # command frame or after a gap (rates_unknown: checked against the envelope only)
+    not_checkable: dict[str, int] = field(default_factory=dict)
+    backwards: int = 0  # frames whose timestamp is before an earlier frame's
+    worst_backwards: float = 0.0  # s
     ids: list[IdStats] = field(default_factory=list)
     findings: list[Finding] = field(default_factory=list)
     truncated: bool = False  # a session file that ended before its footer
@@ -138,13 +162,21 @@ class CheckReport:
     def to_dict(self) -> dict[str, Any]:
         return {
             "path": self.path,
+            "profile": self.profile,
             "ok": self.ok,
             "frames": self.frames,
             "duration_s": _num(self.end - self.start),
+            "command_frames": self.command_frames,
             "engaged_command_frames": self.engaged_frames,
+            "not_checkable": dict(self.not_checkable),
             "violations": self.count("limit"),
             "e2e_errors": self.count("e2e"),
             "gaps": self.count("gap"),
+            "bus_silences": self.count("silence"),
+            "period_findings": self.count("period"),
+            "coverage_findings": self.count("coverage"),
+            "backwards_timestamps": self.backwards,
+            "worst_backwards_s": self.worst_backwards,
             "truncated": self.truncated,
             "ids": [s.to_dict() for s in self.ids],
             "findings": [f.to_dict() for f in self.findings],
@@ -154,15 +186,21 @@ class CheckReport:
     def format(self) -> list[str]:
         """The summary table, the findings, and one verdict line."""
         lines = [
-            f"{self.path}: {self.frames} frames, {self.end - self.start:.3f} s"
-            + (" (truncated session)" if self.truncated else ""),
-            f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'mean':>8} {'max':>8} "
+            f"{self.path}: {self.frames} frames, {self.end - self.start:.3f} s, profile "
+            f"{self.profile}" + (" (truncated session)" if self.truncated else ""),
+            f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
             f"{'gaps':>5} {'crc':>5} {'cnt':>5} {'len':>5}",
         ]
+        if self.backwards:
+            lines.insert(
+                1,
+                f"warning: the log goes backwards in time at {self.backwards} frames "
+                f"(by up to {self.worst_backwards * 1e3:.1f} ms)",
+            )
         for s in self.ids:
             lines.append(
                 f"{s.frame_id:>5X}  {(s.name or '?'):<20} {s.frames:>8} {_ms(s.nominal_period):>8} "
-                f"{_ms(s.mean_period):>8} {_ms(s.max_period):>8} {s.gaps:>5} "
+                f"{_ms(s.median_period):>8} {_ms(s.max_period):>8} {s.gaps:>5} "
                 f"{s.e2e.bad_crc:>5} {s.e2e.bad_counter:>5} {s.e2e.wrong_length:>5}"
             )
         lines.append("(periods in ms)")
@@ -171,11 +209,16 @@ class CheckReport:
             extra = ""
             if f.kind == "limit":
                 extra = f": {f.value:.6g} beyond {f.bound:.6g}"
-            lines.append(f"{f.time:.6f}  {f.kind:<5} {where}{f.name}  {f.detail}{extra}")
+            lines.append(f"{f.time:.6f}  {f.kind:<7} {where}{f.name}  {f.detail}{extra}")
+        not_checkable = ", ".join(
+            f"{v} {k.replace('_', ' ')}" for k, v in self.not_checkable.items() if v
+        )
         lines.append(
             f"{'OK' if self.ok else 'FAILED'}: {self.engaged_frames} engaged command frames "
-            f"checked, {self.count('limit')} limit violations, {self.count('e2e')} E2E errors, "
-            f"{self.count('gap')} gaps"
+            f"checked (not checkable: {not_checkable or 'none'}), {self.count('limit')} limit "
+            f"violations, {self.count('e2e')} E2E errors, {self.count('gap')} gaps, "
+            f"{self.count('silence')} bus silences, {self.count('period')} period findings"
+            + (f", {self.count('coverage')} coverage findings" if self.count("coverage") else "")
         )
         return lines
 
@@ -218,19 +261,114 @@ class _Progress:
             self.stream.flush()
 
 
+_SI_PER_UNIT: Final = {"": 1.0, "deg": math.pi / 180.0, "deg/s": math.pi / 180.0, "km/h": 1 / 3.6}
+
+
 def _tolerances(codec: CanCodec) -> tuple[float, float]:
-    """(angle, longitudinal) tolerance: 1.5 quantisation steps of the command signals."""
-    steer = codec.message(0x0A0)
-    long = codec.message(0x0A1)
-    angle = steer.get_signal_by_name("STEER_ANGLE_CMD").scale if steer else 1e-4
-    accel = long.get_signal_by_name("ACCEL_CMD").scale if long else 1e-3
-    speed = long.get_signal_by_name("SPEED_CMD").scale if long else 1e-3
-    return _TOLERANCE_STEPS * float(angle), _TOLERANCE_STEPS * float(max(accel, speed))
+    """(angle, longitudinal) tolerance: 1.5 quantisation steps of the profile's command
+    signals that carry ``steer.angle`` and ``long.accel``/``long.speed``, in SI."""
+    angle: list[float] = []
+    long: list[float] = []
+    for spec in codec.profile.frames_of("command"):
+        message = codec.message(codec.frame_id(spec.name))
+        assert message is not None
+        for sig in spec.signals:
+            if sig.source is None:
+                continue
+            fields = {(sig.source, sig.attr), *sig.also}
+            step = abs(message.get_signal_by_name(sig.signal).scale / sig.scale)
+            step *= _SI_PER_UNIT[sig.unit]
+            if ("steer", "angle") in fields:
+                angle.append(step)
+            if fields & {("long", "accel"), ("long", "speed")}:
+                long.append(step)
+    return _TOLERANCE_STEPS * max(angle, default=1e-4), _TOLERANCE_STEPS * max(long, default=1e-3)
+
+
+@dataclass
+class _CommandCheck:
+    """The re-check of the engaged command frames, one frame at a time."""
+
+    limits: SafetyLimits
+    angle_tol: float
+    long_tol: float
+    gap: float  # s: a command this long after the previous one is checked without rates
+    last_steer: SteerCommand = field(default_factory=lambda: SteerCommand(angle=0.0))
+    last_long: LongCommand = field(default_factory=LongCommand)
+    steer_time: float = -math.inf  # s, timestamps of the last steer / long command frames
+    long_time: float = -math.inf
+    long_report: LongReport | None = None
+    checked: int = 0  # engaged command frames re-checked
+    not_checkable: dict[str, int] = field(
+        default_factory=lambda: {"state_unknown": 0, "rates_unknown": 0}
+    )
+    findings: list[Finding] = field(default_factory=list)
+
+    def frame(self, t: float, frame_id: int, name: str, values: tuple[object, ...]) -> None:
+        """Re-check the commands of one valid frame (a frame may carry steer and long)."""
+        engaged = False
+        unknown = self.long_report is None or self.long_report.gear == Gear.NONE
+        for value in values:
+            if isinstance(value, SteerCommand):
+                if value.enable and not unknown:
+                    value = self._steer(t, frame_id, name, value)
+                engaged |= value.enable
+                self.last_steer, self.steer_time = value, t
+            elif isinstance(value, LongCommand):
+                if value.enable and not unknown:
+                    value = self._long(t, frame_id, name, value)
+                engaged |= value.enable
+                self.last_long, self.long_time = value, t
+        if engaged and unknown:
+            self.not_checkable["state_unknown"] += 1
+        elif engaged:
+            self.checked += 1
+
+    def _limits(self, elapsed: float) -> tuple[SafetyLimits, bool]:
+        """The limits after ``elapsed`` s, and whether the rates can be checked at all: not on
+        the first command of a log, nor after a gap, where the previous command is missing."""
+        if not elapsed <= self.gap:
+            self.not_checkable["rates_unknown"] += 1
+            return _envelope(self.limits), False
+        return _over(self.limits, elapsed), True
+
+    def _steer(self, t: float, frame_id: int, name: str, value: SteerCommand) -> SteerCommand:
+        measured = _measured(self.long_report, self.limits)
+        lim, _ = self._limits(t - self.steer_time)
+        args = (self.last_long, self.last_steer, self.last_long, measured, lim)
+        found = _violations(value, *args, self.angle_tol, STEER_KINDS)
+        self._add(t, frame_id, name, found)
+        return apply_limits(value, *args).steer if found else value
+
+    def _long(self, t: float, frame_id: int, name: str, value: LongCommand) -> LongCommand:
+        measured = _measured(self.long_report, self.limits)
+        lim, _ = self._limits(t - self.long_time)
+        found = _violations(
+            self.last_steer,
+            value,
+            self.last_steer,
+            self.last_long,
+            measured,
+            lim,
+            self.long_tol,
+            LONG_KINDS,
+        )
+        self._add(t, frame_id, name, found)
+        if found:  # continue from what the gate would have sent
+            return apply_limits(
+                self.last_steer, value, self.last_steer, self.last_long, measured, lim
+            ).long
+        return value
+
+    def _add(self, t: float, frame_id: int, name: str, found: list[Violation]) -> None:
+        for v in found:
+            self.findings.append(Finding(t, "limit", frame_id, name, v.kind, v.value, v.bound))
 
 
 def check_frames(
     frames: Iterable[can.Message],
     limits: SafetyLimits,
+    profile: Profile | str,
     *,
     path: str = "",
     gap_periods: float = DEFAULT_GAP_PERIODS,
@@ -242,23 +380,25 @@ def check_frames(
 
     :param frames: the frames in recorded order
     :param limits: the safety gate's limits the commands must respect
+    :param profile: the vehicle profile the frames follow (command IDs, signals, periods)
     :param gap_periods: an interval longer than this many nominal periods is a gap
     """
     t_start = time.perf_counter()
-    template = CanCodec(dbw_dbc, car_dbc)
+    template = CanCodec(dbw_dbc, car_dbc, profile)
     codecs: dict[object, CanCodec] = {}
     angle_tol, long_tol = _tolerances(template)
+    command_ids = template.receive_ids("commands")
+    command_period = template.profile.command_period
+    commands = _CommandCheck(limits, angle_tol, long_tol, gap_periods * command_period)
     times: dict[int, list[float]] = {}
     e2e_findings: list[tuple[int, float, int, str, str]] = []  # (index in ID, t, id, name, error)
-    limit_findings: list[Finding] = []
-    last_steer = SteerCommand(angle=0.0)
-    last_long = LongCommand()
-    steer_time = long_time = -math.inf  # s, timestamps of the last steer / long command frames
     invalid_before: set[int] = set()  # IDs whose previous frame was invalid (bad CRC, length)
-    long_report: LongReport | None = None
-    engaged = 0
+    command_frames = 0
+    backwards = 0
+    worst_backwards = 0.0
     n = 0
     first = last = math.nan
+    latest = -math.inf
     for msg in frames:
         n += 1
         if progress is not None and not n & 0x3FF:
@@ -267,6 +407,11 @@ def check_frames(
         if n == 1:
             first = t
         last = t
+        if t < latest:
+            backwards += 1
+            worst_backwards = max(worst_backwards, latest - t)
+        else:
+            latest = t
         frame_id = msg.arbitration_id
         stamps = times.get(frame_id)
         if stamps is None:
@@ -274,8 +419,12 @@ def check_frames(
         stamps.append(t)
         codec = codecs.get(msg.channel)
         if codec is None:
-            codec = codecs[msg.channel] = template if not codecs else CanCodec(dbw_dbc, car_dbc)
+            codec = codecs[msg.channel] = (
+                template if not codecs else CanCodec(dbw_dbc, car_dbc, template.profile)
+            )
         decoded = codec.decode(msg)
+        if frame_id in command_ids and not msg.is_extended_id:
+            command_frames += 1
         if not decoded.valid:
             error: str = decoded.error or "?"
             if error == "unknown_id":
@@ -290,43 +439,11 @@ def check_frames(
                 invalid_before.discard(frame_id)
             continue
         invalid_before.discard(frame_id)
-        value = decoded.value
-        if isinstance(value, LongReport):
-            long_report = value
-        elif isinstance(value, SteerCommand):
-            if value.enable:
-                engaged += 1
-                measured = _measured(long_report, limits)
-                lim = _over(limits, t - steer_time)
-                found = _violations(
-                    value, last_long, last_steer, last_long, measured, lim, angle_tol, STEER_KINDS
-                )
-                for v in found:
-                    limit_findings.append(
-                        Finding(t, "limit", frame_id, decoded.name or "", v.kind, v.value, v.bound)
-                    )
-                if found:  # continue from what the gate would have sent
-                    value = apply_limits(
-                        value, last_long, last_steer, last_long, measured, lim
-                    ).steer
-            last_steer, steer_time = value, t
-        elif isinstance(value, LongCommand):
-            if value.enable:
-                engaged += 1
-                measured = _measured(long_report, limits)
-                lim = _over(limits, t - long_time)
-                found = _violations(
-                    last_steer, value, last_steer, last_long, measured, lim, long_tol, LONG_KINDS
-                )
-                for v in found:
-                    limit_findings.append(
-                        Finding(t, "limit", frame_id, decoded.name or "", v.kind, v.value, v.bound)
-                    )
-                if found:
-                    value = apply_limits(
-                        last_steer, value, last_steer, last_long, measured, lim
-                    ).long
-            last_long, long_time = value, t
+        for value in decoded.values:
+            if isinstance(value, LongReport):
+                commands.long_report = value
+        if frame_id in command_ids:
+            commands.frame(t, frame_id, decoded.name or "", decoded.values)
     if progress is not None:
         progress.done()
 
@@ -341,24 +458,104 @@ def check_frames(
         (frame_id, index) for index, _, frame_id, _, error in e2e_findings if error == "bad_counter"
     }
     ids, gaps = _timing(times, template, names, merged, gap_periods, skips)
-    findings = list(limit_findings)
+    findings = list(commands.findings)
     gap_firsts = {(frame_id, index) for frame_id, index, _, _ in gaps}
     for index, t, frame_id, name, kind in e2e_findings:
         if kind == "bad_counter" and (frame_id, index) in gap_firsts:
             continue  # the frames lost in a gap, reported as the gap
         findings.append(Finding(t, "e2e", frame_id, name, kind))
-    findings.extend(_merge_gaps(gaps, names))
+    silences = _bus_silences(times, ids, gap_periods)
+    findings.extend(_silence_findings(silences, gaps))
+    findings.extend(_merge_gaps(_unexplained(gaps, silences, ids, gap_periods), names))
+    findings.extend(_period_findings(ids, first))
+    findings.extend(
+        _coverage_findings(n, first, command_frames, commands, template, merged, command_ids)
+    )
     findings.sort(key=lambda f: (f.time, f.kind))
     return CheckReport(
         path=path,
+        profile=template.profile.name,
         frames=n,
         start=first,
         end=last,
-        engaged_frames=engaged,
+        engaged_frames=commands.checked,
+        not_checkable=dict(commands.not_checkable),
+        command_frames=command_frames,
+        backwards=backwards,
+        worst_backwards=worst_backwards,
         ids=ids,
         findings=findings,
         elapsed=time.perf_counter() - t_start,
     )
+
+
+_PERIOD_TOLERANCE: Final = 0.10  # a median period this far off the profile's is a finding
+_PERIOD_MIN_INTERVALS: Final = 10  # fewer intervals say too little about a period
+
+
+def _period_findings(ids: list[IdStats], first: float) -> list[Finding]:
+    """A median interval more than 10 % off the profile's period (the median, as event frames
+    such as 0x421's after a gear change make the mean misleading)."""
+    out = []
+    for s in ids:
+        if s.profile_period is None or s.intervals < _PERIOD_MIN_INTERVALS:
+            continue
+        if abs(s.median_period - s.profile_period) > _PERIOD_TOLERANCE * s.profile_period:
+            out.append(
+                Finding(
+                    first,
+                    "period",
+                    s.frame_id,
+                    s.name or "?",
+                    f"median period {s.median_period * 1e3:.1f} ms, the profile's "
+                    f"{s.profile_period * 1e3:.1f} ms",
+                    s.median_period,
+                    s.profile_period,
+                )
+            )
+    return out
+
+
+def _coverage_findings(
+    n: int,
+    first: float,
+    command_frames: int,
+    commands: _CommandCheck,
+    codec: CanCodec,
+    stats: dict[int, FrameStats],
+    command_ids: frozenset[int],
+) -> list[Finding]:
+    """An empty log, a log whose command frames could not be checked, a log with no frame of
+    the profile at all (another vehicle's recording): each is a finding, never "OK"."""
+    profile = codec.profile.name
+    if n == 0:
+        return [Finding(math.nan, "coverage", None, "log", "the log has no frames")]
+    if commands.checked == 0 and sum(commands.not_checkable.values()) > 0:
+        why = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in commands.not_checkable.items())
+        return [
+            Finding(
+                first,
+                "coverage",
+                None,
+                "commands",
+                f"{command_frames} frames on the command IDs of profile {profile}, none could "
+                f"be checked ({why}: no long report with a known gear before them)",
+            )
+        ]
+    known = sum(s.frames - s.unknown_id for s in stats.values())
+    if command_frames == 0 and known == 0:
+        ids = ", ".join(f"{i:03X}" for i in sorted(command_ids))
+        return [
+            Finding(
+                first,
+                "coverage",
+                None,
+                "profile",
+                f"no frame of profile {profile} (command IDs {ids}): a recording of another "
+                "vehicle? give --profile",
+            )
+        ]
+    return []
 
 
 def _violations(
@@ -426,15 +623,14 @@ def _timing(
     """
     stats: list[IdStats] = []
     gaps: list[_Gap] = []
+    periods = {codec.frame_id(f.name): f.period for f in codec.profile.frames}
     for frame_id in sorted(times):
         t = np.asarray(times[frame_id], dtype=np.float64)
         dt = np.diff(t)
         message = codec.message(frame_id)
-        nominal: float | None = None
-        if message is not None and message.cycle_time:
-            nominal = message.cycle_time / 1000.0  # ms in the DBC
-        elif message is not None and dt.size >= 3:
-            nominal = float(np.median(dt))  # known ID without a cycle time: what it does
+        nominal: float | None = periods.get(frame_id)
+        if nominal is None and message is not None and dt.size >= 3:
+            nominal = float(np.median(dt))  # known ID without a period: what it does
         id_gaps = 0
         if nominal is not None and nominal > 0.0 and dt.size:
             long_gap = dt > gap_periods * nominal
@@ -455,9 +651,68 @@ def _timing(
                 p99_period=float(np.percentile(dt, 99)) if dt.size else math.nan,
                 gaps=id_gaps,
                 e2e=e2e.get(frame_id, FrameStats()),
+                profile_period=periods.get(frame_id),
+                median_period=float(np.median(dt)) if dt.size else math.nan,
+                intervals=int(dt.size),
             )
         )
     return stats, gaps
+
+
+_Silence = tuple[float, float]  # (last frame before, first frame after), s
+
+
+def _bus_silences(
+    times: dict[int, list[float]], ids: list[IdStats], gap_periods: float
+) -> list[_Silence]:
+    """Stretches in which no frame at all was on the bus: longer than ``gap_periods`` of the
+    fastest known period."""
+    periods = [s.nominal_period for s in ids if s.nominal_period]
+    if not periods or not times:
+        return []
+    threshold = gap_periods * min(periods)
+    t = np.sort(np.concatenate([np.asarray(v, dtype=np.float64) for v in times.values()]))
+    dt = np.diff(t)
+    return [(float(t[i]), float(t[i + 1])) for i in np.flatnonzero(dt > threshold)]
+
+
+def _overlaps(gap: _Gap, silence: _Silence) -> bool:
+    return gap[2] <= silence[0] and gap[3] >= silence[1]
+
+
+def _silence_findings(silences: list[_Silence], gaps: list[_Gap]) -> list[Finding]:
+    """One finding per bus silence, naming its start, length and the IDs whose gap spans it."""
+    out = []
+    for silence in silences:
+        ids = sorted({g[0] for g in gaps if _overlaps(g, silence)})
+        label = ", ".join(f"{i:03X}" for i in ids) or "none overdue"
+        length = silence[1] - silence[0]
+        out.append(
+            Finding(
+                silence[0],
+                "silence",
+                None,
+                "bus",
+                f"the whole bus silent for {length * 1e3:.0f} ms; IDs overdue: {label}",
+                length,
+            )
+        )
+    return out
+
+
+def _unexplained(
+    gaps: list[_Gap], silences: list[_Silence], ids: list[IdStats], gap_periods: float
+) -> list[_Gap]:
+    """The per-ID gaps a bus silence does not explain: those that, without the silence, would
+    still be longer than ``gap_periods`` periods of their ID."""
+    nominal = {s.frame_id: s.nominal_period or 0.0 for s in ids}
+    out = []
+    for gap in gaps:
+        silent = sum(s[1] - s[0] for s in silences if _overlaps(gap, s))
+        if silent and (gap[3] - gap[2]) - silent <= gap_periods * nominal[gap[0]]:
+            continue
+        out.append(gap)
+    return out
 
 
 def _merge_gaps(gaps: list[_Gap], names: dict[int, str | None]) -> list[Finding]:
@@ -498,35 +753,36 @@ def _merge_gaps(gaps: list[_Gap], names: dict[int, str | None]) -> list[Finding]
 
 def check_log(
     path: str | Path,
-    config: LeafgateConfig | None = None,
+    config: LeafgateConfig | str | Path | None = None,
     *,
+    profile: str | None = None,
     gap_periods: float = DEFAULT_GAP_PERIODS,
     progress: TextIO | None = None,
 ) -> CheckReport:
     """Check a recorded log or session (see the module notes).
 
-    :param path: a python-can log, or a ``.mcap`` session (whose recorded configuration gives
-        the limits unless ``config`` is given)
-    :param config: the configuration whose safety limits apply (default: the built-in one)
+    :param path: a python-can log, or a ``.mcap`` session
+    :param config: the configuration (or its file) whose safety limits and vehicle profile
+        apply; a session's recorded configuration when None
+    :param profile: the vehicle profile (``--profile NAME|FILE``), over the configuration's
     :param progress: a stream for the progress bar (drawn only when it is a terminal)
-    :raises ReplayError: the file is missing, of an unknown format or unreadable
-    :raises ConfigError: a session's recorded configuration does not load
+    :raises ReplayError: the file is missing, of an unknown format or unreadable, or nothing
+        names the vehicle profile (a python-can log without ``config`` or ``profile``)
+    :raises ConfigError: the configuration or profile does not load
     """
     path = Path(path)
-    if config is None and is_session(path):
-        with SessionReader(path) as reader:
-            reader.read_metadata()
-            config = reader.config() if reader.config_yaml is not None else None
-    config = config or LeafgateConfig()
-    limits = SafetyLimits.from_config(config.gateway.safety, config.vehicle, config.gateway.period)
+    context = recording_context(path, config=config, profile=profile)
+    cfg = context.config
+    limits = SafetyLimits.from_config(cfg.gateway.safety, cfg.vehicle, cfg.gateway.period)
     source = FrameSource(path)
     report = check_frames(
         source,
         limits,
+        context.profile,
         path=str(path),
         gap_periods=gap_periods,
-        dbw_dbc=config.can.dbw_dbc,
-        car_dbc=config.can.car_dbc,
+        dbw_dbc=cfg.can.dbw_dbc,
+        car_dbc=cfg.can.car_dbc,
         progress=_Progress(progress, source),
     )
     report.truncated = source.truncated
@@ -537,20 +793,25 @@ def main_check(
     log: str | Path,
     *,
     config: str | Path | None = None,
+    profile: str | None = None,
     as_json: bool = False,
     gap_periods: float = DEFAULT_GAP_PERIODS,
     out: TextIO | None = None,
     err: TextIO | None = None,
 ) -> int:
-    """``leafgate replay check LOG [--config FILE] [--json] [--gap-periods N]``.
+    """``leafgate replay check LOG [--config FILE] [--profile NAME|FILE] [--json] …``.
 
     :return: 0 when the log has no finding, 1 otherwise
-    :raises LeafgateError: unreadable log or configuration (the CLI prints it)
+    :raises LeafgateError: unreadable log, configuration or profile (the CLI prints it)
     """
     out = out or sys.stdout
     err = err or sys.stderr
-    cfg = load_config(config) if config is not None else None
-    report = check_log(log, cfg, gap_periods=gap_periods, progress=err)
+    report = check_log(log, config, profile=profile, gap_periods=gap_periods, progress=err)
+    if report.backwards:
+        err.write(
+            f"leafgate: warning: {log}: timestamps go backwards at {report.backwards} frames "
+            f"(by up to {report.worst_backwards * 1e3:.1f} ms)\n"
+        )
     if as_json:
         json.dump(report.to_dict(), out, indent=2)
         out.write("\n")

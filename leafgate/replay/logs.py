@@ -4,6 +4,9 @@
 got (for a progress bar): python-can's readers for ``.log``, ``.asc``, ``.blf``, ``.trc``,
 ``.csv``, ``.mf4`` (and gzip), :class:`~leafgate.replay.session.SessionReader` for ``.mcap``.
 
+A session's frames carry the time they were recorded at on the gateway clock (MCAP log time),
+so received and sent frames share one clock; in a simulated session it is the frame's own time.
+
 Files cut short by a crash read up to the cut: a session up to its last complete chunk, a BLF
 up to its last complete object (python-can's reader stops there), a text log (``.log``,
 ``.asc``) up to its last complete line — a line without its newline is dropped, since its
@@ -21,10 +24,12 @@ from typing import IO, Any
 
 import can
 
-from leafgate.errors import ReplayError
+from leafgate.can.profile import PROFILE_NAMES, Profile, load_profile
+from leafgate.errors import ConfigError, ReplayError
 from leafgate.replay.session import TOPIC_CAN, SessionReader, frame_from_record
+from leafgate.settings import LeafgateConfig, load_config, with_profile
 
-__all__ = ["FrameSource", "is_session"]
+__all__ = ["FrameSource", "RecordingContext", "is_session", "recording_context"]
 
 # ASC stores times relative to a start written with ms resolution; absolute times keep the
 # formats comparable (to ±1 ms for ASC).
@@ -118,7 +123,12 @@ class FrameSource:
             self._position = session.position
             for record in session.records(frozenset({TOPIC_CAN})):
                 self.frames += 1
-                yield frame_from_record(json.loads(record.data))
+                msg = frame_from_record(json.loads(record.data))
+                # One clock for frames in and out: the record's log time (the gateway clock).
+                # A frame's own time is the kernel's for a received frame, the gateway's for
+                # a sent one: two clocks on one bus would make silences out of nothing.
+                msg.timestamp = record.log_time * 1e-9
+                yield msg
             self.truncated = session.truncated
 
     def _log_frames(self) -> Iterator[can.Message]:
@@ -147,3 +157,66 @@ class FrameSource:
             reader.stop()
             if file is not None:
                 file.close()
+
+
+class RecordingContext:
+    """What a tool needs to read a recording's frames: the configuration and vehicle profile.
+
+    :attr:`source` tells where the profile came from (``--profile``, ``--config FILE``, the
+    session's recorded configuration), for the tool's first output line.
+    """
+
+    def __init__(self, config: LeafgateConfig, source: str) -> None:
+        self.config = config
+        self.source = source
+
+    @property
+    def profile(self) -> Profile:
+        return self.config.profile
+
+    def describe(self) -> str:
+        return f"vehicle profile {self.profile.name} (from {self.source})"
+
+
+def recording_context(
+    path: str | Path,
+    *,
+    config: str | Path | LeafgateConfig | None = None,
+    profile: str | None = None,
+) -> RecordingContext:
+    """The configuration and profile to read a recording with; the codec has no default.
+
+    In order: ``profile`` (``--profile NAME|FILE``) over the configuration's; the
+    configuration ``config`` (``--config FILE``); a session's recorded configuration. A
+    python-can log carries no profile, so without ``--profile`` or ``--config`` it is an error.
+
+    :raises ReplayError: no source names a profile
+    :raises ConfigError: the configuration or profile does not load (names the file)
+    """
+    cfg: LeafgateConfig | None
+    source = ""
+    if isinstance(config, LeafgateConfig):
+        cfg, source = config, "the given configuration"
+    elif config is not None:
+        cfg, source = load_config(config), f"--config {config}"
+    else:
+        cfg = None
+        if is_session(path) and Path(path).is_file():
+            with SessionReader(path) as reader:
+                reader.read_metadata()
+                if reader.config_yaml is not None:
+                    cfg = reader.config()
+                    source = f"the configuration recorded in {Path(path).name}"
+    if profile is not None:
+        try:
+            load_profile(profile)  # a clear error before the configuration is refitted
+        except ConfigError as exc:
+            raise ConfigError(f"--profile: {exc}") from None
+        cfg = with_profile(cfg or LeafgateConfig(), profile)
+        source = f"--profile {profile}"
+    if cfg is None:
+        raise ReplayError(
+            f"{path}: the recording names no vehicle profile; give --profile NAME|FILE "
+            f"({', '.join(PROFILE_NAMES)}) or --config FILE"
+        )
+    return RecordingContext(cfg, source)

@@ -1,5 +1,8 @@
 """``leafgate replay play LOG --interface … --channel …``: timed playback onto a CAN bus.
 
+``--ids commands`` or ``--ids reports`` plays the vehicle profile's command or report frames
+(the profile from ``--profile``, ``--config`` or a session's recorded configuration).
+
 Frames are sent at their recorded spacing (divided by ``speed``) on absolute deadlines of a
 monotonic clock, so the playback does not drift over a long log; ``start`` skips the first
 seconds of the log and ``ids`` plays only the listed IDs — e.g. only the gateway's commands
@@ -130,6 +133,20 @@ def play_frames(
     )
 
 
+def _profile_ids(
+    log: str | Path, side: str, config: str | Path | None, profile: str | None
+) -> frozenset[int]:
+    """The IDs of the profile's command or report frames (``--ids commands|reports``)."""
+    from leafgate.can.codec import CanCodec
+    from leafgate.replay.logs import recording_context
+
+    context = recording_context(log, config=config, profile=profile)
+    codec = CanCodec(context.config.can.dbw_dbc, context.config.can.car_dbc, context.profile)
+    if side == "commands":
+        return codec.receive_ids("commands")
+    return codec.receive_ids("reports") | codec.receive_ids("car")
+
+
 def main_play(
     log: str | Path,
     *,
@@ -141,6 +158,8 @@ def main_play(
     bitrate: int = 500_000,
     bus_kwargs: dict[str, Any] | None = None,
     out: TextIO | None = None,
+    config: str | Path | None = None,
+    profile: str | None = None,
 ) -> int:
     """``leafgate replay play LOG --interface I --channel C [--speed F] [--start S] [--ids …]``.
 
@@ -148,7 +167,10 @@ def main_play(
     :raises LeafgateError: unreadable log, unknown interface or a send error (the CLI prints it)
     """
     out = out or sys.stdout
-    wanted = parse_ids(ids)
+    if ids in ("commands", "reports"):  # the profile's frames of one side
+        wanted: frozenset[int] | None = _profile_ids(log, ids, config, profile)
+    else:
+        wanted = parse_ids(ids)
     source = FrameSource(log)
     bus = open_bus(
         BusConfig(

@@ -21,8 +21,10 @@ from typing import Final, TextIO
 
 import numpy as np
 
+from leafgate.can.profile import Profile
 from leafgate.config import VehicleConfig
 from leafgate.jsonconv import float_from_json
+from leafgate.errors import ReplayError
 from leafgate.messages import (
     FloatArray,
     LongCommand,
@@ -31,7 +33,7 @@ from leafgate.messages import (
     SteerReport,
     Trajectory,
 )
-from leafgate.replay.logs import FrameSource, is_session
+from leafgate.replay.logs import FrameSource, is_session, recording_context
 from leafgate.replay.session import TOPIC_TICK, TOPIC_TRAJECTORY, SessionReader, decode_trajectory
 from leafgate.sim.plots import Trace, plot_drive
 
@@ -108,9 +110,12 @@ def trace_from_session(path: str | Path) -> tuple[Trace, Trajectory | None]:
     return trace, trajectory
 
 
-def trace_from_log(path: str | Path, vehicle: VehicleConfig | None = None) -> Trace:
+def trace_from_log(
+    path: str | Path, profile: Profile | str, vehicle: VehicleConfig | None = None
+) -> Trace:
     """The drive of a CAN log, sampled at each steering command; the path dead-reckoned.
 
+    :param profile: the vehicle profile the frames follow
     :raises ReplayError: the file is missing or unreadable
     """
     from leafgate.can.codec import CanCodec
@@ -124,27 +129,27 @@ def trace_from_log(path: str | Path, vehicle: VehicleConfig | None = None) -> Tr
     for msg in FrameSource(path):
         codec = codecs.get(msg.channel)
         if codec is None:
-            codec = codecs[msg.channel] = CanCodec()
+            codec = codecs[msg.channel] = CanCodec(profile=profile)
         decoded = codec.decode(msg)
         if not decoded.valid:
             continue
-        value = decoded.value
-        if isinstance(value, SteerReport):
-            steer = value
-        elif isinstance(value, LongReport):
-            long = value
-        elif isinstance(value, LongCommand):
-            cmd_speed = value.speed
-        elif isinstance(value, SteerCommand):
-            rows.append(
-                (
-                    msg.timestamp,
-                    math.nan if long is None else long.speed,
-                    math.nan if steer is None else steer.angle,
-                    value.angle,
-                    cmd_speed,
+        for value in decoded.values:  # a frame may carry steering and speed together
+            if isinstance(value, SteerReport):
+                steer = value
+            elif isinstance(value, LongReport):
+                long = value
+            elif isinstance(value, LongCommand):
+                cmd_speed = value.speed
+            elif isinstance(value, SteerCommand):
+                rows.append(
+                    (
+                        msg.timestamp,
+                        math.nan if long is None else long.speed,
+                        math.nan if steer is None else steer.angle,
+                        value.angle,
+                        cmd_speed,
+                    )
                 )
-            )
     data = np.asarray(rows, dtype=np.float64).reshape(-1, 5)
     t, v, delta, target, v_cmd = data.T
     x, y = _dead_reckon(t, np.nan_to_num(v), np.nan_to_num(delta), wheelbase)
@@ -174,24 +179,50 @@ def _dead_reckon(
     return x, y
 
 
-def plot_recording(path: str | Path, out_dir: str | Path) -> Mapping[str, Path]:
-    """Write path.png, steering.png and speed.png of a log or session into ``out_dir``."""
+def plot_recording(
+    path: str | Path, out_dir: str | Path, profile: Profile | str | None = None
+) -> Mapping[str, Path]:
+    """Write path.png, steering.png and speed.png of a log or session into ``out_dir``.
+
+    :param profile: the vehicle profile of a CAN log (a session's is read from it)
+    :raises ReplayError: nothing to plot: no steering command in the recording
+    """
     if is_session(path):
         trace, trajectory = trace_from_session(path)
         title = f"({Path(path).name})"
     else:
-        trace, trajectory = trace_from_log(path), None
+        if profile is None:
+            raise ReplayError(f"{path}: a CAN log needs a vehicle profile to plot")
+        trace, trajectory = trace_from_log(path, profile), None
         title = f"({Path(path).name}, path dead-reckoned)"
+    if trace.t.size == 0:
+        what = "no gateway tick" if is_session(path) else "no steering command frame"
+        name = getattr(profile, "name", profile)
+        raise ReplayError(
+            f"{path}: nothing to plot: {what} in the recording"
+            + ("" if is_session(path) else f" (read with profile {name})")
+        )
     return plot_drive(Path(out_dir), trajectory, [trace], title)
 
 
-def main_plot(log: str | Path, *, out: str | Path, stdout: TextIO | None = None) -> int:
-    """``leafgate replay plot LOG|SESSION --out DIR``.
+def main_plot(
+    log: str | Path,
+    *,
+    out: str | Path,
+    config: str | Path | None = None,
+    profile: str | None = None,
+    stdout: TextIO | None = None,
+) -> int:
+    """``leafgate replay plot LOG|SESSION --out DIR [--config FILE] [--profile NAME|FILE]``.
 
-    :return: 0
-    :raises LeafgateError: unreadable log or session (the CLI prints it)
+    :return: 0 when the plots were written
+    :raises LeafgateError: unreadable log or session, no profile for a CAN log, or nothing to
+        plot (the CLI prints it and exits non-zero)
     """
     stdout = stdout or sys.stdout
-    for name, file in plot_recording(log, out).items():
+    chosen = None
+    if not is_session(log):
+        chosen = recording_context(log, config=config, profile=profile).profile
+    for name, file in plot_recording(log, out, chosen).items():
         stdout.write(f"{name}: {file}\n")
     return 0

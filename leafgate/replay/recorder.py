@@ -28,7 +28,9 @@ Wiring (daemon)::
 
 from __future__ import annotations
 
+import heapq
 import logging
+import math
 import queue
 import threading
 import time
@@ -62,6 +64,7 @@ log = logging.getLogger(__name__)
 Direction = Literal["rx", "tx"]
 _STOP: Final = object()
 _ROTATE_CHECK_EVERY: Final = 256  # frames between file-size checks (tell() is not free)
+DEFAULT_REORDER_WINDOW: Final = 0.25  # s, twice the worst disorder measured under load
 
 
 class Recorder(Protocol):
@@ -120,11 +123,13 @@ class _BackgroundWriter:
         close: Callable[[], None],
         flush_period: float,
         queue_size: int,
+        drain: Callable[[], None] | None = None,
     ) -> None:
         self.name = name
         self._write = write
         self._flush = flush
         self._close = close
+        self._drain = drain  # writes what the writer holds back, on a flush request
         self._period = flush_period
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._lock = threading.Lock()
@@ -179,6 +184,8 @@ class _BackgroundWriter:
             if item is _STOP:
                 break
             if isinstance(item, threading.Event):  # a flush request
+                if self._drain is not None:
+                    self._guarded("write", self._drain)
                 if dirty:
                     self._guarded("flush", self._flush)
                     self.flushes += 1
@@ -275,18 +282,30 @@ def _open_can_writer(path: Path, channel: str) -> can.io.generic.FileIOMessageWr
 
 
 def _tx_copy(msg: can.Message, timestamp: float, channel: str) -> can.Message:
-    return can.Message(
+    return _copy(
+        msg,
         timestamp=timestamp,
-        arbitration_id=msg.arbitration_id,
-        is_extended_id=msg.is_extended_id,
-        is_remote_frame=msg.is_remote_frame,
-        is_error_frame=msg.is_error_frame,
         channel=msg.channel if msg.channel is not None else channel,
-        dlc=msg.dlc,
-        data=msg.data,
-        is_fd=msg.is_fd,
         is_rx=False,
     )
+
+
+def _copy(msg: can.Message, **changes: Any) -> can.Message:
+    """A copy of a frame with some attributes changed (the original may be shared)."""
+    fields: dict[str, Any] = {
+        "timestamp": msg.timestamp,
+        "arbitration_id": msg.arbitration_id,
+        "is_extended_id": msg.is_extended_id,
+        "is_remote_frame": msg.is_remote_frame,
+        "is_error_frame": msg.is_error_frame,
+        "channel": msg.channel,
+        "dlc": msg.dlc,
+        "data": msg.data,
+        "is_fd": msg.is_fd,
+        "is_rx": msg.is_rx,
+    }
+    fields.update(changes)
+    return can.Message(**fields)
 
 
 class CanLogRecorder:
@@ -304,6 +323,14 @@ class CanLogRecorder:
     :param tx_clock: stamps sent frames when given (the daemon passes ``time.time`` so sent
         frames share the clock of received ones); None keeps each frame's own timestamp
     :param channel: channel written for frames that carry none (sent frames)
+    :param one_bus: every frame is on one bus (the drive-by-wire and car frames share it):
+        every frame is written under ``channel``, so one bus has one name in the log
+    :param reorder_window: s; frames are written in time order: the writer holds each frame
+        back until a frame this much newer has arrived (sent and received frames reach the
+        recorder from different threads, up to ~0.12 s apart under load). A frame that
+        arrives later than that is written at the last written time and counted as ``late``
+        (diagnostics), so the log never goes backwards. A flush request (:meth:`flush`) and
+        :meth:`close` write everything held back; the periodic flush does not.
 
     An unwritable directory is not raised: :attr:`fault` tells, and frames are counted as
     dropped.
@@ -318,6 +345,8 @@ class CanLogRecorder:
         queue_size: int = 20_000,
         tx_clock: Callable[[], float] | None = None,
         channel: str = "can0",
+        one_bus: bool = False,
+        reorder_window: float = DEFAULT_REORDER_WINDOW,
     ) -> None:
         self.path = Path(path)
         if self.path.suffix.lower() not in CAN_LOG_SUFFIXES:
@@ -325,8 +354,15 @@ class CanLogRecorder:
         self.max_bytes = max_bytes
         self.tx_clock = tx_clock
         self.channel = channel
+        self.one_bus = one_bus
+        self.reorder_window = reorder_window
         self.files: list[Path] = []
         self.frames = 0
+        self.late = 0  # frames that arrived after the reorder window (written re-stamped)
+        self._pending: list[tuple[float, int, can.Message]] = []  # a heap, by timestamp
+        self._arrivals = 0
+        self._newest = -math.inf  # s, the newest timestamp handed to the writer
+        self._last_written = -math.inf  # s
         self._writer: can.io.generic.FileIOMessageWriter[Any] | None = None
         self._since_check = 0
         self._bg = _BackgroundWriter(
@@ -336,6 +372,7 @@ class CanLogRecorder:
             self._finish,
             flush_period,
             queue_size,
+            drain=self._drain,
         )
         try:
             self._rotate()
@@ -382,6 +419,29 @@ class CanLogRecorder:
         self.files.append(name)
 
     def _write(self, msg: can.Message) -> None:
+        """Hold the frame back in time order; write those older than the window."""
+        stamp = msg.timestamp
+        if stamp < self._last_written:  # beyond the window: keep the log monotonic
+            self.late += 1
+            msg = _copy(msg, timestamp=self._last_written)
+        if self.one_bus and msg.channel != self.channel:
+            msg = _copy(msg, channel=self.channel)
+        heapq.heappush(self._pending, (msg.timestamp, self._arrivals, msg))
+        self._arrivals += 1
+        self._newest = max(self._newest, stamp)
+        self._release(self._newest - self.reorder_window)
+
+    def _drain(self) -> None:
+        self._release(math.inf)
+
+    def _release(self, until: float) -> None:
+        pending = self._pending
+        while pending and pending[0][0] <= until:
+            msg = heapq.heappop(pending)[2]
+            self._last_written = msg.timestamp
+            self._emit(msg)
+
+    def _emit(self, msg: can.Message) -> None:
         if self._writer is None:
             raise OSError(0, "no open log file")
         self._writer.on_message_received(msg)
@@ -404,8 +464,11 @@ class CanLogRecorder:
 
     def _finish(self) -> None:
         if self._writer is not None:
-            writer, self._writer = self._writer, None
-            writer.stop()
+            try:
+                self._drain()
+            finally:
+                writer, self._writer = self._writer, None
+                writer.stop()
 
     # -- control --
 
@@ -423,7 +486,7 @@ class CanLogRecorder:
         self._bg.close()
 
     def diagnostics(self) -> dict[str, Any]:
-        return {"files": [str(f) for f in self.files], **self._bg.counters()}
+        return {"files": [str(f) for f in self.files], "late": self.late, **self._bg.counters()}
 
     def __enter__(self) -> CanLogRecorder:
         return self
@@ -442,6 +505,8 @@ class SessionRecorder:
         daemon passes the runtime's clock); None uses each frame's own timestamp (simulator)
     :param tap: the controller wrapper whose output gives the predicted path (optional)
     :param diagnostics: also record ``Diagnostics.to_dict()`` every tick
+    :param channel: the channel name written for sent frames, which carry none (None: none)
+    :param one_bus: every frame is on one bus: every frame is written under ``channel``
     """
 
     def __init__(
@@ -456,9 +521,13 @@ class SessionRecorder:
         diagnostics: bool = True,
         tap: ControllerTap | None = None,
         session: dict[str, str] | None = None,
+        channel: str | None = None,
+        one_bus: bool = False,
     ) -> None:
         self.path = Path(path)
         self.clock = clock
+        self.channel = channel  # written for sent frames (they carry none); see CanLogRecorder
+        self.one_bus = one_bus
         self.tap = tap
         self.record_diagnostics = diagnostics
         self.ticks = 0
@@ -526,6 +595,10 @@ class SessionRecorder:
         kind = item[0]
         if kind == "can":
             _, t, msg, rx = item
+            if self.channel is not None and (
+                msg.channel is None or (self.one_bus and msg.channel != self.channel)
+            ):
+                msg = _copy(msg, channel=self.channel)  # one bus, one channel name
             writer.can_frame(t, msg, rx)
         elif kind == "tick":
             _, now, inputs, result, xy = item
@@ -661,6 +734,7 @@ def open_recording(
                 queue_size=cfg.queue_size,
                 tx_clock=wall_clock,
                 channel=config.can.dbw.channel,
+                one_bus=config.can.car is None,
             )
         )
     if cfg.session is not None:
@@ -673,6 +747,8 @@ def open_recording(
                 queue_size=cfg.queue_size,
                 compression=cfg.compression,
                 diagnostics=cfg.diagnostics,
+                channel=config.can.dbw.channel,
+                one_bus=config.can.car is None,
             )
         )
     return Recording(recorders)

@@ -155,7 +155,8 @@ class SimulatedEcu:
     :param config: the ECU's settings
     :param plant: the plant to actuate (it is owned and stepped by the ECU)
     :param vehicle: the vehicle's limits (steering angle, acceleration)
-    :param codec: the ECU's own codec (alive counters are per codec); a new one when None
+    :param codec: the ECU's own codec (alive counters are per codec); when None, a new one for
+        ``vehicle.profile``
     """
 
     def __init__(
@@ -168,7 +169,7 @@ class SimulatedEcu:
         self.config = config
         self.vehicle = vehicle
         self.plant = plant
-        self.codec = codec if codec is not None else CanCodec()
+        self.codec = codec if codec is not None else CanCodec(profile=vehicle.profile)
         self.counters = EcuCounters()
         profile = self.codec.profile
         self._command_ids = self.codec.receive_ids("commands")
@@ -213,6 +214,9 @@ class SimulatedEcu:
             f.name: f.period for f in profile.frames_of("report")
         }
         self._report_index = dict.fromkeys(self.report_periods, 0)  # next due: base + index·period
+        # frames the car also sends soon after their payload changes (0x421 on a gear change)
+        self._event_frames = tuple(f.name for f in profile.frames_of("report") if f.on_change)
+        self._last_payload: dict[str, bytes] = {}  # of each event frame, as last sent
         self._last_counter: dict[int, int] = {}  # alive counter last sent, per report ID
 
     # -- inputs ------------------------------------------------------------------------------
@@ -538,8 +542,10 @@ class SimulatedEcu:
         """The report frames due at ``now``, encoded with the ECU's codec.
 
         Each frame is due every period from the first call; missed periods (a late caller) are
-        skipped rather than sent in a burst. Active ``report-dropout``, ``corrupt-crc`` and
-        ``stuck-counter`` injections act here.
+        skipped rather than sent in a burst. A frame the profile marks ``on_change`` (the
+        Leaf's 0x421) is also sent, between its cyclic times, at the first call after its
+        payload changed, as the car sends an event frame after a gear change. Active
+        ``report-dropout``, ``corrupt-crc`` and ``stuck-counter`` injections act here.
         """
         if self._report_base is None:
             self._report_base = now
@@ -553,9 +559,20 @@ class SimulatedEcu:
             # Next due time strictly after now: skip missed periods.
             self._report_index[name] = max(index + 1, math.floor((now - base) / period + _EPS) + 1)
         # A silent ECU: nothing encoded, so the alive counters resume in sequence afterwards.
-        if not due or self._active(now, "report-dropout") is not None:
+        # An event frame is looked for only when another frame is due (every 10 ms on the
+        # Leaf): cheap at the ECU's 1 kHz tick, and within the car's 5.8-55 ms.
+        if not due or self._active(now, "report-dropout"):
             return []
         values = self.report_values(now)
+        for name in self._event_frames:
+            if name in due:
+                continue
+            try:  # event frames carry no counter (the profile checks): encoding is free
+                payload = bytes(self.codec.encode_frame(name, values, timestamp=now).data)
+            except LeafgateError:
+                continue
+            if payload != self._last_payload.get(name, payload):
+                due.append(name)
         corrupt = self._active(now, "corrupt-crc") is not None
         stuck = self._active(now, "stuck-counter") is not None
         frames = []
@@ -567,6 +584,8 @@ class SimulatedEcu:
                 continue
             if msg.arbitration_id in self._report_ids:
                 msg = self._e2e_faults(msg, corrupt, stuck)
+            if name in self._event_frames:
+                self._last_payload[name] = bytes(msg.data)
             frames.append(msg)
         return frames
 

@@ -112,7 +112,7 @@ class Sniffer(threading.Thread):
     def __init__(self, channel: str, port: int) -> None:
         super().__init__(name="fault-sniffer", daemon=True)
         self.bus = can.Bus(interface="udp_multicast", channel=channel, port=port)
-        self.codec = CanCodec()
+        self.codec = CanCodec(profile="leafgate-dbw")
         self.frames: list[tuple[float, can.Message]] = []
         self.gateway_state: GatewayState | None = None
         self.states: list[tuple[float, GatewayState]] = []  # changes seen on DBW_SYSTEM_CMD
@@ -634,7 +634,7 @@ class RogueNode:
 
     def __init__(self, channel: str, port: int, excluded: Counter[tuple[int, bytes]]) -> None:
         self.bus = can.Bus(interface="udp_multicast", channel=channel, port=port)
-        self.codec = CanCodec()
+        self.codec = CanCodec(profile="leafgate-dbw")
         self.excluded = excluded
         self.sent = 0
 

@@ -240,13 +240,13 @@ def test_an_echo_after_the_window_is_foreign() -> None:
 
 def test_receiver_drops_own_echoes_and_counts_and_records_foreign_frames() -> None:
     now = [0.0]
-    receiver = CanReceiver(CanCodec(), lambda: now[0])
+    receiver = CanReceiver(CanCodec(profile="leafgate-dbw"), lambda: now[0])
     recorded: list[int] = []
     receiver.on_frame = lambda msg, _decoded: recorded.append(msg.arbitration_id)
-    ours = CanCodec().encode(SteerCommand(angle=0.1))
+    ours = CanCodec(profile="leafgate-dbw").encode(SteerCommand(angle=0.1))
     receiver.sent.add(ours, 0.0)
     receiver.on_message_received(ours)
-    rogue = CanCodec().encode(LongCommand(accel=1.0, enable=True))
+    rogue = CanCodec(profile="leafgate-dbw").encode(LongCommand(accel=1.0, enable=True))
     receiver.on_message_received(rogue)
     assert receiver.own_echoes == 1
     assert receiver.take_foreign() == (1, ("DBW_LONG_CMD",))
@@ -258,9 +258,9 @@ def test_receiver_drops_own_echoes_and_counts_and_records_foreign_frames() -> No
 def test_runtime_faults_only_on_frames_it_did_not_send(echoes: bool) -> None:
     """udp_multicast delivers a bus's own frames back to it, SocketCAN does not: both work."""
     channel = f"faults-echo-{echoes}"
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     clock = [0.0]
-    ecu = CanCodec()
+    ecu = CanCodec(profile="leafgate-dbw")
     with (
         can.Bus(interface="virtual", channel=channel, receive_own_messages=echoes) as bus,
         can.Bus(interface="virtual", channel=channel) as other,
@@ -293,7 +293,7 @@ def test_runtime_faults_only_on_frames_it_did_not_send(echoes: bool) -> None:
         assert gateway.state == GatewayState.STANDBY, gateway.machine.reason
         assert receiver.foreign_total == 0
         assert (receiver.own_echoes > 0) == echoes
-        other.send(CanCodec().encode(SteerCommand(angle=0.2, enable=True)))
+        other.send(CanCodec(profile="leafgate-dbw").encode(SteerCommand(angle=0.2, enable=True)))
         pump()
         runtime.tick(clock[0])
         assert gateway.state == GatewayState.FAULT
