@@ -537,10 +537,12 @@ def test_session_frames_are_read_on_the_gateway_clock(tmp_path: Path) -> None:
     # a daemon session: received frames carry the kernel's epoch time, sent ones the gateway's
     path = tmp_path / "s.mcap"
     ticks = iter([100.0, 100.01])
-    with SessionRecorder(path, LeafgateConfig(), clock=lambda: next(ticks)) as rec:
+    with SessionRecorder(path, LeafgateConfig(), clock=lambda: next(ticks), epoch=1e9) as rec:
         rec.on_can_frame(can.Message(timestamp=1.7e9, arbitration_id=0x0B0), "rx")
         rec.on_can_frame(can.Message(timestamp=100.009, arbitration_id=0x0A0), "tx")
-    assert [m.timestamp for m in FrameSource(path)] == pytest.approx([100.0, 100.01])
+    # read back in Unix time: the gateway clock plus the session's epoch offset
+    stamps = [m.timestamp - 1e9 for m in FrameSource(path)]
+    assert stamps == pytest.approx([100.0, 100.01], abs=1e-6)
 
 
 def test_decode_and_check_warn_about_a_log_that_goes_backwards(tmp_path: Path) -> None:

@@ -594,8 +594,8 @@ def test_config_file_errors_are_config_errors_naming_file_and_place(
         ("t.csv", b"x,y,heading,speed\n0,0,0,1\n1,\xff,0,1\n", "not UTF-8 at line 3, column 3"),
         ("t.csv", b'x,y,heading,speed\n0,0,0,1\n"' + b"a" * 200_000 + b'",0,0,1\n', "row 2"),
         ("t.csv", b"x,y," + b"a" * 200_000 + b"\n0,0,0,1\n", "line 1 (the header)"),
-        # a blank line keeps its number: the repeated waypoint is on row 5 of the file
-        ("t.csv", b"x,y,heading,speed\n0,0,0,1\n\n1,0,0,1\n2,0,0,1\n2,0,0,1\n", "row 5: repeats"),
+        # a blank line keeps its number: the bad waypoint is on row 5 of the file
+        ("t.csv", b"x,y,heading,speed\n0,0,0,1\n\n1,0,0,1\n2,0,0,1\n3,0,inf,1\n", "row 5: heading"),
         ("t.csv", b"x,y,heading,speed\n0,0,0,1\n\n1,0,0,1\n2,nan,0,1\n3,0,0,1\n", "row 4: y is"),
     ],
 )

@@ -249,6 +249,8 @@ def test_daqp_infeasible_and_capped_are_not_converged() -> None:
     assert not DaqpBackend(M).solve(E, f, gamma).converged
     E, f, M, gamma = _box_qp(3)
     assert not DaqpBackend(M, max_iter=1).solve(E, f, gamma).converged
+
+
 @pytest.mark.parametrize("seed", range(10))
 @pytest.mark.parametrize("kind", ["random", "box", "saturated"])
 def test_accelerated_hildreth_agrees_with_the_textbook_qphild(seed: int, kind: str) -> None:

@@ -45,8 +45,9 @@ class Drive:
 def drive(tmp_path_factory: pytest.TempPathFactory) -> Drive:
     directory = tmp_path_factory.mktemp("drive")
     config = LeafgateConfig()
-    can_logs = [CanLogRecorder(directory / f"can{suffix}") for suffix in FORMATS]
-    session = SessionRecorder(directory / "session.mcap", config)
+    epoch = 1.8e9  # s: simulated time from 0 → Unix time, the same offset for every file
+    can_logs = [CanLogRecorder(directory / f"can{suffix}", time_offset=epoch) for suffix in FORMATS]
+    session = SessionRecorder(directory / "session.mcap", config, epoch=epoch)
     with Recording([*can_logs, session]) as recording:
         result = run(config, get_scenario("s-curve"), recorder=recording)
     assert recording.fault == ""

@@ -23,8 +23,8 @@ import numpy as np
 
 from leafgate.can.profile import Profile
 from leafgate.config import VehicleConfig
-from leafgate.jsonconv import float_from_json
 from leafgate.errors import ReplayError
+from leafgate.jsonconv import float_from_json
 from leafgate.messages import (
     FloatArray,
     LongCommand,

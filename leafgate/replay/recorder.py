@@ -347,8 +347,12 @@ class CanLogRecorder:
         channel: str = "can0",
         one_bus: bool = False,
         reorder_window: float = DEFAULT_REORDER_WINDOW,
+        time_offset: float = 0.0,
     ) -> None:
         self.path = Path(path)
+        # s added to every frame's own timestamp (a simulated drive: simulated time → Unix time,
+        # the same offset its session uses, so the log and the session line up)
+        self.time_offset = time_offset
         if self.path.suffix.lower() not in CAN_LOG_SUFFIXES:
             raise ValueError(f"{self.path}: a CAN log must end in one of {CAN_LOG_SUFFIXES}")
         self.max_bytes = max_bytes
@@ -385,7 +389,9 @@ class CanLogRecorder:
         """Record one frame; ``direction`` is ``"rx"`` (received) or ``"tx"`` (sent)."""
         if direction == "tx":
             stamp = self.tx_clock() if self.tx_clock is not None else msg.timestamp
-            msg = _tx_copy(msg, stamp, self.channel)
+            msg = _tx_copy(msg, stamp + self.time_offset, self.channel)
+        elif self.time_offset:
+            msg = _copy(msg, timestamp=msg.timestamp + self.time_offset)
         self._bg.put(msg)
 
     def on_tick(
@@ -523,6 +529,7 @@ class SessionRecorder:
         session: dict[str, str] | None = None,
         channel: str | None = None,
         one_bus: bool = False,
+        epoch: float | None = None,
     ) -> None:
         self.path = Path(path)
         self.clock = clock
@@ -549,7 +556,7 @@ class SessionRecorder:
             self._file = self.path.open("wb")
             # Unix-epoch MCAP times: the gateway clock's offset now, or for the simulator
             # (frames stamped with simulated time from 0) the wall-clock time of its start.
-            offset = epoch_offset(clock)
+            offset = epoch_offset(clock) if epoch is None else epoch
             self._writer = SessionWriter(self._file, config, compression, meta, offset)
             self._file.flush()
         except Exception as exc:
@@ -723,6 +730,10 @@ def open_recording(
     if not cfg.enabled:
         return Recording()
     stamp = (start or datetime.now()).strftime("%Y%m%dT%H%M%S")
+    # A simulated drive (no clocks) is stamped from the wall-clock time of its start, in the CAN
+    # log and the session alike; the daemon's frames and sessions are on Unix time already.
+    simulated = clock is None and wall_clock is None
+    sim_epoch = epoch_offset(None) if simulated else None
     directory = Path(cfg.directory)
     recorders: list[_AnyRecorder] = []
     if cfg.can_log is not None:
@@ -735,6 +746,7 @@ def open_recording(
                 tx_clock=wall_clock,
                 channel=config.can.dbw.channel,
                 one_bus=config.can.car is None,
+                time_offset=sim_epoch or 0.0,
             )
         )
     if cfg.session is not None:
@@ -749,6 +761,7 @@ def open_recording(
                 diagnostics=cfg.diagnostics,
                 channel=config.can.dbw.channel,
                 one_bus=config.can.car is None,
+                epoch=sim_epoch,
             )
         )
     return Recording(recorders)
