@@ -109,21 +109,28 @@ def test_receiver_fills_slots_and_counts_good_and_bad_frames() -> None:
     assert receiver.steer.get() is steer  # the bad frame did not replace the good report
 
 
+def _asker(box: RequestBox, request: OperatorRequest, replies: list[dict], timeout: float = 2):
+    thread = threading.Thread(target=lambda: replies.append(box.submit(request, timeout=timeout)))
+    thread.start()
+    return thread
+
+
+def _wait_pending(box: RequestBox, count: int) -> None:
+    for _ in range(400):
+        if len(box) >= count:
+            return
+        time.sleep(0.005)
+    raise AssertionError(f"{len(box)} requests pending, expected {count}")
+
+
 def test_request_box_answers_from_the_control_thread() -> None:
     box = RequestBox()
     replies: list[dict] = []
-    asker = threading.Thread(
-        target=lambda: replies.append(box.submit(OperatorRequest.ENGAGE, timeout=2))
-    )
-    asker.start()
-    item = None
-    for _ in range(200):
-        item = box.take()
-        if item is not None:
-            break
-        time.sleep(0.005)
-    assert item is not None and item.request == OperatorRequest.ENGAGE
-    item.future.set_result({"accepted": True, "state": "ENGAGED", "reason": "engaged"})
+    asker = _asker(box, OperatorRequest.ENGAGE, replies)
+    _wait_pending(box, 1)
+    taken = box.take()
+    assert taken.request == OperatorRequest.ENGAGE
+    taken.answer({"accepted": True, "state": "ENGAGED", "reason": "engaged"}, "ENGAGED")
     asker.join(timeout=2)
     assert replies == [{"accepted": True, "state": "ENGAGED", "reason": "engaged"}]
 
@@ -131,6 +138,44 @@ def test_request_box_answers_from_the_control_thread() -> None:
 def test_request_box_times_out_with_a_refusal() -> None:
     reply = RequestBox().submit(OperatorRequest.ENGAGE, timeout=0.01)
     assert reply["accepted"] is False and "did not answer" in reply["reason"]
+
+
+def test_abandoned_engage_is_never_executed_later() -> None:
+    # issue 17 finding 1: an engage whose client gave up ran when the loop got to it
+    box = RequestBox()
+    reply = box.submit(OperatorRequest.ENGAGE, timeout=0.01)
+    assert "withdrawn" in reply["reason"]
+    assert box.take().request is None
+
+
+def test_disengage_overtakes_and_supersedes_a_queued_engage() -> None:
+    # issue 17 finding 1: a stale engage re-engaged the car after the disengage had run
+    box = RequestBox()
+    replies: list[dict] = []
+    engages = [_asker(box, OperatorRequest.ENGAGE, replies) for _ in range(3)]
+    _wait_pending(box, 3)
+    stop = _asker(box, OperatorRequest.DISENGAGE, replies)
+    _wait_pending(box, 4)
+    taken = box.take()  # one control tick
+    assert taken.request == OperatorRequest.DISENGAGE
+    taken.answer({"accepted": True, "state": "STANDBY", "reason": "disengaged"}, "STANDBY")
+    for thread in (*engages, stop):
+        thread.join(timeout=2)
+    assert len(replies) == 4
+    assert sum(r["accepted"] for r in replies) == 1
+    assert all("superseded by a disengage" in r["reason"] for r in replies if not r["accepted"])
+    assert box.take().request is None  # nothing left to run after it
+
+
+def test_request_box_is_bounded() -> None:
+    box = RequestBox(length=2)
+    replies: list[dict] = []
+    threads = [_asker(box, OperatorRequest.ENGAGE, replies, timeout=0.5) for _ in range(2)]
+    _wait_pending(box, 2)
+    reply = box.submit(OperatorRequest.RESET, timeout=0.5)
+    assert reply["accepted"] is False and reply["reason"].startswith("busy")
+    for thread in threads:
+        thread.join(timeout=2)
 
 
 def test_tick_sends_steer_long_and_periodic_system_frames() -> None:

@@ -228,7 +228,7 @@ def test_refusal_and_disengage_come_back_as_replies(
 ) -> None:
     reset = client.request(configs[1], OperatorRequest.RESET, WAIT, session=tool)
     assert reset == {"accepted": False, "state": "STANDBY", "reason": "nothing to reset"}
-    disengage = client.request(configs[1], " Disengage\n", WAIT, session=tool)
+    disengage = client.request(configs[1], "disengage", WAIT, session=tool)
     assert disengage["accepted"] is True
     assert handler.requests == [OperatorRequest.RESET, OperatorRequest.DISENGAGE]
 

@@ -47,6 +47,7 @@ import numpy as np
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.gateway.core import Gateway, GatewayInputs, StepResult
 from leafgate.messages import (
+    STOP_REQUESTS,
     LongReport,
     OperatorRequest,
     Pose,
@@ -270,30 +271,113 @@ class _Request:
     future: Future[dict[str, Any]] = field(default_factory=Future)
 
 
-class RequestBox:
-    """Operator requests from the query thread to the control thread, answered with a reply."""
+REQUEST_BOX_LENGTH = 16  # requests waiting for the control thread; more are refused at once
 
-    def __init__(self) -> None:
-        self._queue: queue.SimpleQueue[_Request] = queue.SimpleQueue()
+
+@dataclass
+class TakenRequests:
+    """What the control thread takes from the :class:`RequestBox` in one tick.
+
+    ``chosen`` is executed by this tick's ``Gateway.step``; ``companions`` are further stops of
+    the same tick (they share its answer); ``superseded`` requests are refused unexecuted,
+    because a stop came in the same tick.
+    """
+
+    chosen: _Request | None = None
+    companions: list[_Request] = field(default_factory=list)
+    superseded: list[_Request] = field(default_factory=list)
+
+    @property
+    def request(self) -> OperatorRequest | None:
+        return self.chosen.request if self.chosen is not None else None
+
+    def answer(self, reply: dict[str, Any], state: str) -> None:
+        """Send ``reply`` to the chosen request and its companions, a refusal to the rest."""
+        for item in (self.chosen, *self.companions) if self.chosen is not None else ():
+            item.future.set_result(dict(reply))
+        for item in self.superseded:
+            item.future.set_result(
+                {
+                    "accepted": False,
+                    "state": state,
+                    "reason": f"{item.request.value} superseded by a disengage",
+                }
+            )
+
+
+class RequestBox:
+    """Operator requests from the query threads to the control thread, answered with a reply.
+
+    - A stop (``disengage``) wins: when one is pending, the control thread executes it in its
+      next tick and refuses every other pending request as superseded, so an engage queued
+      before a disengage can never run after it.
+    - A request whose caller gave up (``submit`` timed out) is withdrawn and never executed.
+    - At most ``length`` requests wait; more are refused at once.
+    """
+
+    def __init__(self, length: int = REQUEST_BOX_LENGTH) -> None:
+        self._lock = threading.Lock()
+        self._items: deque[_Request] = deque()
+        self._length = length
 
     def submit(self, request: OperatorRequest, timeout: float = REQUEST_TIMEOUT) -> dict[str, Any]:
-        """Block (on the caller's thread) until the control thread has decided."""
+        """Block (on the caller's thread) until the control thread has decided.
+
+        On timeout the request is withdrawn (never executed later) unless the control thread
+        is deciding it at that moment, in which case its decision is returned.
+        """
         item = _Request(request)
-        self._queue.put(item)
-        try:
-            return item.future.result(timeout=timeout)
-        except FutureTimeout:
+        with self._lock:
+            waiting = len(self._items)
+            if waiting < self._length:
+                self._items.append(item)
+        if waiting >= self._length:
             return {
                 "accepted": False,
                 "state": "UNKNOWN",
-                "reason": "control loop did not answer in time",
+                "reason": f"busy: {waiting} requests already wait for the control loop",
             }
-
-    def take(self) -> _Request | None:
         try:
-            return self._queue.get_nowait()
-        except queue.Empty:
-            return None
+            return item.future.result(timeout=timeout)
+        except FutureTimeout:
+            if item.future.cancel():
+                return {
+                    "accepted": False,
+                    "state": "UNKNOWN",
+                    "reason": "control loop did not answer in time (request withdrawn)",
+                }
+            return item.future.result()  # taken by this very tick: its answer comes at once
+
+    def __len__(self) -> int:
+        """Requests waiting (withdrawn ones included until the next take)."""
+        with self._lock:
+            return len(self._items)
+
+    def take(self) -> TakenRequests:
+        """The request to execute this tick (a pending stop first) and those it supersedes."""
+        taken = TakenRequests()
+        with self._lock:
+            items = list(self._items)
+            self._items.clear()
+            stops = [i for i in items if i.request in STOP_REQUESTS]
+            if not stops:
+                while items:
+                    item = items.pop(0)
+                    if item.future.set_running_or_notify_cancel():
+                        taken.chosen = item
+                        break
+                self._items.extend(items)  # one request per tick, in order
+                return taken
+        for item in items:
+            if not item.future.set_running_or_notify_cancel():
+                continue  # withdrawn by its caller
+            if item.request not in STOP_REQUESTS:
+                taken.superseded.append(item)
+            elif taken.chosen is None:
+                taken.chosen = item
+            else:
+                taken.companions.append(item)
+        return taken
 
 
 @dataclass
@@ -412,7 +496,7 @@ class Runtime:
     ) -> StepResult:
         """Read the slots, step the gateway, send the frames. Never raises for bus problems."""
         started = self.clock()
-        pending = self.requests.take() if request is None else None
+        pending = self.requests.take() if request is None else TakenRequests()
         good, bad = self.receiver.take_counts()
         foreign, foreign_names = self.receiver.take_foreign()
         bus_errors, self._bus_errors_pending = self._bus_errors_pending, 0
@@ -424,20 +508,21 @@ class Runtime:
             system_report=self.receiver.system.get(),
             good_report_frames=good,
             bad_report_frames=bad,
-            request=request if request is not None else (pending.request if pending else None),
+            request=request if request is not None else pending.request,
             overrun=overrun,
             bus_errors=bus_errors,
             foreign_command_frames=foreign,
             foreign_command_names=foreign_names,
         )
         result = self.gateway.step(now, inputs)
-        if pending is not None:
-            reply = result.reply
-            pending.future.set_result(
-                reply.to_dict()
-                if reply is not None
-                else {"accepted": False, "state": self.gateway.state.name, "reason": "no reply"}
-            )
+        state = self.gateway.state.name
+        reply = result.reply
+        pending.answer(
+            reply.to_dict()
+            if reply is not None
+            else {"accepted": False, "state": state, "reason": "no reply"},
+            state,
+        )
         frames = self._encode(result, now)
         sent = self.receiver.sent
         for frame in frames:
