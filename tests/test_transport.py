@@ -515,3 +515,112 @@ def test_prefix_must_be_a_plain_key_expression() -> None:
     with pytest.raises(ConfigError, match=r"leafgate.yaml: zenoh: prefix 'leaf/\*'"):
         from_mapping(ZenohConfig, {"prefix": "leaf/*"}, "leafgate.yaml", "zenoh")
     assert ZenohConfig(prefix="car/leaf").key(keys.ENGAGE) == "car/leaf/gateway/engage"
+
+
+# --- hostile operator requests (issue 17, findings 1 and 9) -------------------------------------
+
+
+def _raw_get(session: zenoh.Session, selector: str, payload: bytes | None) -> list[dict[str, Any]]:
+    replies = session.get(
+        selector, payload=payload, timeout=WAIT, consolidation=zenoh.ConsolidationMode.NONE
+    )
+    return [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+
+
+@pytest.mark.parametrize(
+    "payload", [b"ENGAGE", b"  eNgAgE \n\t", "\u00a0engage".encode(), b"engage\n", b"engage!"]
+)
+def test_requests_are_one_exact_word(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler, payload: bytes
+) -> None:
+    client.request(configs[1], "disengage", WAIT, session=tool)  # the queryable is known now
+    (reply,) = _raw_get(tool, configs[1].key(keys.ENGAGE), payload)
+    assert reply["accepted"] is False and "unknown request" in reply["reason"]
+    assert handler.requests == [OperatorRequest.DISENGAGE]
+
+
+def test_wildcard_query_never_resets_or_engages(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler
+) -> None:
+    client.request(configs[1], "disengage", WAIT, session=tool)
+    for payload in (b"reset", b"engage"):
+        (reply,) = _raw_get(tool, "leaf/**", payload)
+        assert reply["accepted"] is False and "exactly" in reply["reason"]
+    assert handler.requests == [OperatorRequest.DISENGAGE]
+
+
+def test_large_request_is_refused_without_echoing_it(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler
+) -> None:
+    client.request(configs[1], "disengage", WAIT, session=tool)
+    (reply,) = _raw_get(tool, configs[1].key(keys.ENGAGE), b"engage" * 200_000)
+    assert reply["accepted"] is False and "1200000 bytes" in reply["reason"]
+    assert len(json.dumps(reply)) < 300
+    assert handler.requests == [OperatorRequest.DISENGAGE]
+
+
+def test_disengage_overtakes_a_flood_of_engages(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler
+) -> None:
+    release = threading.Event()
+    original = handler.__call__
+
+    def slow(request: OperatorRequest) -> dict[str, Any]:
+        if request is OperatorRequest.ENGAGE:
+            release.wait(WAIT)  # the control thread has not decided yet
+        return original(request)
+
+    gateway._handler = slow
+    client.request(configs[1], "disengage", WAIT, session=tool)
+    flood = [
+        tool.get(configs[1].key(keys.ENGAGE), payload=b"engage", timeout=WAIT) for _ in range(50)
+    ]
+    try:
+        reply = client.request(configs[1], "disengage", WAIT, session=tool)
+        assert reply["accepted"] is True  # answered while the engage lane is still stuck
+    finally:
+        release.set()
+    answers = [json.loads(r.ok.payload.to_bytes()) for f in flood for r in f if r.ok is not None]
+    assert len(answers) == 50
+    # the one engage already with the handler ran; the queued ones were superseded or refused
+    assert sum(a["accepted"] for a in answers) <= 1
+    assert handler.requests.count(OperatorRequest.ENGAGE) <= 1
+    assert any("superseded by a disengage" in a["reason"] for a in answers)
+
+
+@pytest.fixture
+def impostor_and_tool(configs: Any) -> Iterator[tuple[zenoh.Session, zenoh.Session, ZenohConfig]]:
+    """A second session listening on its own port, and a tool connected to it and the gateway."""
+    port = free_port()
+    impostor = open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+    cfg = ZenohConfig(connect=(*configs[1].connect, f"tcp/127.0.0.1:{port}"))
+    tool = open_session(cfg)
+    yield impostor, tool, cfg
+    tool.close()
+    impostor.close()
+
+
+def test_tool_ignores_a_reply_from_a_session_without_the_gateway_token(
+    gateway: GatewayTransport, impostor_and_tool: Any
+) -> None:
+    impostor, tool, cfg = impostor_and_tool
+    key = cfg.key(keys.ENGAGE)
+    fake = impostor.declare_queryable(
+        key, lambda q: q.reply(key, b'{"accepted": true, "state": "ENGAGED", "reason": "fake"}')
+    )
+    assert wait_until(lambda: len(_raw_get(tool, key, b"disengage")) == 2)  # both answer
+    reply = client.request(cfg, "disengage", WAIT, session=tool)
+    assert reply["state"] == "STANDBY" and reply["reason"] == ""  # the gateway's own answer
+    assert [r["reply"]["reason"] for r in reply["ignored_replies"]] == ["fake"]
+    assert client.gateway_ids(cfg, tool, WAIT) == {str(gateway._session.info.zid())}
+    fake.undeclare()
+
+
+def test_tool_reports_a_second_session_claiming_to_be_the_gateway(
+    gateway: GatewayTransport, impostor_and_tool: Any, handler: Handler
+) -> None:
+    impostor, tool, cfg = impostor_and_tool
+    with GatewayTransport(impostor, cfg, handler):
+        assert wait_until(lambda: len(client.gateway_ids(cfg, tool, 1.0)) == 2)
+        reply = client.request(cfg, "disengage", WAIT, session=tool)
+        assert len(reply["conflicting_replies"]) == 1

@@ -476,7 +476,7 @@ class Runtime:
         self.inputs = inputs
         self.period = period
         self.publisher = publisher
-        self.requests = requests or RequestBox()
+        self.requests = requests if requests is not None else RequestBox()
         self.clock = clock
         self.on_tick = on_tick
         self.extra_diagnostics = extra_diagnostics
