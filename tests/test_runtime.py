@@ -318,3 +318,35 @@ def test_tools_connect_to_the_daemons_endpoint_instead_of_listening() -> None:
 
 if os.name != "posix":  # AF_UNIX datagram sockets
     pytest.skip("POSIX only", allow_module_level=True)
+
+
+def test_report_age_counts_from_the_frames_receive_timestamp() -> None:
+    # issue 17, finding 7: a starved receive thread made the ECU's reports look 31-54 ms old
+    codec = CanCodec()
+    receiver = CanReceiver(CanCodec(), lambda: 100.0, wall_clock=lambda: 5000.0)
+    msg = codec.encode(SteerReport(0.0, 0.0, 0.0, False, False, False, False))
+    msg.timestamp = 5000.0 - 0.045  # arrived 45 ms before the Notifier thread got to it
+    receiver.on_message_received(msg)
+    steer = receiver.steer.get()
+    assert steer is not None and steer.received == pytest.approx(100.0 - 0.045)
+    for stamp in (0.0, 5000.5, 5000.0 - 60.0):  # unset, in the future, implausibly old
+        msg = codec.encode(SteerReport(0.0, 0.0, 0.0, False, False, False, False))
+        msg.timestamp = stamp
+        receiver.on_message_received(msg)
+        steer = receiver.steer.get()
+        assert steer is not None and steer.received == 100.0
+
+
+def test_late_echo_after_a_stall_is_still_our_own() -> None:
+    # issue 17, finding 5: after a 4 s stall the gateway's own echoes counted as foreign
+    now, wall = [10.0], [1000.0]
+    codec = CanCodec()
+    receiver = CanReceiver(codec, lambda: now[0], wall_clock=lambda: wall[0])
+    frame = codec.encode(SteerCommand(0.0))
+    receiver.sent.add(frame, now[0])
+    echo = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+    echo.timestamp = wall[0] + 0.001  # arrived at once …
+    now[0] += 4.5  # … but the Notifier thread only gets to it 4.5 s later
+    wall[0] += 4.5
+    receiver.on_message_received(echo)
+    assert receiver.own_echoes == 1 and receiver.foreign_total == 0

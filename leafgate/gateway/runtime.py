@@ -70,6 +70,9 @@ REQUEST_TIMEOUT = 1.0  # s an operator request waits for the control thread
 # as foreign. A foreign frame byte-identical to one we sent within this window passes as ours.
 ECHO_WINDOW = 2.0
 FOREIGN_LOGGED = 20  # foreign frames logged one by one, then every thousandth
+# s, how far back a frame's own receive timestamp (python-can ``msg.timestamp``, wall clock) is
+# believed; a timestamp older than this, in the future or unset counts as "received now".
+TIMESTAMP_TRUST = 10.0
 
 
 class LatestSlot(Generic[T]):
@@ -166,9 +169,15 @@ class CanReceiver(can.Listener):
     any other is counted as foreign (and handed to the recorder hook, as evidence).
     """
 
-    def __init__(self, codec: CanCodec, clock: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        codec: CanCodec,
+        clock: Callable[[], float],
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
         self.codec = codec
         self.clock = clock
+        self.wall_clock = wall_clock
         self.command_ids = codec.receive_ids("commands")
         self.sent = SentFrames()
         self.own_echoes = 0  # echoes of our own frames received (udp_multicast delivers them)
@@ -184,8 +193,23 @@ class CanReceiver(can.Listener):
         self._bad = 0
         self.on_frame: Callable[[can.Message, Decoded], None] | None = None  # recorder hook
 
-    def on_message_received(self, msg: can.Message) -> None:
+    def received_at(self, msg: can.Message) -> float:
+        """When ``msg`` arrived, on :attr:`clock`: from its receive timestamp, not from now.
+
+        python-can stamps a frame when the interface receives it (the kernel's timestamp on
+        SocketCAN, the datagram's arrival on ``udp_multicast``), on the wall clock. A Notifier
+        thread that gets to a frame late must not make the ECU's report look stale (issue 17,
+        finding 7), nor the echo of our own frame look foreign after a stall: the frame's age
+        is taken from its timestamp and subtracted from now on the monotonic clock.
+        """
         now = self.clock()
+        age = self.wall_clock() - msg.timestamp
+        if msg.timestamp > 0.0 and 0.0 <= age <= TIMESTAMP_TRUST:
+            return now - age
+        return now
+
+    def on_message_received(self, msg: can.Message) -> None:
+        now = self.received_at(msg)
         if msg.arbitration_id in self.command_ids and not msg.is_extended_id:
             if self.sent.take(msg, now):
                 self.own_echoes += 1
