@@ -144,6 +144,25 @@ def test_overrun_three_ticks_in_a_row_faults() -> None:
     assert wd.update(True).reaction is Reaction.FAULT
 
 
+def test_one_long_stall_faults_although_it_is_one_overrun() -> None:
+    # issue 17, finding 5: a 4.36 s tick counted as one overrun and never faulted
+    wd = OverrunWatchdog(3, stall_limit=0.1)
+    assert wd.update(True, 0.09).ok
+    check = wd.update(True, 4.36)
+    assert check.reaction is Reaction.FAULT and "stalled 4.360 s > 0.1 s" in check.detail
+
+
+def test_gateway_faults_on_a_stalled_tick() -> None:
+    rig = Rig()
+    rig.engage()
+    limit = GatewayConfig().watchdog.max_stall_periods * PERIOD
+    rig.step(overrun=True, lateness=limit * 0.9)
+    assert rig.state == GatewayState.ENGAGED
+    rig.step(overrun=True, lateness=4.36)
+    assert rig.state == GatewayState.FAULT
+    assert "control loop stalled" in rig.gw.machine.fault_reason
+
+
 # --- the reactions in the gateway, in simulated time -------------------------------------------
 
 

@@ -30,6 +30,10 @@ class WatchdogConfig:
     report_timeout_periods: float = 3.0  # report periods; an older report → FAULT
     max_report_errors: int = 5  # bad-frame counter (+1 bad, −1 good, floor 0) at which → FAULT
     max_overruns: int = 3  # consecutive late control ticks → FAULT
+    # One tick that starts later than this many periods → FAULT (a single long stall counts as
+    # one overrun only, so max_overruns alone would never see it). 5 periods = 100 ms at 50 Hz,
+    # the ECU's command timeout: a longer stall has already left the ECU without commands.
+    max_stall_periods: float = 5.0
 
     def __post_init__(self) -> None:
         positive(
@@ -42,6 +46,7 @@ class WatchdogConfig:
             "report_timeout_periods",
             "max_report_errors",
             "max_overruns",
+            "max_stall_periods",
         )
         if self.trajectory_max_age is not None:
             positive(self, "trajectory_max_age")

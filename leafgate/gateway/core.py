@@ -104,6 +104,7 @@ class GatewayInputs:
     bad_report_frames: int = 0  # report frames with bad CRC/counter/length since the last step
     request: OperatorRequest | None = None  # pending operator request
     overrun: bool = False  # this tick started late (the period was exceeded)
+    lateness: float = 0.0  # s this tick started after its deadline (a stall when long)
     bus_errors: int = 0  # command frames that could not be encoded or sent since the last step
     foreign_command_frames: int = 0  # frames on our command IDs we did not send, since last step
     foreign_command_names: tuple[str, ...] = ()  # their DBC names (for the fault reason)
@@ -257,7 +258,7 @@ class Gateway:
         self.mode = mode
         self.limits = SafetyLimits.from_config(config.safety, vehicle, config.period)
         self.gate = SafetyGate(self.limits)
-        self.watchdogs = Watchdogs(config.watchdog)
+        self.watchdogs = Watchdogs(config.watchdog, config.period)
         self.machine = EngagementMachine()
         self._phase = EngagePhase.IDLE
         self._phase_since = 0.0  # s, when the current engage phase began
@@ -300,6 +301,7 @@ class Gateway:
             inputs.good_report_frames,
             inputs.bad_report_frames,
             inputs.overrun,
+            inputs.lateness,
         )
         reports = self._reports(wd)  # once per tick: several decisions below read the flags
         measured = self._measured(wd)

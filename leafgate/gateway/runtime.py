@@ -516,7 +516,11 @@ class Runtime:
     # -- one tick ----------------------------------------------------------------------------
 
     def tick(
-        self, now: float, overrun: bool = False, request: OperatorRequest | None = None
+        self,
+        now: float,
+        overrun: bool = False,
+        request: OperatorRequest | None = None,
+        lateness: float = 0.0,
     ) -> StepResult:
         """Read the slots, step the gateway, send the frames. Never raises for bus problems."""
         started = self.clock()
@@ -534,6 +538,7 @@ class Runtime:
             bad_report_frames=bad,
             request=request if request is not None else pending.request,
             overrun=overrun,
+            lateness=lateness,
             bus_errors=bus_errors,
             foreign_command_frames=foreign,
             foreign_command_names=foreign_names,
@@ -661,7 +666,7 @@ class Runtime:
                     self.stats.skipped += missed
                     k += missed
                 self.stats.lateness.append(max(0.0, lateness))
-                self.tick(now, overrun=overrun)
+                self.tick(now, overrun=overrun, lateness=lateness)
                 if not ready_sent and on_ready is not None:
                     on_ready()
                     ready_sent = True

@@ -345,18 +345,30 @@ class ErrorCounter:
 
 
 class OverrunWatchdog:
-    """Control loop overruns: ``max_overruns`` late ticks in a row → FAULT."""
+    """Control loop overruns: ``max_overruns`` late ticks in a row, or one tick that started
+    more than ``stall_limit`` s late → FAULT."""
 
     name = "overrun"
 
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: int, stall_limit: float = math.inf) -> None:
         self.limit = limit
+        self.stall_limit = stall_limit  # s
         self.in_row = 0
         self._ok: Check | None = None  # the last OK verdict, reused while in_row is unchanged
 
-    def update(self, overrun: bool) -> Check:
-        """Count this tick (``overrun``: it started late)."""
+    def update(self, overrun: bool, lateness: float = 0.0) -> Check:
+        """Count this tick (``overrun``: it started late, by ``lateness`` s)."""
         self.in_row = self.in_row + 1 if overrun else 0
+        if lateness > self.stall_limit + TIME_EPS:
+            return Check(
+                self.name,
+                Status.OVERRUN,
+                lateness,
+                self.stall_limit,
+                Reaction.FAULT,
+                f"control loop stalled {lateness:.3f} s > {self.stall_limit:g} s",
+                self.in_row,
+            )
         if self.in_row >= self.limit:
             return Check(
                 self.name,
@@ -445,7 +457,7 @@ class Watchdogs:
 
     REPORTS: tuple[str, ...] = ("steer_report", "long_report", "system_report")
 
-    def __init__(self, config: WatchdogConfig) -> None:
+    def __init__(self, config: WatchdogConfig, period: float = math.inf) -> None:
         self.config = config
         self.pose = PoseWatchdog(config)
         self.trajectory = TrajectoryWatchdog(config)
@@ -460,7 +472,7 @@ class Watchdogs:
             "system_report", config.system_report_period, n
         )
         self.errors = ErrorCounter(config.max_report_errors)
-        self.overrun = OverrunWatchdog(config.max_overruns)
+        self.overrun = OverrunWatchdog(config.max_overruns, config.max_stall_periods * period)
 
     def update(
         self,
@@ -473,6 +485,7 @@ class Watchdogs:
         good_frames: int,
         bad_frames: int,
         overrun: bool,
+        lateness: float = 0.0,
     ) -> WatchdogReport:
         """Feed one tick's inputs to every watchdog."""
         checks = (  # in CHECK_ORDER
@@ -482,7 +495,7 @@ class Watchdogs:
             self.long.update(now, long),
             self.system.update(now, system),
             self.errors.update(good_frames, bad_frames),
-            self.overrun.update(overrun),
+            self.overrun.update(overrun, lateness),
         )
         return WatchdogReport(
             checks=checks,
