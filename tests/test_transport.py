@@ -211,6 +211,24 @@ def test_undecodable_trajectory_is_counted_and_the_last_good_kept(
     assert gateway.latest_trajectory() is before
 
 
+def test_oversized_plan_and_payload_are_refused_with_their_reason(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any
+) -> None:
+    # issue 17, finding 5: a 10⁶-point plan stalled a tick 4.36 s, a 15 MB payload 140-180 ms
+    key = configs[1].key(keys.TRAJECTORY)
+    client.publish_trajectory(configs[1], straight(4), session=tool)
+    assert wait_until(lambda: gateway.latest_trajectory() is not None)
+    before = gateway.latest_trajectory()
+    limit = configs[0].max_plan_points
+    tool.put(key, codecs("cdr").trajectory.encode(straight(limit + 1)))
+    assert wait_until(lambda: gateway.decode_errors[key] == 1)
+    assert f"plan of {limit + 1} points > {limit}" in gateway.last_errors[key]
+    tool.put(key, bytes(configs[0].max_payload_bytes + 1))
+    assert wait_until(lambda: gateway.decode_errors[key] == 2)
+    assert "max_payload_bytes" in gateway.last_errors[key]
+    assert gateway.latest_trajectory() is before
+
+
 # --- engage queryable -----------------------------------------------------------------------
 
 

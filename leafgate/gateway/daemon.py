@@ -201,6 +201,8 @@ def run_daemon(
             on_tick=recording.on_tick,
             extra_diagnostics=lambda: {
                 "zenoh_decode_errors": transport.decode_errors,
+                "zenoh_last_errors": transport.last_errors,
+                "engage_refused_unheard": transport.request_refusals,
                 "zenoh_invalid_samples": transport.invalid_samples,
                 "recording": recording.diagnostics(),
             },

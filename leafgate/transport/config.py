@@ -55,9 +55,14 @@ class ZenohConfig:
     extra: dict[str, str] = field(default_factory=dict)
     query_timeout: float = 2.0  # s, how long a tool waits for the gateway's answer
     express: bool = True  # publish without batching: lower latency for the 50 Hz statuses
+    # Input bounds (issue 17, finding 5): a larger payload is dropped before it is decoded; a
+    # plan with more points is refused (the controller's reference is built from every point;
+    # a 10⁶-point plan made one tick last 4.36 s). The scenarios have at most 143 points.
+    max_payload_bytes: int = 1_000_000
+    max_plan_points: int = 2000
 
     def __post_init__(self) -> None:
-        positive(self, "query_timeout")
+        positive(self, "query_timeout", "max_payload_bytes", "max_plan_points")
         prefix = self.prefix
         if (
             not prefix

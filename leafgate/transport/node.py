@@ -189,7 +189,8 @@ def pose_is_valid(pose: Pose) -> bool:
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
     """A decoded trajectory is usable when it has points and all of them are finite.
 
-    Spacing and shape are checked by the controller's reference code, not here.
+    Spacing and shape are checked by the controller's reference code, not here; the plan-size
+    bound by the subscriber (a plan above it is dropped with its reason).
     """
     if len(trajectory) == 0:
         return False
@@ -416,8 +417,15 @@ class GatewayTransport:
         clock = self._clock
         typename_or_none = typename if self._cfg.encoding == "cdr" else None
 
+        max_bytes = self._cfg.max_payload_bytes
+        max_points = self._cfg.max_plan_points
+
         def on_sample(sample: zenoh.Sample) -> None:
             received = clock()  # before decoding: the age counts from arrival
+            size = len(sample.payload)
+            if size > max_bytes:  # refused before it is copied or decoded
+                slot.count_error(f"payload of {size} bytes > {max_bytes} (max_payload_bytes)")
+                return
             payload = sample.payload.to_bytes()
             if self.on_raw is not None:
                 try:
@@ -429,6 +437,9 @@ class GatewayTransport:
                 ok = valid(value)
             except Exception as exc:  # PayloadError, or a bug: never raise into Zenoh
                 slot.count_error(str(exc))
+                return
+            if isinstance(value, Trajectory) and len(value) > max_points:
+                slot.count_error(f"plan of {len(value)} points > {max_points} (max_plan_points)")
                 return
             slot.put(Stamped(value, received, valid=ok))
 
@@ -446,6 +457,14 @@ class GatewayTransport:
     def decode_errors(self) -> dict[str, int]:
         """Dropped payloads per input key."""
         return {self.pose.key: self.pose.errors, self.trajectory.key: self.trajectory.errors}
+
+    @property
+    def last_errors(self) -> dict[str, str]:
+        """Why the last dropped payload of each input key was dropped ("" if none was)."""
+        return {
+            self.pose.key: self.pose.last_error,
+            self.trajectory.key: self.trajectory.last_error,
+        }
 
     @property
     def invalid_samples(self) -> dict[str, int]:
