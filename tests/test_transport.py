@@ -141,13 +141,14 @@ def test_localization_fills_the_slot_with_its_receive_time(
     with client.OdometryPublisher(tool, configs[1]) as publisher:
         assert publisher.wait_for_subscriber(WAIT)
         clock.now = 123.25
-        publisher.publish(Pose(x=3.0, y=-1.0, heading=0.4, speed=-0.5, yaw_rate=0.1), stamp=77.0)
+        stamp = 1_700_000_000.5 - 0.01  # within max_clock_offset of the gateway's wall clock
+        publisher.publish(Pose(x=3.0, y=-1.0, heading=0.4, speed=-0.5, yaw_rate=0.1), stamp=stamp)
         assert wait_until(lambda: gateway.latest_pose() is not None)
     sample = gateway.latest_pose()
     assert sample is not None and sample.valid
     assert sample.received == 123.25  # from the injected clock, not the sender's stamp
     pose = sample.value
-    assert (pose.x, pose.y, pose.speed, pose.yaw_rate, pose.stamp) == (3.0, -1.0, -0.5, 0.1, 77.0)
+    assert (pose.x, pose.y, pose.speed, pose.yaw_rate, pose.stamp) == (3.0, -1.0, -0.5, 0.1, stamp)
     assert pose.heading == pytest.approx(0.4, abs=1e-12)
     assert gateway.pose.received == 1
 
@@ -642,3 +643,23 @@ def test_tool_reports_a_second_session_claiming_to_be_the_gateway(
         assert wait_until(lambda: len(client.gateway_ids(cfg, tool, 1.0)) == 2)
         reply = client.request(cfg, "disengage", WAIT, session=tool)
         assert len(reply["conflicting_replies"]) == 1
+
+
+def test_old_header_stamp_ages_the_pose_and_a_future_one_invalidates_it(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, clock: FakeClock
+) -> None:
+    # issue 17, finding 3: poses 400 ms old by their stamps were taken as fresh
+    wall = 1_700_000_000.5  # the fixture's stamp clock
+    offset = configs[0].max_clock_offset
+    clock.now = 50.0
+    with client.OdometryPublisher(tool, configs[1]) as publisher:
+        assert publisher.wait_for_subscriber(WAIT)
+        publisher.publish(Pose(x=1.0, y=0.0, heading=0.0, speed=0.0), stamp=wall - 0.4)
+        assert wait_until(lambda: gateway.latest_pose() is not None)
+        sample = gateway.latest_pose()
+        assert sample is not None and sample.valid
+        assert sample.received == pytest.approx(50.0 - (0.4 - offset))
+        publisher.publish(Pose(x=1.0, y=0.0, heading=0.0, speed=0.0), stamp=wall + 0.5)
+        assert wait_until(lambda: gateway.pose.received == 2)
+    sample = gateway.latest_pose()
+    assert sample is not None and not sample.valid

@@ -9,7 +9,7 @@ import math
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from test_gateway_core import PERIOD, FakeController, Rig
+from test_gateway_core import PERIOD, FakeController, Rig, cruise
 
 from leafgate.gateway.config import GatewayConfig, WatchdogConfig
 from leafgate.gateway.watchdog import (
@@ -216,9 +216,58 @@ def test_position_jump_faults_in_the_same_tick() -> None:
 def test_small_position_correction_is_no_jump() -> None:
     rig = Rig()
     rig.engage()
-    rig.pose_offset = (0.0, 0.8)
+    rig.pose_offset = (0.0, 0.15)  # below localization_max_drift as well
     rig.run(0.2)
     assert rig.state == GatewayState.ENGAGED
+
+
+def test_a_correction_below_the_jump_limit_still_disagrees_with_dead_reckoning() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.pose_offset = (0.0, 0.8)  # no jump (< 1 m), but the wheels did not move the car 0.8 m
+    rig.step()
+    assert rig.state == GatewayState.FAULT
+    assert "dead reckoning" in rig.results[-1].diagnostics.fault
+
+
+def test_localization_drifting_2_cm_per_sample_faults_before_0_3_m() -> None:
+    # issue 17, finding 3: a second publisher drifting 2 cm per sample moved the car 3.9 m
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(1.0)
+    assert rig.state == GatewayState.ENGAGED
+    drift = 0.0
+    while rig.state == GatewayState.ENGAGED and drift < 1.0:
+        drift += 0.02
+        rig.pose_offset = (0.0, drift)
+        rig.step()
+    assert rig.state == GatewayState.FAULT
+    assert "dead reckoning" in rig.results[-1].diagnostics.fault
+    assert drift < 0.3
+
+
+def test_second_localization_source_half_a_metre_off_faults_within_half_a_second() -> None:
+    # issue 17, finding 3: a constant 0.5 m second source was never detected
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(1.0)
+    started = rig.now
+    for k in range(50):
+        rig.pose_offset = (0.0, 0.5 * (k % 2))
+        rig.step()
+        if rig.state == GatewayState.FAULT:
+            break
+    assert rig.state == GatewayState.FAULT
+    assert "dead reckoning" in rig.results[-1].diagnostics.fault
+    assert rig.now - started <= 0.5
+
+
+def test_localization_agreeing_with_dead_reckoning_is_no_drift() -> None:
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(3.0)
+    assert rig.state == GatewayState.ENGAGED
+    assert rig.gw.watchdogs.pose.drift < 0.01
 
 
 @pytest.mark.parametrize("report, period", [("steer", 0.010), ("long", 0.020), ("system", 0.100)])

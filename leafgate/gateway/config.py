@@ -20,6 +20,11 @@ class WatchdogConfig:
     localization_stop_age: float = 0.100  # s, localization older than this → STOPPING
     localization_fault_age: float = 0.500  # s, localization older than this → FAULT
     localization_max_jump: float = 1.0  # m, position jump in one sample → FAULT
+    # m, localization's displacement over localization_drift_window s may differ from dead
+    # reckoning on the ECU's measured speed by this much; more → FAULT (a spoofed or second
+    # localization source: a 2 cm-per-sample drift is caught at 0.2 m, before 0.3 m off path).
+    localization_max_drift: float = 0.2
+    localization_drift_window: float = 1.0  # s
     # s, a trajectory older than this cannot be engaged on; None: a plan never goes stale (for
     # planners that publish a parking maneuver once). While engaged, the accepted plan is followed.
     trajectory_max_age: float | None = 1.0
@@ -41,6 +46,8 @@ class WatchdogConfig:
             "localization_stop_age",
             "localization_fault_age",
             "localization_max_jump",
+            "localization_max_drift",
+            "localization_drift_window",
             "steer_report_period",
             "long_report_period",
             "report_timeout_periods",

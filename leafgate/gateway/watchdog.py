@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Generic, NamedTuple, TypeVar
 
@@ -52,6 +53,7 @@ class Status(enum.Enum):
     STALE = "stale"  # older than the stop threshold
     LOST = "lost"  # older than the fault threshold
     JUMP = "jump"  # implausible change in one sample
+    INCONSISTENT = "inconsistent"  # disagrees with dead reckoning from the ECU's reports
     ERRORS = "errors"  # error counter at or above its threshold
     OVERRUN = "overrun"  # too many late ticks in a row
 
@@ -156,25 +158,86 @@ class _SlotWatchdog(Generic[T]):
         return Status.INVALID if self.seen_invalid else Status.MISSING
 
 
+class DeadReckoning:
+    """Localization's displacement against dead reckoning, over a sliding window.
+
+    Each new sample advances a dead-reckoned point by the ECU's measured speed along the
+    sample's heading over the time since the previous sample (sender stamps when both have
+    them, else receive times). Over the window, the localization's displacement and the dead
+    reckoning's must agree: the sum telescopes, so the localization's own noise counts once at
+    each end, not per sample, while a source that drifts a little every sample, or a second
+    source interleaved with the first, shows as the difference.
+    """
+
+    def __init__(self, window: float) -> None:
+        self.window = window  # s
+        # (t, x, y, heading) of each sample and the dead-reckoned point (dx, dy) at it
+        self._points: deque[tuple[float, float, float, float, float, float]] = deque()
+
+    def reset(self) -> None:
+        self._points.clear()
+
+    def add(self, sample: Stamped[Pose], speed: float | None) -> tuple[float, float]:
+        """Take a new sample; (disagreement m, span s) of the window, (0, 0) without speed."""
+        pose = sample.value
+        points = self._points
+        if speed is None or not math.isfinite(speed):
+            points.clear()
+            return 0.0, 0.0
+        t = pose.stamp if math.isfinite(pose.stamp) else sample.received
+        if points:
+            t0, _, _, h0, dx0, dy0 = points[-1]
+            t = max(t, t0)  # out-of-order stamps advance nothing (their position still counts)
+            step = speed * min(t - t0, self.window)
+            h = math.atan2(
+                math.sin(h0) + math.sin(pose.heading), math.cos(h0) + math.cos(pose.heading)
+            )
+            dx, dy = dx0 + step * math.cos(h), dy0 + step * math.sin(h)
+        else:
+            dx = dy = 0.0
+        points.append((t, pose.x, pose.y, pose.heading, dx, dy))
+        while t - points[0][0] > self.window:
+            points.popleft()
+        first, last = points[0], points[-1]
+        error = math.hypot(
+            (last[1] - first[1]) - (last[4] - first[4]), (last[2] - first[2]) - (last[5] - first[5])
+        )
+        return error, last[0] - first[0]
+
+
+def _measured_speed(long: Stamped[LongReport] | None) -> float | None:
+    """The ECU's measured speed of a valid report, m/s, else None."""
+    return long.value.speed if long is not None and long.valid else None
+
+
 class PoseWatchdog(_SlotWatchdog[Pose]):
-    """Localization: age (stop, then fault) and position jumps."""
+    """Localization: age (stop, then fault), position jumps, and agreement with dead
+    reckoning from the ECU's measured speed (:class:`DeadReckoning`)."""
 
     name = "localization"
 
     def __init__(self, config: WatchdogConfig) -> None:
         super().__init__()
         self.config = config
+        self.dead_reckoning = DeadReckoning(config.localization_drift_window)
+        self.drift = 0.0  # m, the last disagreement with dead reckoning
 
     def _is_valid(self, sample: Stamped[Pose]) -> bool:
         return pose_is_valid(sample.value)
 
-    def update(self, now: float, sample: Stamped[Pose] | None) -> Check:
-        """Feed this tick's slot content and judge it."""
+    def update(self, now: float, sample: Stamped[Pose] | None, speed: float | None = None) -> Check:
+        """Feed this tick's slot content and judge it.
+
+        :param speed: the ECU's measured speed, m/s (None: no report, no dead reckoning)
+        """
         cfg = self.config
         previous = self.last
         jump: float | None = None
-        if self._take(sample) and previous is not None and self.last is not None:
-            jump = position_jump(previous, self.last)
+        span = 0.0
+        if self._take(sample) and self.last is not None:
+            if previous is not None:
+                jump = position_jump(previous, self.last)
+            self.drift, span = self.dead_reckoning.add(self.last, speed)
         if self.last is None:
             status = self._missing_status()
             return Check(
@@ -195,6 +258,17 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
                 Reaction.FAULT,
                 f"localization jumped {jump:.2f} m > {cfg.localization_max_jump:g} m in one sample",
                 jump,
+            )
+        if span > 0.0 and self.drift > cfg.localization_max_drift:
+            return Check(
+                self.name,
+                Status.INCONSISTENT,
+                age,
+                cfg.localization_max_drift,
+                Reaction.FAULT,
+                f"localization disagrees with dead reckoning by {self.drift:.2f} m over "
+                f"{span:.2f} s (> {cfg.localization_max_drift:g} m): spoofed or second source?",
+                self.drift,
             )
         status = freshness(age, cfg.localization_stop_age, cfg.localization_fault_age)
         if status is Status.LOST:
@@ -489,7 +563,7 @@ class Watchdogs:
     ) -> WatchdogReport:
         """Feed one tick's inputs to every watchdog."""
         checks = (  # in CHECK_ORDER
-            self.pose.update(now, pose),
+            self.pose.update(now, pose, _measured_speed(long)),
             self.trajectory.update(now, trajectory),
             self.steer.update(now, steer),
             self.long.update(now, long),

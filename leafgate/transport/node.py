@@ -419,6 +419,8 @@ class GatewayTransport:
 
         max_bytes = self._cfg.max_payload_bytes
         max_points = self._cfg.max_plan_points
+        max_offset = self._cfg.max_clock_offset
+        stamp_clock = self._stamp_clock
 
         def on_sample(sample: zenoh.Sample) -> None:
             received = clock()  # before decoding: the age counts from arrival
@@ -441,6 +443,13 @@ class GatewayTransport:
             if isinstance(value, Trajectory) and len(value) > max_points:
                 slot.count_error(f"plan of {len(value)} points > {max_points} (max_plan_points)")
                 return
+            if isinstance(value, Pose) and math.isfinite(value.stamp):
+                # The measurement's age by its header stamp counts as well as the arrival's.
+                lag = stamp_clock() - value.stamp
+                if lag > max_offset:
+                    received -= lag - max_offset
+                elif lag < -max_offset:
+                    ok = False  # from the future: the sender's clock is off, or the stamp forged
             slot.put(Stamped(value, received, valid=ok))
 
         return on_sample
