@@ -4,6 +4,7 @@ threshold."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -26,7 +27,15 @@ from leafgate.gateway.watchdog import (
     position_jump,
     update_error_counter,
 )
-from leafgate.messages import ControlOutput, GatewayState, OperatorRequest, Pose, Stamped
+from leafgate.messages import (
+    ControlOutput,
+    GatewayState,
+    OperatorRequest,
+    Pose,
+    Stamped,
+    SteeringWheelAngle,
+    WheelSpeeds,
+)
 
 CFG = WatchdogConfig()
 
@@ -404,3 +413,56 @@ def test_diagnostics_list_every_watchdog_in_check_order() -> None:
     names = [c.name for c in rig.step().diagnostics.watchdogs]
     assert names == list(CHECK_ORDER)
     assert rig.step().diagnostics.watchdogs[CHECK_ORDER.index("long_report")].ok
+
+
+# --- ECU reports judged (issue 17, finding 4) ---------------------------------------------------
+
+
+def _forged_long(rig: Rig, speed: float) -> Stamped:
+    genuine = rig.ecu.long_report()
+    return Stamped(dataclasses.replace(genuine, speed=speed), rig.now)
+
+
+def test_forged_speed_disagreeing_with_the_wheel_speeds_faults() -> None:
+    # 20 m/s forged while the car does 2 m/s: never detected before, the gate took it for truth
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(1.0)
+    wheels = Stamped(WheelSpeeds(rig.ecu.speed, rig.ecu.speed, "rear"), rig.now)
+    rig.step(wheel_speeds=wheels)
+    assert rig.state == GatewayState.ENGAGED  # genuine reports agree
+    wheels = Stamped(WheelSpeeds(rig.ecu.speed, rig.ecu.speed, "rear"), rig.now)
+    rig.step(wheel_speeds=wheels, long_report=_forged_long(rig, 20.0))
+    assert rig.state == GatewayState.FAULT
+    assert "disagrees with the rear wheel speeds" in rig.results[-1].diagnostics.fault
+
+
+def test_forged_angle_disagreeing_with_the_steering_wheel_faults() -> None:
+    rig = Rig()
+    rig.run(0.2)
+    steer = Stamped(dataclasses.replace(rig.ecu.steer_report(), angle=math.radians(20)), rig.now)
+    wheel = Stamped(SteeringWheelAngle(0.0), rig.now)
+    rig.step(steer_report=steer, steering_wheel=wheel)
+    assert rig.state == GatewayState.FAULT  # in any state, like report errors
+    assert "disagrees with the steering wheel" in rig.results[-1].diagnostics.fault
+
+
+def test_angle_beyond_the_mechanical_limit_is_never_taken_as_measured() -> None:
+    # 40° forged in STANDBY seeded the gate at 31°: the first engaged command was 30.3°
+    rig = Rig()
+    rig.run(0.2)
+    forged = Stamped(dataclasses.replace(rig.ecu.steer_report(), angle=math.radians(40)), rig.now)
+    result = rig.step(steer_report=forged)
+    assert abs(result.commands.steer.angle) < math.radians(1.0)  # mirrors the last good angle
+    for _ in range(10):  # the same forged report, tick after tick, counts once
+        result = rig.step(steer_report=forged)
+    assert rig.state == GatewayState.STANDBY
+
+
+def test_speed_beyond_the_physical_limit_is_invalid() -> None:
+    rig = Rig()
+    rig.engage()
+    for _ in range(6):  # 120 ms of forged reports: none refreshes the long report's age
+        rig.step(long_report=_forged_long(rig, 60.0))
+    assert rig.state == GatewayState.FAULT
+    assert "long_report age" in rig.results[-1].diagnostics.fault

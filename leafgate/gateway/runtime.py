@@ -253,6 +253,11 @@ class CanReceiver(can.Listener):
             else:
                 self.car.setdefault(type(value).__name__, LatestSlot()).set(Stamped(value, now))
 
+    def car_value(self, kind: str) -> Stamped[Any] | None:
+        """The latest CAR-CAN value of a message type (``"WheelSpeeds"`` …), None if none yet."""
+        slot = self.car.get(kind)
+        return slot.get() if slot is not None else None
+
     def take_counts(self) -> tuple[int, int]:
         """Good and bad report frames since the last call."""
         with self._lock:
@@ -542,6 +547,8 @@ class Runtime:
             bus_errors=bus_errors,
             foreign_command_frames=foreign,
             foreign_command_names=foreign_names,
+            wheel_speeds=self.receiver.car_value("WheelSpeeds"),
+            steering_wheel=self.receiver.car_value("SteeringWheelAngle"),
         )
         result = self.gateway.step(now, inputs)
         state = self.gateway.state.name
