@@ -19,6 +19,11 @@ For every frame of the log (any python-can format, or a session's ``/can`` topic
    is reported as that even when a rate bound is nearer; across a gap the rate bounds allow
    the time that passed.
 
+4. judge every ECU report as the gateway does (:mod:`leafgate.gateway.plausibility`, the same
+   functions): a report out of the physical range, or disagreeing with the CAR-CAN wheel speeds
+   or steering-wheel angle recorded within ``MAX_SKEW`` of it, is a ``report`` finding (one per
+   stretch of disagreement), and an out-of-range speed is never used as the measured state.
+
 Tolerances are 1.5 quantisation steps of the command signal (read from the DBC): the gate
 bounds the float command, the frame carries it rounded.
 
@@ -41,8 +46,18 @@ import can
 import numpy as np
 
 from leafgate.can.codec import CanCodec, FrameStats
+from leafgate.config import VehicleConfig
+from leafgate.gateway.plausibility import MAX_SKEW, cross_check, report_range_error
 from leafgate.gateway.safety import Measured, SafetyLimits, Violation, apply_limits, check
-from leafgate.messages import Gear, LongCommand, LongReport, SteerCommand
+from leafgate.messages import (
+    Gear,
+    LongCommand,
+    LongReport,
+    SteerCommand,
+    SteeringWheelAngle,
+    SteerReport,
+    WheelSpeeds,
+)
 from leafgate.replay.logs import FrameSource, is_session
 from leafgate.replay.session import SessionReader
 from leafgate.settings import LeafgateConfig, load_config
@@ -237,6 +252,7 @@ def check_frames(
     dbw_dbc: str | None = None,
     car_dbc: str | None = None,
     progress: _Progress | None = None,
+    vehicle: VehicleConfig | None = None,
 ) -> CheckReport:
     """Check a sequence of frames (the core of :func:`check_log`; see the module notes).
 
@@ -256,6 +272,8 @@ def check_frames(
     steer_time = long_time = -math.inf  # s, timestamps of the last steer / long command frames
     invalid_before: set[int] = set()  # IDs whose previous frame was invalid (bad CRC, length)
     long_report: LongReport | None = None
+    vehicle = vehicle or VehicleConfig()
+    judge = _ReportJudge(vehicle)
     engaged = 0
     n = 0
     first = last = math.nan
@@ -291,8 +309,13 @@ def check_frames(
             continue
         invalid_before.discard(frame_id)
         value = decoded.value
-        if isinstance(value, LongReport):
-            long_report = value
+        if isinstance(value, (SteerReport, LongReport, WheelSpeeds, SteeringWheelAngle)):
+            plausible = judge.take(t, frame_id, decoded.name or "", value)
+            if isinstance(value, LongReport) and plausible:
+                long_report = value
+            limit_findings.extend(judge.findings)
+            judge.findings.clear()
+            continue
         elif isinstance(value, SteerCommand):
             if value.enable:
                 engaged += 1
@@ -359,6 +382,49 @@ def check_frames(
         findings=findings,
         elapsed=time.perf_counter() - t_start,
     )
+
+
+class _ReportJudge:
+    """The gateway's report plausibility checks over a log: one finding per stretch."""
+
+    def __init__(self, vehicle: VehicleConfig) -> None:
+        self.vehicle = vehicle
+        self.latest: dict[type, tuple[float, Any]] = {}  # type → (t, value) of the last good one
+        self.findings: list[Finding] = []
+        self._range_bad: dict[type, bool] = {}  # the last report of the type was out of range
+        self._disagreeing: set[str] = set()  # cross-checks failing now
+
+    def _near(self, kind: type, t: float) -> Any:
+        entry = self.latest.get(kind)
+        return entry[1] if entry is not None and abs(t - entry[0]) <= MAX_SKEW else None
+
+    def take(self, t: float, frame_id: int, name: str, value: Any) -> bool:
+        """Judge one report or CAR-CAN frame; False when the value is out of range."""
+        kind = type(value)
+        error = (
+            report_range_error(value, self.vehicle)
+            if isinstance(value, (SteerReport, LongReport))
+            else None
+        )
+        if error is not None and not self._range_bad.get(kind):
+            self.findings.append(Finding(t, "report", frame_id, name, error))
+        self._range_bad[kind] = error is not None
+        if error is not None:
+            return False
+        self.latest[kind] = (t, value)
+        disagreements = cross_check(
+            self._near(SteerReport, t),
+            self._near(LongReport, t),
+            self._near(WheelSpeeds, t),
+            self._near(SteeringWheelAngle, t),
+            self.vehicle,
+        )
+        failing = {text.split(" ")[0] + " " + text.split(" ")[2]: text for text in disagreements}
+        for key, detail in failing.items():
+            if key not in self._disagreeing:
+                self.findings.append(Finding(t, "report", frame_id, name, detail))
+        self._disagreeing = set(failing)
+        return True
 
 
 def _violations(
@@ -528,6 +594,7 @@ def check_log(
         dbw_dbc=config.can.dbw_dbc,
         car_dbc=config.can.car_dbc,
         progress=_Progress(progress, source),
+        vehicle=config.vehicle,
     )
     report.truncated = source.truncated
     return report
