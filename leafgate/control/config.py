@@ -14,7 +14,7 @@ MAX_HORIZON = 500  # model steps (50 s at 0.1 s); beyond, memory and set-up time
 
 @dataclass(frozen=True)
 class MpcConfig:
-    """The paper's MPC (kinematic bicycle, augmented model, Hildreth's QP).
+    """The paper's MPC (kinematic bicycle, augmented model, a QP solved by DAQP by default).
 
     Weights are per output / per input change and dimensionless once multiplied by the squared
     unit (a lateral weight of 20 costs 20 per m² of lateral error at each horizon step). Limits
@@ -25,7 +25,8 @@ class MpcConfig:
     sample_time: float = 0.1  # s, discretisation step of the prediction model
     prediction_horizon: int = 30  # Np: 3 s preview at 0.1 s, ≈ 6 m at parking speed
     control_horizon: int = 10  # Nc
-    solver: Literal["hildreth", "osqp"] = "hildreth"
+    solver: Literal["daqp", "hildreth", "osqp"] = "daqp"  # DAQP: exact dual active set, the
+    # default; Hildreth: the paper's solver (capped at max_iterations); OSQP: ADMM
     max_iterations: int = 100  # Hildreth sweeps. The paper caps at 38; with the steering
     # saturated (the last arc of a parking move) warm-started sweeps need up to ≈ 75, and the
     # gateway stops the car on any unconverged solve
@@ -33,7 +34,9 @@ class MpcConfig:
     model: Literal["kinematic", "kinematic_steer_lag"] = "kinematic"
 
     # output weights Q (diagonal), path-aligned frame
-    weight_along: float = 0.5  # 1/m², along-track position: stops the car on the goal point
+    weight_along: float = 1.5  # 1/m², along-track position: stops the car on the goal point
+    # (0.5 until issue 13: the last centimetres then crept at ≈ 2 s, and the car came to rest
+    # ≈ 4 cm short; 1.5 brings it to ≈ 2 cm with the same lateral errors)
     weight_lateral: float = 40.0  # 1/m², cross-track error: the quantity the tests bound
     weight_speed: float = 2.0  # s²/m², speed error
     weight_heading: float = 4.0  # 1/rad², heading error: damps the lateral response
@@ -67,6 +70,17 @@ class MpcConfig:
     speed_lead_time: float = 0.8  # s, velocity mode: how far ahead the planned speed is sent
     # (≈ the time constant of the vehicle's speed loop, 1/kp with kp ≈ 1.2–1.5 1/s)
     delay_compensation: float = 0.0  # s, predict the pose this far over the last command
+
+    # offset-free tracking (leafgate.control.disturbance): constant input disturbances
+    # estimated from the measured increments; 0 switches an estimate off
+    disturbance_tau_steer: float = 1.0  # s, filter of the steering misalignment estimate
+    disturbance_tau_accel: float = 2.0  # s, filter of the drag / incline estimate
+
+    # speed bounds: the MPC never asks for more than the plan's speed plus a margin, nor for
+    # more than the maneuver limit (so the safety gate's speed clamp is never needed)
+    speed_margin: float = 0.15  # m/s, above the plan's speed (the bound is approached from below
+    # with a little overshoot: 0.15 keeps the car within 0.2 m/s of the plan)
+    max_speed: float = 3.0  # m/s, the maneuver limit (the gateway's safety.max_speed)
 
     # steering actuator (model "kinematic_steer_lag")
     steer_tau: float = 0.3  # s, first-order lag of the road-wheel angle
@@ -107,6 +121,11 @@ class MpcConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        for name in ("disturbance_tau_steer", "disturbance_tau_accel", "speed_margin"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        positive(self, "max_speed")
         for name in ("delay_compensation", "steer_dead_time"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):

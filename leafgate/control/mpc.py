@@ -11,8 +11,9 @@ Each control tick:
    why the frame is path-aligned and why ``x`` is an output);
 3. prediction ``Y = F x + S ΔU`` (eq. 22–26) and the QP ``½ΔUᵀEΔU + ΔUᵀf, MΔU ≤ γ``
    (eq. 28–31) with output weights ``Q`` and input-change weights ``R̄``;
-4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else Hildreth or
-   OSQP — and apply the first move, clipped to the hard limits whatever the solver returned.
+4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else DAQP (the
+   default), Hildreth or OSQP — and apply the first move, clipped to the hard limits whatever
+   the solver returned.
 
 **Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: the
 kinematic model's ``S`` and free response come in closed form (:class:`~leafgate.control.
@@ -58,6 +59,15 @@ segment's end point it brakes to rest (status ``stopping``) and never creeps on 
 heading; the next segment (or the finish) starts from where it stopped. While finished or
 aligning the wheel holds or ramps monotonically: no chatter at standstill.
 
+**Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed over the
+horizon plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit): in acceleration
+mode the command is governed so that the jerk-limited ramp-down ends at the bound (status
+``speed-limited``), in velocity mode the target is clamped. A path the car cannot follow (a
+hairpin tighter than its turning circle) is driven at the plan's speed, never sprinted through.
+
+**Offset-free.** A constant steering misalignment and a constant drag are estimated from the
+measured increments (:mod:`leafgate.control.disturbance`) and the model predicts with them.
+
 Faults never raise: non-finite inputs or results give ``converged=False,
 status="non-finite"`` and the last applied command; a bad trajectory gives
 ``status="bad-trajectory"``.
@@ -68,12 +78,15 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from scipy.linalg import lapack
 
 from leafgate.config import VehicleConfig
 from leafgate.control.config import MpcConfig
+from leafgate.control.disturbance import DisturbanceEstimator
 from leafgate.control.model import (
     N_INPUTS,
     N_STATES,
@@ -88,11 +101,16 @@ from leafgate.control.model import (
     steer_lag_factor,
     steer_lag_increment,
 )
-from leafgate.control.qp import OsqpBackend, QpResult, hildreth
-from leafgate.control.reference import ReferencePath, Segment, validate
-from leafgate.errors import TrajectoryError
+from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
+from leafgate.control.reference import (
+    Progress,
+    ReferencePath,
+    Segment,
+    prepare_plan,
+)
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
+_GOVERN_TIME = 0.5  # s, time constant with which a car above the speed bound is slowed
 _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a clip (solver
 # tolerances leave smaller excursions, which are clipped but not counted)
 
@@ -165,7 +183,11 @@ class MpcController:
         # the multipliers of a feasible unconstrained optimum: all zero, one read-only array
         self._no_multipliers = np.zeros(self.M.shape[0])
         self._no_multipliers.setflags(write=False)
+        self._disturbance = DisturbanceEstimator(
+            period, self.L, cfg.disturbance_tau_steer, cfg.disturbance_tau_accel
+        )
         self._osqp: OsqpBackend | None = None
+        self._daqp = DaqpBackend(self.M) if cfg.solver == "daqp" else None
         if cfg.solver == "osqp":
             E0 = np.eye(Nc * m)
             self._osqp = OsqpBackend(E0, self.M, eps=cfg.osqp_tolerance)
@@ -177,9 +199,8 @@ class MpcController:
         """Forget the trajectory, the segment, the last inputs and the warm starts."""
         self._traj: Trajectory | None = None
         self._path: ReferencePath | None = None
-        self._bad_trajectory = ""
-        self._seg = 0
-        self._index = 0
+        self._progress: Progress | None = None
+        self._bad_trajectory = ""  # why the plan cannot be driven (shown in the status)
         self._u_prev: FloatArray | None = None  # [a, tan δ] applied last tick
         self._lam: FloatArray | None = None
         self._finished = False
@@ -188,6 +209,7 @@ class MpcController:
         self._in_flight: deque[float] = deque(maxlen=max(self._dead_ticks, 1))
         if self._osqp is not None:
             self._osqp.reset()
+        self._disturbance.reset()
 
     def step(self, pose: Pose, steer_angle: float, trajectory: Trajectory) -> ControlOutput:
         """Compute the command for this tick (never raises on bad data: see module notes)."""
@@ -211,33 +233,21 @@ class MpcController:
             gear=Gear.D if direction > 0 else Gear.R,
             converged=False,
             status=status,
-            nearest_index=self._index,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _set_trajectory(self, trajectory: Trajectory) -> None:
         self._traj = trajectory
-        self._seg = 0
         self._finished = False
         self._lam = None
-        try:
-            validate(trajectory, "trajectory")
-            self._path = ReferencePath(trajectory, self.cfg.creep_speed)
-            self._bad_trajectory = ""
-            # each segment's end point and heading, as floats for the per-tick checks
-            self._seg_ends = [
-                (
-                    float(trajectory.x[seg.end]),
-                    float(trajectory.y[seg.end]),
-                    math.cos(float(trajectory.heading[seg.end])),
-                    math.sin(float(trajectory.heading[seg.end])),
-                )
-                for seg in self._path.segments
-            ]
-        except (TrajectoryError, ValueError) as exc:
-            self._path = None
-            self._bad_trajectory = str(exc)
-        self._index = -1  # a new plan: search the first segment in full
+        self._path, self._progress, self._bad_trajectory = prepare_plan(
+            trajectory, self.cfg.creep_speed, self.cfg.search_window
+        )
+
+    def _where(self) -> dict[str, Any]:
+        """The progress fields of an output (none before a usable plan)."""
+        return {} if self._progress is None else self._progress.fields(self._finished)
 
     def _step(
         self, pose: Pose, steer_angle: float, trajectory: Trajectory, t0: float
@@ -245,10 +255,10 @@ class MpcController:
         cfg = self.cfg
         if trajectory is not self._traj:
             self._set_trajectory(trajectory)
-        path = self._path
-        if path is None:
-            return self._hold("bad-trajectory", 1, t0)
-        seg = path.segments[self._seg]
+        path, prog = self._path, self._progress
+        if path is None or prog is None:
+            return self._hold(f"bad-trajectory: {self._bad_trajectory}", 1, t0)
+        seg = prog.segment
         isfinite = math.isfinite  # a chain of calls: no generator on the hot path
         if not (
             isfinite(pose.x)
@@ -260,23 +270,23 @@ class MpcController:
             return self._hold("non-finite", seg.direction, t0)
         if self._u_prev is None:
             self._u_prev = np.array([0.0, math.tan(_clip(steer_angle, cfg.steer_max))])
+        dist = self._disturbance  # measured increments → steering bias and drag estimates
+        dist.update(
+            pose.heading,
+            pose.speed,
+            math.tan(_clip(steer_angle, cfg.steer_max)),
+            float(self._u_prev[0]),
+        )
 
-        # 1. reference: nearest waypoint and segment bookkeeping
-        if self._index < 0:
-            self._index = path.nearest_index(
-                pose.x, pose.y, seg.start, window=seg.end - seg.start + 2, stop=seg.end
-            )
-        else:
-            self._index = path.nearest_index(
-                pose.x, pose.y, self._index, window=cfg.search_window, stop=seg.end
-            )
+        # 1. reference: progress along the segment, and segment bookkeeping
+        if not self._finished:
+            prog.update(pose.x, pose.y, pose.heading)
         at_rest = abs(pose.speed) <= cfg.stop_speed
-        passed = self._passed_end(seg, pose)
-        if at_rest and (self._to_end(pose) <= cfg.goal_tolerance or passed):
-            if self._seg + 1 < len(path.segments):
-                self._seg += 1  # a cusp: drive the next segment, in the other direction
-                seg = path.segments[self._seg]
-                self._index = seg.start
+        passed = prog.passed  # progress has reached the end (not a half-plane test)
+        if at_rest and not self._finished and prog.ended(pose.x, pose.y, cfg.goal_tolerance):
+            if prog.next_segment():  # a cusp: drive the next segment, in the other direction
+                seg = prog.segment
+                prog.update(pose.x, pose.y, pose.heading)
                 # The brake holds the car through the gear change: in the new direction that
                 # hold has the other sign of d(v)/dt. Starting from it keeps every later move
                 # (and the drive-off) inside the jerk bound.
@@ -288,6 +298,14 @@ class MpcController:
                 self._finished = True
         if self._finished:
             return self._finish(seg, t0)
+        if at_rest and passed:  # stopped past the end, farther than the goal tolerance
+            distance = prog.to_end(pose.x, pose.y)
+            return replace(
+                self._brake_to_rest(seg.direction, t0),
+                converged=False,
+                status=f"off-goal: stopped {distance:.2f} m from the end "
+                f"(tolerance {cfg.goal_tolerance:g} m)",
+            )
 
         direction = seg.direction
         _, _, gamma0, (a_min, a_max) = self._limits[direction]
@@ -300,16 +318,18 @@ class MpcController:
             return self._brake_to_rest(direction, t0)
 
         # dead time: the state when the command computed now starts to act
+        bias = dist.bias  # tan δ: the car turns as with tan δ + bias
+        drag = direction * dist.accel  # signed d(v)/dt added to the command
         if self.steer_model:
-            gx, gy, gv, gth, gt = self._predict_dead_time(pose, steer_angle, direction)
+            gx, gy, gv, gth, gt = self._predict_dead_time(pose, steer_angle, direction, bias, drag)
         else:  # the kinematic model has no actuator state: the measured pose (no call, no tan)
             gx, gy, gv, gth, gt = pose.x, pose.y, pose.speed, pose.heading, math.nan
 
         # path-aligned frame at the (predicted) vehicle's projection
-        s0 = path.project(seg, self._index, gx, gy)
+        s0 = path.project(seg, prog.index, gx, gy)
         if at_rest and not self._aligned:
             if s0 - path.s[seg.start] <= cfg.goal_tolerance:
-                out = self._align(seg, s0, steer_angle, direction, t0)
+                out = self._align(seg, s0, steer_angle, direction, t0, bias)
                 if out is not None:
                     return out
             self._aligned = True
@@ -320,8 +340,11 @@ class MpcController:
         c, s = math.cos(psi0), math.sin(psi0)
         dx, dy = gx - ox, gy - oy
         kin = [c * dx + s * dy, -s * dx + c * dy, gv, _wrap(gth - psi0)]
+        # the model acts with the effective inputs: the commands plus the disturbances
+        a_eff, t_eff = a_prev + drag, t_prev + bias
         if cfg.delay_compensation > 0.0 and not self.steer_model:
-            kin = rk4_step(np.array(kin), u_prev, cfg.delay_compensation, self.L).tolist()
+            u_eff = np.array([a_eff, t_eff])
+            kin = rk4_step(np.array(kin), u_eff, cfg.delay_compensation, self.L).tolist()
         v0, th0 = kin[2], kin[3]
 
         # The prediction's rows are grouped by output (all Np along-track positions, then
@@ -346,13 +369,14 @@ class MpcController:
             increment = (
                 Ts * (v0 * math.cos(th0)),
                 Ts * (v0 * math.sin(th0)),
-                Ts * a_prev,
-                Ts * (v0 * t_prev / L),
+                Ts * a_eff,
+                Ts * (v0 * t_eff / L),
             )
-            dx_k = kinematic_first_increment(increment, v0, th0, t_prev, Ts, L)
-            ST, free = self._kinematic(v_op, heading_op, t_prev, dx_k)
-        else:
-            ST, free = self._predict_steer_lag(kin, gt, u_prev, v_op, heading_op)
+            dx_k = kinematic_first_increment(increment, v0, th0, t_eff, Ts, L)
+            ST, free = self._kinematic(v_op, heading_op, t_eff, dx_k)
+        else:  # the lag acts on tan δ + bias alike: shift the actual and the commanded angle
+            u_eff = np.array([a_eff, t_eff])
+            ST, free = self._predict_steer_lag(kin, gt + bias, u_eff, v_op, heading_op)
         y0 = np.array(kin)[:, None]
         ref -= y0
         err = ref.ravel() - free  # Rs − F x
@@ -391,6 +415,11 @@ class MpcController:
             min(self.tan_max, t_prev + self._du_first[1]),
         )
         clips = int(abs(a_cmd - a_new) > _EPS_CLIP) + int(abs(tan_cmd - tan_new) > _EPS_CLIP)
+        # speed bound: never faster than the plan's speed plus the margin, nor the maneuver limit
+        v_cap = min(float(np.abs(ref_speed).max()) + cfg.speed_margin, cfg.max_speed)
+        a_free = a_cmd
+        a_cmd = self._govern(a_cmd, a_prev, direction * v0, v_cap, direction)
+        limited = a_cmd != a_free
         self._apply(a_cmd, tan_cmd)
 
         SdU = dU @ ST
@@ -407,10 +436,15 @@ class MpcController:
         speed_cmd = float(Y[2, lead]) + (a_cmd - a_new) * self.Ts * (lead + 1)
         if direction * speed_cmd < 0.0:
             speed_cmd = 0.0  # never ask the speed controller to drive the other way
+        if direction * speed_cmd > v_cap:
+            speed_cmd = direction * v_cap
+            limited = True
         if not result.converged:
             status = "not-converged"
         elif clips:
             status = "clipped"
+        elif limited:
+            status = "speed-limited"
         else:
             status = "ok"
         return ControlOutput(
@@ -423,10 +457,10 @@ class MpcController:
             clips=clips,
             cost=cost,
             finished=False,
-            nearest_index=self._index,
             predicted_xy=predicted_xy,
             status=status,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _predict_steer_lag(
@@ -464,25 +498,14 @@ class MpcController:
         if self._dead_ticks:
             self._in_flight.append(tan_delta)
 
-    def _to_end(self, pose: Pose) -> float:
-        """Distance to the current segment's end point, m (only needed at rest)."""
-        x, y = self._seg_ends[self._seg][:2]
-        return math.hypot(x - pose.x, y - pose.y)
-
-    def _passed_end(self, seg: Segment, pose: Pose) -> bool:
-        """True when the car is level with or beyond the segment's end in its driving direction."""
-        x, y, cos_h, sin_h = self._seg_ends[self._seg]
-        along = (pose.x - x) * cos_h + (pose.y - y) * sin_h
-        return seg.direction * along >= 0.0
-
     def _predict_dead_time(
-        self, pose: Pose, steer_angle: float, direction: int
+        self, pose: Pose, steer_angle: float, direction: int, bias: float, drag: float
     ) -> tuple[float, float, float, float, float]:
         """``(x, y, v, θ, tan δ)`` once the commands in flight have acted (steering-aware model).
 
         Starts from the measured pose and road-wheel angle and steps the lagged bicycle one
         control period per queued command; with the kinematic model (or no dead time) it is the
-        measured state.
+        measured state. ``bias`` (tan δ) and ``drag`` (m/s²) are the estimated disturbances.
         """
         t = math.tan(_clip(steer_angle, self.cfg.steer_max))
         x, y, v, th = pose.x, pose.y, pose.speed, pose.heading
@@ -490,22 +513,22 @@ class MpcController:
             return x, y, v, th, t
         assert self._u_prev is not None
         h = self.period
-        a = float(self._u_prev[0])
+        a = float(self._u_prev[0]) + drag
         for t_cmd in self._in_flight:
             v_next = v + a * h
             if v_next * v < 0.0 or direction * v_next < 0.0:
                 v_next = 0.0  # braking stops the car, it does not reverse it
             v_mid = 0.5 * (v + v_next)
-            th_mid = th + 0.5 * h * v_mid * t / self.L
+            th_mid = th + 0.5 * h * v_mid * (t + bias) / self.L
             x += h * v_mid * math.cos(th_mid)
             y += h * v_mid * math.sin(th_mid)
-            th += h * v_mid * t / self.L
+            th += h * v_mid * (t + bias) / self.L
             t += self._alpha_tick * (t_cmd - t)
             v = v_next
         return x, y, v, th, t
 
     def _align(
-        self, seg: Segment, s0: float, steer_angle: float, direction: int, t0: float
+        self, seg: Segment, s0: float, steer_angle: float, direction: int, t0: float, bias: float
     ) -> ControlOutput | None:
         """At rest at a segment's start: turn the wheel to the path's curvature, brake held.
 
@@ -517,7 +540,9 @@ class MpcController:
         psi = path.sample(seg, np.array([s0, s0 + ds]))[:, 2]
         span = max(min(s0 + ds, float(path.s[seg.end])) - s0, 1e-6)
         # θ̇ = v tan δ / L: in reverse the heading turns the other way for the same wheel
-        tan_target = _clip(direction * self.L * float(psi[1] - psi[0]) / span, self.tan_max)
+        # (the wheel that gives it, with the estimated misalignment taken off)
+        curvature = direction * self.L * float(psi[1] - psi[0]) / span
+        tan_target = _clip(curvature - bias, self.tan_max)
         target = math.atan(tan_target)
         tol = self.cfg.align_tolerance
         step_a = self._du_first[0]
@@ -540,9 +565,9 @@ class MpcController:
             accel=accel,
             speed=0.0,
             gear=Gear.D if direction > 0 else Gear.R,
-            nearest_index=self._index,
             status=status,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _brake_to_rest(self, direction: int, t0: float) -> ControlOutput:
@@ -555,13 +580,14 @@ class MpcController:
             accel=accel,
             speed=0.0,
             gear=Gear.D if direction > 0 else Gear.R,
-            nearest_index=self._index,
             status="stopping",
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
-        """Eq. 29 when it satisfies every constraint, else the configured QP backend.
+        """Eq. 29 when it satisfies every constraint, else the configured QP backend (DAQP,
+        OSQP or Hildreth).
 
         ``E`` is factored once (Cholesky); the factor gives the unconstrained optimum and is
         reused by Hildreth for ``E⁻¹Mᵀ`` on its working set.
@@ -573,6 +599,8 @@ class MpcController:
         if (self.M @ x_unc <= gamma).all():
             self._lam = None
             return QpResult(x_unc, True, 0, self._no_multipliers)
+        if self._daqp is not None:
+            return self._daqp.solve(E, f, gamma)
         if self._osqp is not None:
             return self._osqp.solve(E, f, gamma)
         result = hildreth(
@@ -589,6 +617,26 @@ class MpcController:
         )
         self._lam = result.lam  # a good start next tick even when the cap was hit
         return result
+
+    def _govern(
+        self, accel: float, a_prev: float, speed: float, v_cap: float, direction: int
+    ) -> float:
+        """The acceleration command within the speed bound ``v_cap`` (m/s, > 0).
+
+        ``speed`` is in the driving direction. Below the bound the acceleration in the driving
+        direction is at most ``√(j (v_cap − v))`` — half the jerk ``j`` that the limit allows
+        for taking it back to zero before the bound is reached, so the delay of a tick or two
+        does not carry the car over it; above it, the car slows at ``(v − v_cap) / 0.5 s``.
+        The jerk bound of this tick still holds (the command never drops faster than it).
+        """
+        jerk = self.cfg.jerk_max
+        excess = speed - v_cap
+        bound = math.sqrt(jerk * -excess) if excess < 0.0 else -excess / _GOVERN_TIME
+        a_dir = direction * accel
+        if a_dir <= bound:
+            return accel
+        floor = direction * a_prev - self._du_first[0]  # the jerk limit of this tick
+        return direction * max(bound, floor)
 
     def _ramp_to_hold(self, direction: int) -> float:
         """The brake-hold acceleration of this tick, reached at the jerk limit.
@@ -613,9 +661,9 @@ class MpcController:
             speed=0.0,
             gear=Gear.D if seg.direction > 0 else Gear.R,
             finished=True,
-            nearest_index=self._index,
             status="finished",
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
 
