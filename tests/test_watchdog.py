@@ -7,11 +7,13 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from test_gateway_core import PERIOD, FakeController, Rig, cruise
+from test_gateway_core import PERIOD, FakeController, Rig, cruise, straight_trajectory
 
+from leafgate.control.reference import trajectory_problem
 from leafgate.gateway.config import GatewayConfig, WatchdogConfig
 from leafgate.gateway.watchdog import (
     CHECK_ORDER,
@@ -34,6 +36,7 @@ from leafgate.messages import (
     Pose,
     Stamped,
     SteeringWheelAngle,
+    Trajectory,
     WheelSpeeds,
 )
 
@@ -466,3 +469,36 @@ def test_speed_beyond_the_physical_limit_is_invalid() -> None:
         rig.step(long_report=_forged_long(rig, 60.0))
     assert rig.state == GatewayState.FAULT
     assert "long_report age" in rig.results[-1].diagnostics.fault
+
+
+# --- plans that cannot be driven (issue 17, finding 10) -----------------------------------------
+
+
+def _refusal(trajectory: Trajectory) -> str:
+    rig = Rig(trajectory=trajectory)
+    rig.run(0.1)
+    result = rig.step(OperatorRequest.ENGAGE)
+    assert result.reply is not None and not result.reply.accepted
+    assert rig.state == GatewayState.STANDBY
+    return result.reply.reason
+
+
+@pytest.mark.parametrize("speed", [4.0, 50.0])
+def test_engage_refused_for_a_plan_faster_than_the_maneuver_limit(speed: float) -> None:
+    reason = _refusal(straight_trajectory(speed=speed))
+    assert f"speed {speed:.2f} m/s above the maneuver limit 3 m/s" in reason
+
+
+def test_engage_refused_for_a_plan_with_a_heading_flip() -> None:
+    plan = straight_trajectory()
+    heading = np.array(plan.heading)
+    heading[20:] = math.pi  # the path goes on along +x, the heading turns round
+    flipped = Trajectory(x=plan.x, y=plan.y, heading=heading, speed=plan.speed)
+    assert "heading turns 180° from the waypoint before (a flip)" in _refusal(flipped)
+
+
+def test_reversing_plan_keeps_its_heading_and_is_no_flip() -> None:
+    from leafgate.sim.scenarios import get_scenario
+
+    rig = Rig(trajectory=get_scenario("parallel-park").trajectory)
+    assert trajectory_problem(rig.trajectory, max_speed=3.0) is None

@@ -264,7 +264,7 @@ class Gateway:
         self.mode = mode
         self.limits = SafetyLimits.from_config(config.safety, vehicle, config.period)
         self.gate = SafetyGate(self.limits)
-        self.watchdogs = Watchdogs(config.watchdog, config.period)
+        self.watchdogs = Watchdogs(config.watchdog, config.period, config.safety.max_speed)
         self.machine = EngagementMachine()
         self._phase = EngagePhase.IDLE
         self._phase_since = 0.0  # s, when the current engage phase began

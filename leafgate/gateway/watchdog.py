@@ -296,15 +296,16 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
 
     name = "trajectory"
 
-    def __init__(self, config: WatchdogConfig) -> None:
+    def __init__(self, config: WatchdogConfig, max_speed: float = math.inf) -> None:
         super().__init__()
         self.config = config
+        self.max_speed = max_speed  # m/s, the maneuver limit a plan must respect
         self.problem = ""  # why the last unusable plan was refused (the controller's reason)
 
     def _is_valid(self, sample: Stamped[Trajectory]) -> bool:
         if self.last is not None and sample.value is self.last.value:
             return True  # the same plan re-received: its (read-only) arrays were checked
-        problem = trajectory_problem(sample.value)
+        problem = trajectory_problem(sample.value, max_speed=self.max_speed)
         if problem is not None:
             self.problem = problem  # shown while no usable plan has been received
         return problem is None
@@ -533,10 +534,12 @@ class Watchdogs:
 
     REPORTS: tuple[str, ...] = ("steer_report", "long_report", "system_report")
 
-    def __init__(self, config: WatchdogConfig, period: float = math.inf) -> None:
+    def __init__(
+        self, config: WatchdogConfig, period: float = math.inf, max_speed: float = math.inf
+    ) -> None:
         self.config = config
         self.pose = PoseWatchdog(config)
-        self.trajectory = TrajectoryWatchdog(config)
+        self.trajectory = TrajectoryWatchdog(config, max_speed)
         n = config.report_timeout_periods
         self.steer: ReportWatchdog[SteerReport] = ReportWatchdog(
             "steer_report", config.steer_report_period, n
