@@ -187,8 +187,9 @@ def test_edited_log_reports_exactly_the_three_edits_with_their_times(
         ("gap", report.findings[0].detail),
         ("limit", "angle"),
         ("e2e", "bad_crc"),
+        ("incomplete", report.findings[3].detail),  # written here, not by the recorder
     ]
-    gap, limit, crc = report.findings
+    gap, limit, crc, _ = report.findings
     assert gap.time == pytest.approx(t_gap, abs=0.011)  # the last frame before the gap
     assert gap.value == pytest.approx(0.3, abs=0.02)
     assert limit.time == pytest.approx(t_over, abs=1e-6) and limit.frame_id == 0x0A0

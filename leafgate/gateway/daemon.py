@@ -143,6 +143,17 @@ def log_profile(profile: Profile) -> None:
         log.info("vehicle profile %s: frame protection: %s", profile.name, profile.protection)
 
 
+def recording_refusal(cfg: LeafgateConfig, fault: str) -> str | None:
+    """Why an engage is refused for want of a recording (``recording.required``), or None."""
+    if not cfg.recording.required:
+        return None
+    if not cfg.recording.enabled:
+        return "recording is required (recording.required) but not enabled"
+    if fault:
+        return f"recording is required but failing: {fault}"
+    return None
+
+
 def run_daemon(
     cfg: LeafgateConfig,
     stop: threading.Event | None = None,
@@ -174,6 +185,14 @@ def run_daemon(
         )
 
         def answer(request: OperatorRequest) -> dict[str, Any]:
+            if request is OperatorRequest.ENGAGE:
+                refusal = recording_refusal(cfg, recording.fault)
+                if refusal is not None:
+                    return {
+                        "accepted": False,
+                        "state": runtime.gateway.state.name,
+                        "reason": refusal,
+                    }
             return requests.submit(request)
 
         if session is None:

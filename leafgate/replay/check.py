@@ -24,6 +24,10 @@ For every frame of the log (any python-can format, or a session's ``/can`` topic
    or steering-wheel angle recorded within ``MAX_SKEW`` of it, is a ``report`` finding (one per
    stretch of disagreement), and an out-of-range speed is never used as the measured state.
 
+5. look for the recorder's end-of-recording marker (the last frame of a properly closed log
+   or session): without it the recording stopped early (a crash, a full disk, a write error),
+   and an ``incomplete`` finding says after which frame and at what time it stops.
+
 Tolerances are 1.5 quantisation steps of the command signal (read from the DBC): the gate
 bounds the float command, the frame carries it rounded.
 
@@ -58,7 +62,7 @@ from leafgate.messages import (
     SteerReport,
     WheelSpeeds,
 )
-from leafgate.replay.logs import FrameSource, is_session
+from leafgate.replay.logs import FrameSource, is_end_marker, is_session
 from leafgate.replay.session import SessionReader
 from leafgate.settings import LeafgateConfig, load_config
 
@@ -277,7 +281,12 @@ def check_frames(
     engaged = 0
     n = 0
     first = last = math.nan
+    ended = False
     for msg in frames:
+        if is_end_marker(msg):
+            ended = True
+            continue
+        ended = False  # frames after a marker: a later file or session segment
         n += 1
         if progress is not None and not n & 0x3FF:
             progress.update(n)
@@ -371,6 +380,16 @@ def check_frames(
             continue  # the frames lost in a gap, reported as the gap
         findings.append(Finding(t, "e2e", frame_id, name, kind))
     findings.extend(_merge_gaps(gaps, names))
+    if not ended:
+        findings.append(
+            Finding(
+                last,
+                "incomplete",
+                None,
+                "",
+                f"no end-of-recording marker: the recording stops after frame {n} at {last:.3f} s",
+            )
+        )
     findings.sort(key=lambda f: (f.time, f.kind))
     return CheckReport(
         path=path,
@@ -585,7 +604,7 @@ def check_log(
             config = reader.config() if reader.config_yaml is not None else None
     config = config or LeafgateConfig()
     limits = SafetyLimits.from_config(config.gateway.safety, config.vehicle, config.gateway.period)
-    source = FrameSource(path)
+    source = FrameSource(path, markers=True)
     report = check_frames(
         source,
         limits,

@@ -44,6 +44,7 @@ from leafgate.control.base import Controller
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.messages import ControlOutput, Pose, Trajectory
 from leafgate.replay.config import CAN_LOG_SUFFIXES, RecordingConfig
+from leafgate.replay.logs import end_marker, is_end_marker
 from leafgate.replay.session import SessionWriter
 from leafgate.settings import LeafgateConfig
 
@@ -54,6 +55,8 @@ __all__ = [
     "Recorder",
     "Recording",
     "SessionRecorder",
+    "end_marker",
+    "is_end_marker",
     "open_recording",
 ]
 
@@ -62,6 +65,16 @@ log = logging.getLogger(__name__)
 Direction = Literal["rx", "tx"]
 _STOP: Final = object()
 _ROTATE_CHECK_EVERY: Final = 256  # frames between file-size checks (tell() is not free)
+_ITEM_OVERHEAD: Final = 200  # bytes counted per queued item besides its payloads
+
+
+def _item_bytes(item: Any) -> int:
+    """Rough size of a queued item: its payload bytes plus a fixed overhead."""
+    if isinstance(item, can.Message):
+        return _ITEM_OVERHEAD + len(item.data)
+    if isinstance(item, tuple):
+        return _ITEM_OVERHEAD + sum(len(x) for x in item if isinstance(x, (bytes, bytearray)))
+    return _ITEM_OVERHEAD
 
 
 class Recorder(Protocol):
@@ -120,8 +133,11 @@ class _BackgroundWriter:
         close: Callable[[], None],
         flush_period: float,
         queue_size: int,
+        queue_bytes: int = 64 * 1024 * 1024,
     ) -> None:
         self.name = name
+        self.queue_bytes = queue_bytes
+        self._bytes = 0  # bytes of the items queued now (approximate, _item_bytes)
         self._write = write
         self._flush = flush
         self._close = close
@@ -132,6 +148,7 @@ class _BackgroundWriter:
         self.failed = False  # the file was given up after a write error
         self.errors = 0  # write/flush/close errors
         self.dropped = 0  # items not written (queue full, or after a failure)
+        self.dropped_bytes = 0  # … of which over the byte bound, their bytes
         self.written = 0
         self.flushes = 0
         self._closed = False
@@ -143,10 +160,18 @@ class _BackgroundWriter:
         if self.failed or self._closed:
             self.dropped += 1
             return
+        size = _item_bytes(item)
+        with self._lock:
+            if self._bytes + size > self.queue_bytes:
+                self.dropped += 1
+                self.dropped_bytes += size
+                return
+            self._bytes += size
         try:
             self._queue.put_nowait(item)
         except queue.Full:
             with self._lock:
+                self._bytes -= size
                 self.dropped += 1
 
     def fail(self, what: str, exc: BaseException) -> None:
@@ -156,7 +181,9 @@ class _BackgroundWriter:
         self.errors += 1
         if isinstance(exc, OSError):
             self.failed = True
-        log.error("%s", self.fault)
+            log.warning("recording failed, the file is given up: %s", self.fault)
+        else:
+            log.warning("recording problem: %s", self.fault)
 
     def _guarded(self, what: str, fn: Callable[[], None]) -> None:
         if self.failed:
@@ -178,6 +205,9 @@ class _BackgroundWriter:
                 item = None
             if item is _STOP:
                 break
+            if item is not None and not isinstance(item, threading.Event):
+                with self._lock:
+                    self._bytes -= _item_bytes(item)
             if isinstance(item, threading.Event):  # a flush request
                 if dirty:
                     self._guarded("flush", self._flush)
@@ -230,6 +260,8 @@ class _BackgroundWriter:
             "errors": self.errors,
             "flushes": self.flushes,
             "queued": self._queue.qsize(),
+            "queued_bytes": self._bytes,
+            "dropped_bytes": self.dropped_bytes,
             "fault": self.fault,
         }
 
@@ -318,6 +350,7 @@ class CanLogRecorder:
         queue_size: int = 20_000,
         tx_clock: Callable[[], float] | None = None,
         channel: str = "can0",
+        queue_bytes: int = 64 * 1024 * 1024,
     ) -> None:
         self.path = Path(path)
         if self.path.suffix.lower() not in CAN_LOG_SUFFIXES:
@@ -336,6 +369,7 @@ class CanLogRecorder:
             self._finish,
             flush_period,
             queue_size,
+            queue_bytes,
         )
         try:
             self._rotate()
@@ -375,6 +409,7 @@ class CanLogRecorder:
     def _rotate(self) -> None:
         if self._writer is not None:
             writer, self._writer = self._writer, None
+            self._mark_end(writer)
             writer.stop()
         name = self._next_name()
         name.parent.mkdir(parents=True, exist_ok=True)
@@ -402,9 +437,14 @@ class CanLogRecorder:
         if self.max_bytes and self._writer.file_size() >= self.max_bytes:
             self._rotate()
 
+    def _mark_end(self, writer: can.io.generic.FileIOMessageWriter[Any]) -> None:
+        stamp = self.tx_clock() if self.tx_clock is not None else time.time()
+        writer.on_message_received(end_marker(stamp, self.channel))
+
     def _finish(self) -> None:
         if self._writer is not None:
             writer, self._writer = self._writer, None
+            self._mark_end(writer)
             writer.stop()
 
     # -- control --
@@ -456,12 +496,14 @@ class SessionRecorder:
         diagnostics: bool = True,
         tap: ControllerTap | None = None,
         session: dict[str, str] | None = None,
+        queue_bytes: int = 64 * 1024 * 1024,
     ) -> None:
         self.path = Path(path)
         self.clock = clock
         self.tap = tap
         self.record_diagnostics = diagnostics
         self.ticks = 0
+        self._last_t = 0.0  # s, time of the last item written (for the end marker)
         self._file: IO[bytes] | None = None
         self._writer: SessionWriter | None = None
         self._bg = _BackgroundWriter(
@@ -471,6 +513,7 @@ class SessionRecorder:
             self._finish,
             flush_period,
             queue_size,
+            queue_bytes,
         )
         meta = {"clock": "gateway" if clock is not None else "frame timestamps"}
         meta["started"] = datetime.now().astimezone().isoformat(timespec="seconds")
@@ -524,8 +567,10 @@ class SessionRecorder:
         if kind == "can":
             _, t, msg, rx = item
             writer.can_frame(t, msg, rx)
+            self._last_t = t
         elif kind == "tick":
             _, now, inputs, result, xy = item
+            self._last_t = now
             writer.tick(now, inputs, result, xy, self.record_diagnostics)
             self.ticks += 1
         else:
@@ -540,6 +585,8 @@ class SessionRecorder:
     def _finish(self) -> None:
         try:
             if self._writer is not None:
+                t = self.clock() if self.clock is not None else self._last_t
+                self._writer.can_frame(t, end_marker(t), False)
                 self._writer.finish()
         finally:
             if self._file is not None:
@@ -656,6 +703,7 @@ def open_recording(
                 max_bytes=cfg.max_bytes,
                 flush_period=cfg.flush_period,
                 queue_size=cfg.queue_size,
+                queue_bytes=cfg.queue_bytes,
                 tx_clock=wall_clock,
                 channel=config.can.dbw.channel,
             )
@@ -668,6 +716,7 @@ def open_recording(
                 clock=clock,
                 flush_period=cfg.flush_period,
                 queue_size=cfg.queue_size,
+                queue_bytes=cfg.queue_bytes,
                 compression=cfg.compression,
                 diagnostics=cfg.diagnostics,
             )
