@@ -160,30 +160,52 @@ class DeadReckoning:
 
     Each new sample advances a dead-reckoned point by the ECU's measured speed along the
     sample's heading over the time since the previous sample (sender stamps when both have
-    them, else receive times). Over the window, the localization's displacement and the dead
-    reckoning's must agree: the sum telescopes, so the localization's own noise counts once at
-    each end, not per sample, while a source that drifts a little every sample, or a second
-    source interleaved with the first, shows as the difference.
+    them, else receive times). The speed is the mean of the reports received between the two
+    samples' times on the gateway clock (a pose's receive time already goes back by what its
+    stamp says it is old, so a late pose meets the speeds of its own time, not today's). Over
+    the window, the localization's displacement and the dead reckoning's must agree: the sum
+    telescopes, so the localization's own noise counts once at each end, not per sample, while
+    a source that drifts a little every sample, or a second source interleaved with the first,
+    shows as the difference.
     """
 
     def __init__(self, window: float) -> None:
         self.window = window  # s
-        # (t, x, y, heading) of each sample and the dead-reckoned point (dx, dy) at it
-        self._points: deque[tuple[float, float, float, float, float, float]] = deque()
+        # (t, x, y, heading, received) of each sample and the dead-reckoned point (dx, dy) at it
+        self._points: deque[tuple[float, float, float, float, float, float, float]] = deque()
+        self._speeds: deque[tuple[float, float]] = deque()  # (received, speed) of the reports
 
     def reset(self) -> None:
         self._points.clear()
+        self._speeds.clear()
 
-    def add(self, sample: Stamped[Pose], speed: float | None) -> tuple[float, float]:
+    def note_speed(self, received: float, speed: float) -> None:
+        """A measured speed (m/s) received at ``received`` (gateway clock, s)."""
+        speeds = self._speeds
+        if speeds and received <= speeds[-1][0]:
+            return  # the same report again
+        speeds.append((received, speed))
+        while received - speeds[0][0] > 2 * self.window + 1.0:
+            speeds.popleft()
+
+    def _speed_between(self, t0: float, t1: float) -> float | None:
+        inside = [v for t, v in self._speeds if t0 <= t <= t1]
+        if inside:
+            return sum(inside) / len(inside)
+        before = [v for t, v in self._speeds if t <= t1]
+        return before[-1] if before else None
+
+    def add(self, sample: Stamped[Pose]) -> tuple[float, float]:
         """Take a new sample; (disagreement m, span s) of the window, (0, 0) without speed."""
         pose = sample.value
         points = self._points
-        if speed is None or not math.isfinite(speed):
-            points.clear()
-            return 0.0, 0.0
         t = pose.stamp if math.isfinite(pose.stamp) else sample.received
         if points:
-            t0, _, _, h0, dx0, dy0 = points[-1]
+            t0, _, _, h0, r0, dx0, dy0 = points[-1]
+            speed = self._speed_between(r0, sample.received)
+            if speed is None or not math.isfinite(speed):
+                points.clear()
+                return 0.0, 0.0
             t = max(t, t0)  # out-of-order stamps advance nothing (their position still counts)
             step = speed * min(t - t0, self.window)
             h = math.atan2(
@@ -192,19 +214,14 @@ class DeadReckoning:
             dx, dy = dx0 + step * math.cos(h), dy0 + step * math.sin(h)
         else:
             dx = dy = 0.0
-        points.append((t, pose.x, pose.y, pose.heading, dx, dy))
+        points.append((t, pose.x, pose.y, pose.heading, sample.received, dx, dy))
         while t - points[0][0] > self.window:
             points.popleft()
         first, last = points[0], points[-1]
         error = math.hypot(
-            (last[1] - first[1]) - (last[4] - first[4]), (last[2] - first[2]) - (last[5] - first[5])
+            (last[1] - first[1]) - (last[5] - first[5]), (last[2] - first[2]) - (last[6] - first[6])
         )
         return error, last[0] - first[0]
-
-
-def _measured_speed(long: Stamped[LongReport] | None) -> float | None:
-    """The ECU's measured speed of a valid report, m/s, else None."""
-    return long.value.speed if long is not None and long.valid else None
 
 
 class PoseWatchdog(_SlotWatchdog[Pose]):
@@ -222,11 +239,15 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
     def _is_valid(self, sample: Stamped[Pose]) -> bool:
         return pose_is_valid(sample.value)
 
-    def update(self, now: float, sample: Stamped[Pose] | None, speed: float | None = None) -> Check:
+    def update(
+        self, now: float, sample: Stamped[Pose] | None, long: Stamped[LongReport] | None = None
+    ) -> Check:
         """Feed this tick's slot content and judge it.
 
-        :param speed: the ECU's measured speed, m/s (None: no report, no dead reckoning)
+        :param long: the latest DBW_LONG_RPT (its speed drives the dead reckoning)
         """
+        if long is not None and long.valid and math.isfinite(long.value.speed):
+            self.dead_reckoning.note_speed(long.received, long.value.speed)
         cfg = self.config
         previous = self.last
         jump: float | None = None
@@ -234,7 +255,7 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
         if self._take(sample) and self.last is not None:
             if previous is not None:
                 jump = position_jump(previous, self.last)
-            self.drift, span = self.dead_reckoning.add(self.last, speed)
+            self.drift, span = self.dead_reckoning.add(self.last)
         if self.last is None:
             status = self._missing_status()
             return Check(
@@ -568,7 +589,7 @@ class Watchdogs:
     ) -> WatchdogReport:
         """Feed one tick's inputs to every watchdog."""
         checks = (  # in CHECK_ORDER
-            self.pose.update(now, pose, _measured_speed(long)),
+            self.pose.update(now, pose, long),
             self.trajectory.update(now, trajectory),
             self.steer.update(now, steer),
             self.long.update(now, long),
