@@ -350,3 +350,28 @@ def test_late_echo_after_a_stall_is_still_our_own() -> None:
     wall[0] += 4.5
     receiver.on_message_received(echo)
     assert receiver.own_echoes == 1 and receiver.foreign_total == 0
+
+
+def test_frames_waiting_sees_unread_data_in_a_bus_socket() -> None:
+    # issue 17, finding 7: ages count only up to what the receive thread has read
+    from leafgate.gateway.runtime import frames_waiting
+
+    class SocketBus:
+        def __init__(self, sock: socket.socket) -> None:
+            self.sock = sock
+
+        def fileno(self) -> int:
+            return self.sock.fileno()
+
+    class NoFileno:
+        def fileno(self) -> int:
+            raise NotImplementedError
+
+    a, b = socket.socketpair()
+    with a, b:
+        assert not frames_waiting([SocketBus(b), NoFileno()])  # type: ignore[list-item]
+        a.send(b"frame")
+        assert frames_waiting([SocketBus(b), NoFileno()])  # type: ignore[list-item]
+        b.recv(16)
+        assert not frames_waiting([SocketBus(b)])  # type: ignore[list-item]
+    assert not frames_waiting([NoFileno()])  # type: ignore[list-item]

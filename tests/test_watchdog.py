@@ -502,3 +502,17 @@ def test_reversing_plan_keeps_its_heading_and_is_no_flip() -> None:
 
     rig = Rig(trajectory=get_scenario("parallel-park").trajectory)
     assert trajectory_problem(rig.trajectory, max_speed=3.0) is None
+
+
+def test_report_ages_count_up_to_where_the_bus_was_read() -> None:
+    # issue 17, finding 7: a starved receive thread faulted 11 of 71 runs on "steer_report age"
+    rig = Rig()
+    rig.engage()
+    rig.send["steer"] = False  # nothing new read for 60 ms: the thread is behind, frames wait
+    for _ in range(3):
+        rig.step(reports_as_of=rig.now - 3 * PERIOD + 0.001)
+    assert rig.state == GatewayState.ENGAGED
+    limit = GatewayConfig().watchdog.max_receive_lag
+    rig.step(reports_as_of=rig.now - limit - 0.01)  # … but not for ever
+    assert rig.state == GatewayState.FAULT
+    assert "CAN receive thread" in rig.results[-1].diagnostics.fault

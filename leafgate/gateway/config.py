@@ -39,6 +39,10 @@ class WatchdogConfig:
     # one overrun only, so max_overruns alone would never see it). 5 periods = 100 ms at 50 Hz,
     # the ECU's command timeout: a longer stall has already left the ECU without commands.
     max_stall_periods: float = 5.0
+    # s the CAN receive thread may lag behind frames already waiting in the socket: report ages
+    # are judged up to where it has read (a starved thread must not fake a stale ECU), and a
+    # thread further behind than this is a FAULT of its own.
+    max_receive_lag: float = 0.2
 
     def __post_init__(self) -> None:
         positive(
@@ -54,6 +58,7 @@ class WatchdogConfig:
             "max_report_errors",
             "max_overruns",
             "max_stall_periods",
+            "max_receive_lag",
         )
         if self.trajectory_max_age is not None:
             positive(self, "trajectory_max_age")

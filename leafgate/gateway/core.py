@@ -111,6 +111,8 @@ class GatewayInputs:
     bus_errors: int = 0  # command frames that could not be encoded or sent since the last step
     foreign_command_frames: int = 0  # frames on our command IDs we did not send, since last step
     foreign_command_names: tuple[str, ...] = ()  # their DBC names (for the fault reason)
+    # s, the gateway-clock time up to which the bus has been read (None: now, nothing waits)
+    reports_as_of: float | None = None
     # CAR-CAN frames the reports are cross-checked with (None: the profile has none)
     wheel_speeds: Stamped[WheelSpeeds] | None = None  # 0x284/0x285
     steering_wheel: Stamped[SteeringWheelAngle] | None = None  # 0x002
@@ -311,6 +313,7 @@ class Gateway:
             inputs.bad_report_frames,
             inputs.overrun,
             inputs.lateness,
+            inputs.reports_as_of,
         )
         reports = self._reports(wd)  # once per tick: several decisions below read the flags
         measured = self._measured(wd)
@@ -391,6 +394,14 @@ class Gateway:
         )
         return StepResult(Commands(steer=steer, long=long, system=system), diagnostics, reply)
 
+    def _receive_lag(self, now: float, inputs: GatewayInputs) -> str | None:
+        """Why the CAN receive thread is too far behind the bus, or None."""
+        as_of = inputs.reports_as_of
+        limit = self.config.watchdog.max_receive_lag
+        if as_of is None or not now - as_of > limit:
+            return None
+        return f"CAN receive thread {now - as_of:.3f} s behind the bus (> {limit:g} s)"
+
     # -- report plausibility --------------------------------------------------------------------
 
     def _judge_reports(self, inputs: GatewayInputs) -> GatewayInputs:
@@ -435,6 +446,9 @@ class Gateway:
                 causes[name] = check.detail
         if inputs.bus_errors > 0:
             causes["bus"] = f"{inputs.bus_errors} command frame(s) could not be encoded or sent"
+        lag = self._receive_lag(now, inputs)
+        if lag is not None:
+            causes["receive"] = lag
         if self._cross_check:
             causes["report_cross_check"] = "ECU report implausible: " + "; ".join(self._cross_check)
         if inputs.foreign_command_frames > 0:
@@ -591,6 +605,8 @@ class Gateway:
             if cause == "report_cross_check":
                 out.extend(self._cross_check)
                 continue
+            if cause == "receive":
+                continue  # a thread that lagged once has caught up by the time of a reset
             if cause == "bus":
                 if bus_errors > 0:
                     out.append(f"{bus_errors} command frame(s) could not be sent")

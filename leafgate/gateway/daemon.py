@@ -218,6 +218,7 @@ def run_daemon(
             requests=requests,
             clock=clock,
             on_tick=recording.on_tick,
+            receive_buses=[buses.dbw] if buses.shared else [buses.dbw, buses.car],
             extra_diagnostics=lambda: {
                 "zenoh_decode_errors": transport.decode_errors,
                 "zenoh_last_errors": transport.last_errors,

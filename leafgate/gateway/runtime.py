@@ -29,8 +29,10 @@ sent); any other is foreign. Both bus behaviours give the same verdicts.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
+import select
 import socket
 import threading
 import time
@@ -180,6 +182,7 @@ class CanReceiver(can.Listener):
         self.wall_clock = wall_clock
         self.command_ids = codec.receive_ids("commands")
         self.sent = SentFrames()
+        self.horizon = -math.inf  # s, receive time of the newest frame read (any ID)
         self.own_echoes = 0  # echoes of our own frames received (udp_multicast delivers them)
         self.foreign_total = 0  # foreign frames on our command IDs since start
         self._foreign = 0  # … since the last take_foreign()
@@ -210,6 +213,8 @@ class CanReceiver(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         now = self.received_at(msg)
+        if now > self.horizon:
+            self.horizon = now
         if msg.arbitration_id in self.command_ids and not msg.is_extended_id:
             if self.sent.take(msg, now):
                 self.own_echoes += 1
@@ -441,6 +446,27 @@ class LoopStats:
         }
 
 
+def frames_waiting(buses: Sequence[can.BusABC]) -> bool:
+    """Whether a frame waits, unread, in any of the buses' sockets (False when unknown).
+
+    The Notifier thread reads them; while one waits, that thread is behind the bus and the
+    reports' ages can only be judged up to what it has read.
+    """
+    fds = []
+    for bus in buses:
+        try:
+            fds.append(bus.fileno())
+        except Exception:  # NotImplementedError (virtual), a closed bus …
+            continue
+    if not fds:
+        return False
+    try:
+        readable, _, _ = select.select(fds, [], [], 0.0)
+    except (OSError, ValueError):
+        return False
+    return bool(readable)
+
+
 def _watch_ids(bus: can.BusABC, ids: frozenset[int]) -> None:
     """Widen ``bus``'s receive filter by ``ids`` (no-op when it delivers everything already)."""
     filters = bus.filters
@@ -497,8 +523,11 @@ class Runtime:
         | None = None,
         extra_diagnostics: Callable[[], dict[str, Any]] | None = None,
         watch_command_ids: bool = True,
+        receive_buses: Sequence[can.BusABC] | None = None,
     ) -> None:
         self.gateway = gateway
+        # the buses the Notifier reads (the dbw bus, and the car bus when separate)
+        self.receive_buses = tuple(receive_buses) if receive_buses is not None else (bus,)
         self.codec = codec
         self.bus = bus
         self.receiver = receiver
@@ -533,6 +562,9 @@ class Runtime:
         good, bad = self.receiver.take_counts()
         foreign, foreign_names = self.receiver.take_foreign()
         bus_errors, self._bus_errors_pending = self._bus_errors_pending, 0
+        # Reports are judged up to where the receive thread has read the bus: now, unless
+        # frames still wait in a socket (the thread is late, not the ECU).
+        as_of = self.receiver.horizon if frames_waiting(self.receive_buses) else now
         inputs = GatewayInputs(
             pose=self.inputs.latest_pose(),
             trajectory=self.inputs.latest_trajectory(),
@@ -547,6 +579,7 @@ class Runtime:
             bus_errors=bus_errors,
             foreign_command_frames=foreign,
             foreign_command_names=foreign_names,
+            reports_as_of=as_of if math.isfinite(as_of) else None,
             wheel_speeds=self.receiver.car_value("WheelSpeeds"),
             steering_wheel=self.receiver.car_value("SteeringWheelAngle"),
         )

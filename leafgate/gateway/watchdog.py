@@ -586,14 +586,20 @@ class Watchdogs:
         bad_frames: int,
         overrun: bool,
         lateness: float = 0.0,
+        reports_as_of: float | None = None,
     ) -> WatchdogReport:
-        """Feed one tick's inputs to every watchdog."""
+        """Feed one tick's inputs to every watchdog.
+
+        :param reports_as_of: the time up to which the bus has been read (frames arriving
+            later still wait in the socket); the reports' ages count to it, not to ``now``
+        """
+        as_of = now if reports_as_of is None else min(now, reports_as_of)
         checks = (  # in CHECK_ORDER
             self.pose.update(now, pose, long),
             self.trajectory.update(now, trajectory),
-            self.steer.update(now, steer),
-            self.long.update(now, long),
-            self.system.update(now, system),
+            self.steer.update(as_of, steer),
+            self.long.update(as_of, long),
+            self.system.update(as_of, system),
             self.errors.update(good_frames, bad_frames),
             self.overrun.update(overrun, lateness),
         )
