@@ -223,7 +223,13 @@ def cmd_request(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     reply = request(tool_view(cfg.zenoh), args.command, timeout=args.timeout)
     print(json.dumps(reply))
-    return 0 if reply.get("accepted") else EXIT_ERROR
+    for field, what in (
+        ("ignored_replies", "replies from sessions that are not the gateway were ignored"),
+        ("conflicting_replies", "more than one session claims to be the gateway"),
+    ):
+        if reply.get(field):
+            print(f"leafgate: warning: {len(reply[field])} {what}", file=sys.stderr)
+    return 0 if reply.get("accepted") and "conflicting_replies" not in reply else EXIT_ERROR
 
 
 def cmd_status(args: argparse.Namespace) -> int:

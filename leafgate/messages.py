@@ -62,6 +62,10 @@ class OperatorRequest(enum.Enum):
     RESET = "reset"
 
 
+# Requests that bring the car to rest: they overtake every other pending request.
+STOP_REQUESTS: frozenset[OperatorRequest] = frozenset({OperatorRequest.DISENGAGE})
+
+
 # --- inputs -----------------------------------------------------------------------------------
 
 

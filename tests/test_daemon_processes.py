@@ -65,6 +65,8 @@ def sim_config(tmp_path: Path, profile: str) -> Path:
             "localization_fault_age": 1.0,
             "report_timeout_periods": 10,
             "max_overruns": 25,
+            "max_stall_periods": 25.0,
+            "max_receive_lag": 1.0,
         }
     )
     path = tmp_path / "sim.yaml"

@@ -309,6 +309,81 @@ def test_frames_that_are_not_commands_are_ignored() -> None:
     assert rig.ecu.counters.rx_errors == 0
 
 
+# --- a second sender on the command IDs (issue 17, finding 2) ------------------------------
+
+
+class Replayer:
+    """Replays a recorded command stream byte for byte, each frame just after the genuine one
+    whose counter precedes it: the race the attack won."""
+
+    def __init__(self, rig: Rig, recorded: list[can.Message]) -> None:
+        self.rig = rig
+        self.frames = {(m.arbitration_id, m.data[6] & 0x0F): m for m in recorded}
+
+    def after(self, genuine: can.Message) -> None:
+        counter = (genuine.data[6] + 1) & 0x0F
+        forged = self.frames.get((genuine.arbitration_id, counter))
+        if forged is not None:
+            self.rig.ecu.receive_frame(self.rig.now, forged)
+
+
+def _engage_sequence() -> list[can.Message]:
+    """The gateway's frames of an engagement (ENABLE=0, then ENABLE=1), as recorded."""
+    codec = CanCodec()
+    out = [codec.encode(v) for _ in range(8) for v in (SteerCommand(0.0), LongCommand())]
+    out += [codec.encode(v) for _ in range(8) for v in on(accel=1.5)]
+    return out
+
+
+def _race(rig: Rig, duration: float, replayer: Replayer, *commands: SteerCommand | LongCommand):
+    for _ in range(round(duration / DT)):
+        if rig.tick % CMD_TICKS == 0:
+            for value in commands:
+                replayer.after(rig.send(value))
+        rig.frames.extend((rig.now, m) for m in rig.ecu.reports(rig.now))
+        rig.ecu.step(rig.now, DT)
+        rig.tick += 1
+
+
+def test_replayed_stream_racing_the_gateway_faults_and_never_drives() -> None:
+    rig = Rig()
+    replayer = Replayer(rig, _engage_sequence()[16:])  # the ENABLE=1 frames of the recording
+    rig.run(0.1, SteerCommand(0.0), LongCommand())  # the gateway in STANDBY: ENABLE=0
+    _race(rig, 2.0, replayer, SteerCommand(0.0), LongCommand())
+    assert rig.ecu.state == EcuState.FAULT
+    assert rig.ecu.counters.counter_races == 1
+    assert rig.plant.speed == 0.0 and abs(rig.plant.x) < 0.01  # at most a first-tick twitch
+
+
+def test_counter_race_while_engaged_brakes_to_rest_and_clears_once_quiet() -> None:
+    rig = Rig(start=Pose(0.0, 0.0, 0.0, 2.0))
+    rig.engage()
+    replayer = Replayer(rig, _engage_sequence()[16:])
+    _race(rig, 0.2, replayer, *on())
+    assert rig.ecu.state == EcuState.FAULT and not rig.ecu.engaged
+    _race(rig, 1.0, replayer, *on())
+    assert rig.plant.speed == 0.0  # braked to rest at timeout_decel
+    rig.send(SystemCommand(GatewayState.FAULT, clear_faults=True))  # the race is still on
+    _race(rig, 0.1, replayer, SteerCommand(0.0), LongCommand())
+    assert rig.ecu.state == EcuState.FAULT
+    rig.run(0.6, SteerCommand(0.0), LongCommand())  # the second sender has gone quiet
+    rig.send(SystemCommand(GatewayState.STANDBY, clear_faults=True))
+    rig.run(0.05, SteerCommand(0.0), LongCommand())
+    assert rig.ecu.state == EcuState.READY
+
+
+def test_a_few_counter_drops_are_not_a_race() -> None:
+    rig = Rig()
+    rig.engage()
+    for _ in range(EcuConfig().race_drops):
+        stale = rig.tx.encode(SteerCommand(0.0, enable=True))
+        rig.ecu.receive_frame(rig.now, stale)
+        rig.ecu.receive_frame(rig.now, stale)  # the same counter again
+        rig.run(0.2, *on())
+    assert rig.ecu.counters.bad_counter == EcuConfig().race_drops
+    assert rig.ecu.engaged and rig.ecu.counters.counter_races == 0
+
+
 # --- gears ---------------------------------------------------------------------------------
 
 

@@ -206,6 +206,11 @@ class StubSession:
     def liveliness(self) -> StubSession:
         return self
 
+    @property
+    def info(self) -> Any:
+        """The session's identity (the gateway names its liveliness token after it)."""
+        return SimpleNamespace(zid=lambda: "0")
+
     def declare_token(self, key: str) -> _Entity:
         return _Entity()
 

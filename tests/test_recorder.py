@@ -206,7 +206,7 @@ def test_closed_session_is_a_complete_indexed_mcap(tmp_path: Path) -> None:
             summary.channels[c].topic: n
             for c, n in summary.statistics.channel_message_counts.items()
         }
-        assert counts[TOPIC_TICK] == 20 and counts[TOPIC_CAN] == 20
+        assert counts[TOPIC_TICK] == 20 and counts[TOPIC_CAN] == 20 + 1  # + the end marker
         assert {m.name for m in reader.iter_metadata()} >= {"leafgate.config", "leafgate.session"}
     times, reader_ = read_ticks(path)
     assert len(times) == 20 and not reader_.truncated
@@ -287,3 +287,61 @@ def test_open_recording_names_files_by_start_time(tmp_path: Path) -> None:
     names = sorted(p.name for p in (tmp_path / "rec").iterdir())
     assert names == ["can-20250131T141500_000.log", "session-20250131T141500.mcap"]
     assert set(recording.diagnostics()) == {"fault", "can_log", "session"}
+
+
+# --- recording that fails loudly (issue 17, finding 6) ------------------------------------------
+
+
+def test_session_queue_is_bounded_in_bytes(tmp_path: Path) -> None:
+    # 120 junk payloads of 10 MB raised the daemon from 140 MB to 1.29 GB
+    rec = SessionRecorder(tmp_path / "s.mcap", LeafgateConfig(), queue_bytes=25_000_000)
+    junk = bytes(10_000_000)
+    for _ in range(20):
+        rec.on_zenoh_input("leaf/localization/kinematic_state", junk, 1.0)
+    counters = rec.diagnostics()
+    assert counters["queued_bytes"] <= 25_000_000
+    rec.close()
+    assert rec._bg.dropped_bytes > 0  # the writer cannot keep up with 200 MB at once
+
+
+def test_recording_failure_is_logged_as_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    blocked = tmp_path / "not-a-directory"
+    blocked.write_text("")
+    with CanLogRecorder(blocked / "c.blf") as rec:
+        assert rec.fault
+    assert any(r.levelname == "WARNING" and "recording" in r.getMessage() for r in caplog.records)
+
+
+def test_check_reports_a_log_without_its_end_marker_as_incomplete(tmp_path: Path) -> None:
+    from leafgate.replay.check import check_log
+
+    closed = tmp_path / "closed.log"
+    with CanLogRecorder(closed) as rec:
+        for k in range(5):
+            rec.on_can_frame(frame(1_700_000_000.0 + 0.01 * k), "rx")
+    report = check_log(rec.files[0])
+    assert report.count("incomplete") == 0
+    cut = tmp_path / "cut.log"
+    with can.Logger(cut) as writer:
+        for msg in list(FrameSource(rec.files[0]))[:3]:  # a log that stops early
+            writer.on_message_received(msg)
+    report = check_log(cut)
+    (finding,) = [f for f in report.findings if f.kind == "incomplete"]
+    assert "stops after frame 3" in finding.detail
+    assert finding.time == pytest.approx(1_700_000_000.02)
+
+
+def test_engage_refused_while_a_required_recording_fails() -> None:
+    from leafgate.gateway.daemon import recording_refusal
+
+    cfg = from_mapping(
+        LeafgateConfig, {"recording": {"enabled": True, "required": True}}, "test.yaml"
+    )
+    assert recording_refusal(cfg, "") is None
+    reason = recording_refusal(cfg, "session s.mcap: write: No space left on device")
+    assert reason is not None and "No space left on device" in reason
+    off = from_mapping(LeafgateConfig, {"recording": {"required": True}}, "test.yaml")
+    assert recording_refusal(off, "") is not None
+    assert recording_refusal(LeafgateConfig(), "any fault") is None  # not required

@@ -6,6 +6,7 @@ the simulator's recorder hook, into every CAN log format and an MCAP session.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 import subprocess
@@ -194,14 +195,51 @@ def test_edited_log_reports_exactly_the_three_edits_with_their_times(
         ("silence", report.findings[0].detail),  # the whole bus, once
         ("limit", "angle"),
         ("e2e", "bad_crc"),
+        ("incomplete", report.findings[3].detail),  # written here, not by the recorder
     ]
-    gap, limit, crc = report.findings
+    gap, limit, crc, _ = report.findings
     assert gap.time == pytest.approx(t_gap, abs=0.011)  # the last frame before the gap
     assert gap.value == pytest.approx(0.3, abs=0.02)
     assert limit.time == pytest.approx(t_over, abs=1e-6) and limit.frame_id == 0x0A0
     assert limit.value == pytest.approx(0.6) and limit.bound == pytest.approx(math.radians(31))
     assert crc.time == pytest.approx(t_crc, abs=1e-6) and crc.frame_id == 0x0B1
     assert main_check(path, profile="leafgate-dbw", out=io.StringIO(), err=io.StringIO()) == 1
+
+
+def test_check_finds_a_forged_speed_report_by_the_wheel_speeds(
+    drive: Drive, tmp_path: Path
+) -> None:
+    # issue 17, finding 4: `replay check` passed a log whose long reports said 20 m/s at 2 m/s
+    frames = frames_of(drive.logs[".log"])
+    codec = CanCodec()
+    t0 = frames[0].timestamp
+    forged_at = [f.timestamp for f in frames if f.arbitration_id == 0x0B1 and f.timestamp > t0 + 8]
+    out = []
+    for f in frames:
+        if f.arbitration_id == 0x0B1 and t0 + 8.0 < f.timestamp < t0 + 8.5:
+            decoded = codec.decode(f)  # the recorded counter follows on
+            assert decoded.valid
+            forged = dataclasses.replace(decoded.value, speed=20.0)
+            data = e2e.apply(0x0B1, CanCodec().encode(forged).data, e2e.counter_of(f.data))
+            f = can.Message(
+                timestamp=f.timestamp,
+                arbitration_id=0x0B1,
+                data=data,
+                is_extended_id=False,
+                channel=f.channel,
+            )
+        out.append(f)
+    path = tmp_path / "forged.log"
+    with can.Logger(path) as writer:
+        for f in out:
+            writer.on_message_received(f)
+    report = check_log(path)
+    reports = [f for f in report.findings if f.kind == "report"]
+    assert reports, report.findings
+    assert "disagrees with the" in reports[0].detail and "wheel speeds" in reports[0].detail
+    assert reports[0].time == pytest.approx(forged_at[0], abs=0.05)
+    assert len(reports) <= 2  # one per stretch, not one per frame
+    assert not [f for f in report.findings if f.kind == "e2e"]  # CRC and counter were valid
 
 
 # --- rerun -------------------------------------------------------------------------------------

@@ -109,21 +109,28 @@ def test_receiver_fills_slots_and_counts_good_and_bad_frames() -> None:
     assert receiver.steer.get() is steer  # the bad frame did not replace the good report
 
 
+def _asker(box: RequestBox, request: OperatorRequest, replies: list[dict], timeout: float = 2):
+    thread = threading.Thread(target=lambda: replies.append(box.submit(request, timeout=timeout)))
+    thread.start()
+    return thread
+
+
+def _wait_pending(box: RequestBox, count: int) -> None:
+    for _ in range(400):
+        if len(box) >= count:
+            return
+        time.sleep(0.005)
+    raise AssertionError(f"{len(box)} requests pending, expected {count}")
+
+
 def test_request_box_answers_from_the_control_thread() -> None:
     box = RequestBox()
     replies: list[dict] = []
-    asker = threading.Thread(
-        target=lambda: replies.append(box.submit(OperatorRequest.ENGAGE, timeout=2))
-    )
-    asker.start()
-    item = None
-    for _ in range(200):
-        item = box.take()
-        if item is not None:
-            break
-        time.sleep(0.005)
-    assert item is not None and item.request == OperatorRequest.ENGAGE
-    item.future.set_result({"accepted": True, "state": "ENGAGED", "reason": "engaged"})
+    asker = _asker(box, OperatorRequest.ENGAGE, replies)
+    _wait_pending(box, 1)
+    taken = box.take()
+    assert taken.request == OperatorRequest.ENGAGE
+    taken.answer({"accepted": True, "state": "ENGAGED", "reason": "engaged"}, "ENGAGED")
     asker.join(timeout=2)
     assert replies == [{"accepted": True, "state": "ENGAGED", "reason": "engaged"}]
 
@@ -131,6 +138,44 @@ def test_request_box_answers_from_the_control_thread() -> None:
 def test_request_box_times_out_with_a_refusal() -> None:
     reply = RequestBox().submit(OperatorRequest.ENGAGE, timeout=0.01)
     assert reply["accepted"] is False and "did not answer" in reply["reason"]
+
+
+def test_abandoned_engage_is_never_executed_later() -> None:
+    # issue 17 finding 1: an engage whose client gave up ran when the loop got to it
+    box = RequestBox()
+    reply = box.submit(OperatorRequest.ENGAGE, timeout=0.01)
+    assert "withdrawn" in reply["reason"]
+    assert box.take().request is None
+
+
+def test_disengage_overtakes_and_supersedes_a_queued_engage() -> None:
+    # issue 17 finding 1: a stale engage re-engaged the car after the disengage had run
+    box = RequestBox()
+    replies: list[dict] = []
+    engages = [_asker(box, OperatorRequest.ENGAGE, replies) for _ in range(3)]
+    _wait_pending(box, 3)
+    stop = _asker(box, OperatorRequest.DISENGAGE, replies)
+    _wait_pending(box, 4)
+    taken = box.take()  # one control tick
+    assert taken.request == OperatorRequest.DISENGAGE
+    taken.answer({"accepted": True, "state": "STANDBY", "reason": "disengaged"}, "STANDBY")
+    for thread in (*engages, stop):
+        thread.join(timeout=2)
+    assert len(replies) == 4
+    assert sum(r["accepted"] for r in replies) == 1
+    assert all("superseded by a disengage" in r["reason"] for r in replies if not r["accepted"])
+    assert box.take().request is None  # nothing left to run after it
+
+
+def test_request_box_is_bounded() -> None:
+    box = RequestBox(length=2)
+    replies: list[dict] = []
+    threads = [_asker(box, OperatorRequest.ENGAGE, replies, timeout=0.5) for _ in range(2)]
+    _wait_pending(box, 2)
+    reply = box.submit(OperatorRequest.RESET, timeout=0.5)
+    assert reply["accepted"] is False and reply["reason"].startswith("busy")
+    for thread in threads:
+        thread.join(timeout=2)
 
 
 def test_tick_sends_steer_long_and_periodic_system_frames() -> None:
@@ -280,3 +325,60 @@ def test_tools_connect_to_the_daemons_endpoint_instead_of_listening() -> None:
 
 if os.name != "posix":  # AF_UNIX datagram sockets
     pytest.skip("POSIX only", allow_module_level=True)
+
+
+def test_report_age_counts_from_the_frames_receive_timestamp() -> None:
+    # issue 17, finding 7: a starved receive thread made the ECU's reports look 31-54 ms old
+    codec = CanCodec()
+    receiver = CanReceiver(CanCodec(), lambda: 100.0, wall_clock=lambda: 5000.0)
+    msg = codec.encode(SteerReport(0.0, 0.0, 0.0, False, False, False, False))
+    msg.timestamp = 5000.0 - 0.045  # arrived 45 ms before the Notifier thread got to it
+    receiver.on_message_received(msg)
+    steer = receiver.steer.get()
+    assert steer is not None and steer.received == pytest.approx(100.0 - 0.045)
+    for stamp in (0.0, 5000.5, 5000.0 - 60.0):  # unset, in the future, implausibly old
+        msg = codec.encode(SteerReport(0.0, 0.0, 0.0, False, False, False, False))
+        msg.timestamp = stamp
+        receiver.on_message_received(msg)
+        steer = receiver.steer.get()
+        assert steer is not None and steer.received == 100.0
+
+
+def test_late_echo_after_a_stall_is_still_our_own() -> None:
+    # issue 17, finding 5: after a 4 s stall the gateway's own echoes counted as foreign
+    now, wall = [10.0], [1000.0]
+    codec = CanCodec()
+    receiver = CanReceiver(codec, lambda: now[0], wall_clock=lambda: wall[0])
+    frame = codec.encode(SteerCommand(0.0))
+    receiver.sent.add(frame, now[0])
+    echo = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+    echo.timestamp = wall[0] + 0.001  # arrived at once …
+    now[0] += 4.5  # … but the Notifier thread only gets to it 4.5 s later
+    wall[0] += 4.5
+    receiver.on_message_received(echo)
+    assert receiver.own_echoes == 1 and receiver.foreign_total == 0
+
+
+def test_frames_waiting_sees_unread_data_in_a_bus_socket() -> None:
+    # issue 17, finding 7: ages count only up to what the receive thread has read
+    from leafgate.gateway.runtime import frames_waiting
+
+    class SocketBus:
+        def __init__(self, sock: socket.socket) -> None:
+            self.sock = sock
+
+        def fileno(self) -> int:
+            return self.sock.fileno()
+
+    class NoFileno:
+        def fileno(self) -> int:
+            raise NotImplementedError
+
+    a, b = socket.socketpair()
+    with a, b:
+        assert not frames_waiting([SocketBus(b), NoFileno()])  # type: ignore[list-item]
+        a.send(b"frame")
+        assert frames_waiting([SocketBus(b), NoFileno()])  # type: ignore[list-item]
+        b.recv(16)
+        assert not frames_waiting([SocketBus(b)])  # type: ignore[list-item]
+    assert not frames_waiting([NoFileno()])  # type: ignore[list-item]

@@ -142,13 +142,14 @@ def test_localization_fills_the_slot_with_its_receive_time(
     with client.OdometryPublisher(tool, configs[1]) as publisher:
         assert publisher.wait_for_subscriber(WAIT)
         clock.now = 123.25
-        publisher.publish(Pose(x=3.0, y=-1.0, heading=0.4, speed=-0.5, yaw_rate=0.1), stamp=77.0)
+        stamp = 1_700_000_000.5 - 0.01  # within max_clock_offset of the gateway's wall clock
+        publisher.publish(Pose(x=3.0, y=-1.0, heading=0.4, speed=-0.5, yaw_rate=0.1), stamp=stamp)
         assert wait_until(lambda: gateway.latest_pose() is not None)
     sample = gateway.latest_pose()
     assert sample is not None and sample.valid
     assert sample.received == 123.25  # from the injected clock, not the sender's stamp
     pose = sample.value
-    assert (pose.x, pose.y, pose.speed, pose.yaw_rate, pose.stamp) == (3.0, -1.0, -0.5, 0.1, 77.0)
+    assert (pose.x, pose.y, pose.speed, pose.yaw_rate, pose.stamp) == (3.0, -1.0, -0.5, 0.1, stamp)
     assert pose.heading == pytest.approx(0.4, abs=1e-12)
     assert gateway.pose.received == 1
 
@@ -212,6 +213,24 @@ def test_undecodable_trajectory_is_counted_and_the_last_good_kept(
     assert gateway.latest_trajectory() is before
 
 
+def test_oversized_plan_and_payload_are_refused_with_their_reason(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any
+) -> None:
+    # issue 17, finding 5: a 10⁶-point plan stalled a tick 4.36 s, a 15 MB payload 140-180 ms
+    key = configs[1].key(keys.TRAJECTORY)
+    client.publish_trajectory(configs[1], straight(4), session=tool)
+    assert wait_until(lambda: gateway.latest_trajectory() is not None)
+    before = gateway.latest_trajectory()
+    limit = configs[0].max_plan_points
+    tool.put(key, codecs("cdr").trajectory.encode(straight(limit + 1)))
+    assert wait_until(lambda: gateway.decode_errors[key] == 1)
+    assert f"plan of {limit + 1} points > {limit}" in gateway.last_errors[key]
+    tool.put(key, bytes(configs[0].max_payload_bytes + 1))
+    assert wait_until(lambda: gateway.decode_errors[key] == 2)
+    assert "max_payload_bytes" in gateway.last_errors[key]
+    assert gateway.latest_trajectory() is before
+
+
 # --- engage queryable -----------------------------------------------------------------------
 
 
@@ -229,7 +248,7 @@ def test_refusal_and_disengage_come_back_as_replies(
 ) -> None:
     reset = client.request(configs[1], OperatorRequest.RESET, WAIT, session=tool)
     assert reset == {"accepted": False, "state": "STANDBY", "reason": "nothing to reset"}
-    disengage = client.request(configs[1], " Disengage\n", WAIT, session=tool)
+    disengage = client.request(configs[1], "disengage", WAIT, session=tool)
     assert disengage["accepted"] is True
     assert handler.requests == [OperatorRequest.RESET, OperatorRequest.DISENGAGE]
 
@@ -549,3 +568,132 @@ def test_prefix_must_be_a_plain_key_expression() -> None:
     with pytest.raises(ConfigError, match=r"leafgate.yaml: zenoh: prefix 'leaf/\*'"):
         from_mapping(ZenohConfig, {"prefix": "leaf/*"}, "leafgate.yaml", "zenoh")
     assert ZenohConfig(prefix="car/leaf").key(keys.ENGAGE) == "car/leaf/gateway/engage"
+
+
+# --- hostile operator requests (issue 17, findings 1 and 9) -------------------------------------
+
+
+def _raw_get(session: zenoh.Session, selector: str, payload: bytes | None) -> list[dict[str, Any]]:
+    replies = session.get(
+        selector, payload=payload, timeout=WAIT, consolidation=zenoh.ConsolidationMode.NONE
+    )
+    return [json.loads(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+
+
+@pytest.mark.parametrize(
+    "payload", [b"ENGAGE", b"  eNgAgE \n\t", "\u00a0engage".encode(), b"engage\n", b"engage!"]
+)
+def test_requests_are_one_exact_word(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler, payload: bytes
+) -> None:
+    client.request(configs[1], "disengage", WAIT, session=tool)  # the queryable is known now
+    (reply,) = _raw_get(tool, configs[1].key(keys.ENGAGE), payload)
+    assert reply["accepted"] is False and "unknown request" in reply["reason"]
+    assert handler.requests == [OperatorRequest.DISENGAGE]
+
+
+def test_wildcard_query_never_resets_or_engages(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler
+) -> None:
+    client.request(configs[1], "disengage", WAIT, session=tool)
+    for payload in (b"reset", b"engage"):
+        (reply,) = _raw_get(tool, "leaf/**", payload)
+        assert reply["accepted"] is False and "exactly" in reply["reason"]
+    assert handler.requests == [OperatorRequest.DISENGAGE]
+
+
+def test_large_request_is_refused_without_echoing_it(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler
+) -> None:
+    client.request(configs[1], "disengage", WAIT, session=tool)
+    (reply,) = _raw_get(tool, configs[1].key(keys.ENGAGE), b"engage" * 200_000)
+    assert reply["accepted"] is False and "1200000 bytes" in reply["reason"]
+    assert len(json.dumps(reply)) < 300
+    assert handler.requests == [OperatorRequest.DISENGAGE]
+
+
+def test_disengage_overtakes_a_flood_of_engages(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler
+) -> None:
+    release = threading.Event()
+    original = handler.__call__
+
+    def slow(request: OperatorRequest) -> dict[str, Any]:
+        if request is OperatorRequest.ENGAGE:
+            release.wait(WAIT)  # the control thread has not decided yet
+        return original(request)
+
+    gateway._handler = slow
+    client.request(configs[1], "disengage", WAIT, session=tool)
+    flood = [
+        tool.get(configs[1].key(keys.ENGAGE), payload=b"engage", timeout=WAIT) for _ in range(50)
+    ]
+    try:
+        reply = client.request(configs[1], "disengage", WAIT, session=tool)
+        assert reply["accepted"] is True  # answered while the engage lane is still stuck
+    finally:
+        release.set()
+    answers = [json.loads(r.ok.payload.to_bytes()) for f in flood for r in f if r.ok is not None]
+    assert len(answers) == 50
+    # the one engage already with the handler ran; the queued ones were superseded or refused
+    assert sum(a["accepted"] for a in answers) <= 1
+    assert handler.requests.count(OperatorRequest.ENGAGE) <= 1
+    assert any("superseded by a disengage" in a["reason"] for a in answers)
+
+
+@pytest.fixture
+def impostor_and_tool(configs: Any) -> Iterator[tuple[zenoh.Session, zenoh.Session, ZenohConfig]]:
+    """A second session listening on its own port, and a tool connected to it and the gateway."""
+    port = free_port()
+    impostor = open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)))
+    cfg = ZenohConfig(connect=(*configs[1].connect, f"tcp/127.0.0.1:{port}"))
+    tool = open_session(cfg)
+    yield impostor, tool, cfg
+    tool.close()
+    impostor.close()
+
+
+def test_tool_ignores_a_reply_from_a_session_without_the_gateway_token(
+    gateway: GatewayTransport, impostor_and_tool: Any
+) -> None:
+    impostor, tool, cfg = impostor_and_tool
+    key = cfg.key(keys.ENGAGE)
+    fake = impostor.declare_queryable(
+        key, lambda q: q.reply(key, b'{"accepted": true, "state": "ENGAGED", "reason": "fake"}')
+    )
+    assert wait_until(lambda: len(_raw_get(tool, key, b"disengage")) == 2)  # both answer
+    reply = client.request(cfg, "disengage", WAIT, session=tool)
+    assert reply["state"] == "STANDBY" and reply["reason"] == ""  # the gateway's own answer
+    assert [r["reply"]["reason"] for r in reply["ignored_replies"]] == ["fake"]
+    assert client.gateway_ids(cfg, tool, WAIT) == {str(gateway._session.info.zid())}
+    fake.undeclare()
+
+
+def test_tool_reports_a_second_session_claiming_to_be_the_gateway(
+    gateway: GatewayTransport, impostor_and_tool: Any, handler: Handler
+) -> None:
+    impostor, tool, cfg = impostor_and_tool
+    with GatewayTransport(impostor, cfg, handler):
+        assert wait_until(lambda: len(client.gateway_ids(cfg, tool, 1.0)) == 2)
+        reply = client.request(cfg, "disengage", WAIT, session=tool)
+        assert len(reply["conflicting_replies"]) == 1
+
+
+def test_old_header_stamp_ages_the_pose_and_a_future_one_invalidates_it(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any, clock: FakeClock
+) -> None:
+    # issue 17, finding 3: poses 400 ms old by their stamps were taken as fresh
+    wall = 1_700_000_000.5  # the fixture's stamp clock
+    offset = configs[0].max_clock_offset
+    clock.now = 50.0
+    with client.OdometryPublisher(tool, configs[1]) as publisher:
+        assert publisher.wait_for_subscriber(WAIT)
+        publisher.publish(Pose(x=1.0, y=0.0, heading=0.0, speed=0.0), stamp=wall - 0.4)
+        assert wait_until(lambda: gateway.latest_pose() is not None)
+        sample = gateway.latest_pose()
+        assert sample is not None and sample.valid
+        assert sample.received == pytest.approx(50.0 - (0.4 - offset))
+        publisher.publish(Pose(x=1.0, y=0.0, heading=0.0, speed=0.0), stamp=wall + 0.5)
+        assert wait_until(lambda: gateway.pose.received == 2)
+    sample = gateway.latest_pose()
+    assert sample is not None and not sample.valid

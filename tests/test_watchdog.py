@@ -4,13 +4,16 @@ threshold."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from test_gateway_core import PERIOD, FakeController, Rig
+from test_gateway_core import PERIOD, FakeController, Rig, cruise, straight_trajectory
 
+from leafgate.control.reference import trajectory_problem
 from leafgate.gateway.config import GatewayConfig, WatchdogConfig
 from leafgate.gateway.watchdog import (
     CHECK_ORDER,
@@ -26,7 +29,16 @@ from leafgate.gateway.watchdog import (
     position_jump,
     update_error_counter,
 )
-from leafgate.messages import ControlOutput, GatewayState, OperatorRequest, Pose, Stamped
+from leafgate.messages import (
+    ControlOutput,
+    GatewayState,
+    OperatorRequest,
+    Pose,
+    Stamped,
+    SteeringWheelAngle,
+    Trajectory,
+    WheelSpeeds,
+)
 
 CFG = WatchdogConfig()
 
@@ -144,6 +156,25 @@ def test_overrun_three_ticks_in_a_row_faults() -> None:
     assert wd.update(True).reaction is Reaction.FAULT
 
 
+def test_one_long_stall_faults_although_it_is_one_overrun() -> None:
+    # issue 17, finding 5: a 4.36 s tick counted as one overrun and never faulted
+    wd = OverrunWatchdog(3, stall_limit=0.1)
+    assert wd.update(True, 0.09).ok
+    check = wd.update(True, 4.36)
+    assert check.reaction is Reaction.FAULT and "stalled 4.360 s > 0.1 s" in check.detail
+
+
+def test_gateway_faults_on_a_stalled_tick() -> None:
+    rig = Rig()
+    rig.engage()
+    limit = GatewayConfig().watchdog.max_stall_periods * PERIOD
+    rig.step(overrun=True, lateness=limit * 0.9)
+    assert rig.state == GatewayState.ENGAGED
+    rig.step(overrun=True, lateness=4.36)
+    assert rig.state == GatewayState.FAULT
+    assert "control loop stalled" in rig.gw.machine.fault_reason
+
+
 # --- the reactions in the gateway, in simulated time -------------------------------------------
 
 
@@ -197,9 +228,58 @@ def test_position_jump_faults_in_the_same_tick() -> None:
 def test_small_position_correction_is_no_jump() -> None:
     rig = Rig()
     rig.engage()
-    rig.pose_offset = (0.0, 0.8)
+    rig.pose_offset = (0.0, 0.15)  # below localization_max_drift as well
     rig.run(0.2)
     assert rig.state == GatewayState.ENGAGED
+
+
+def test_a_correction_below_the_jump_limit_still_disagrees_with_dead_reckoning() -> None:
+    rig = Rig()
+    rig.engage()
+    rig.pose_offset = (0.0, 0.8)  # no jump (< 1 m), but the wheels did not move the car 0.8 m
+    rig.step()
+    assert rig.state == GatewayState.FAULT
+    assert "dead reckoning" in rig.results[-1].diagnostics.fault
+
+
+def test_localization_drifting_2_cm_per_sample_faults_before_0_3_m() -> None:
+    # issue 17, finding 3: a second publisher drifting 2 cm per sample moved the car 3.9 m
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(1.0)
+    assert rig.state == GatewayState.ENGAGED
+    drift = 0.0
+    while rig.state == GatewayState.ENGAGED and drift < 1.0:
+        drift += 0.02
+        rig.pose_offset = (0.0, drift)
+        rig.step()
+    assert rig.state == GatewayState.FAULT
+    assert "dead reckoning" in rig.results[-1].diagnostics.fault
+    assert drift < 0.3
+
+
+def test_second_localization_source_half_a_metre_off_faults_within_half_a_second() -> None:
+    # issue 17, finding 3: a constant 0.5 m second source was never detected
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(1.0)
+    started = rig.now
+    for k in range(50):
+        rig.pose_offset = (0.0, 0.5 * (k % 2))
+        rig.step()
+        if rig.state == GatewayState.FAULT:
+            break
+    assert rig.state == GatewayState.FAULT
+    assert "dead reckoning" in rig.results[-1].diagnostics.fault
+    assert rig.now - started <= 0.5
+
+
+def test_localization_agreeing_with_dead_reckoning_is_no_drift() -> None:
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(3.0)
+    assert rig.state == GatewayState.ENGAGED
+    assert rig.gw.watchdogs.pose.drift < 0.01
 
 
 @pytest.mark.parametrize("report, period", [("steer", 0.010), ("long", 0.020), ("system", 0.100)])
@@ -336,3 +416,103 @@ def test_diagnostics_list_every_watchdog_in_check_order() -> None:
     names = [c.name for c in rig.step().diagnostics.watchdogs]
     assert names == list(CHECK_ORDER)
     assert rig.step().diagnostics.watchdogs[CHECK_ORDER.index("long_report")].ok
+
+
+# --- ECU reports judged (issue 17, finding 4) ---------------------------------------------------
+
+
+def _forged_long(rig: Rig, speed: float) -> Stamped:
+    genuine = rig.ecu.long_report()
+    return Stamped(dataclasses.replace(genuine, speed=speed), rig.now)
+
+
+def test_forged_speed_disagreeing_with_the_wheel_speeds_faults() -> None:
+    # 20 m/s forged while the car does 2 m/s: never detected before, the gate took it for truth
+    rig = Rig(FakeController(cruise(accel=0.5)))
+    rig.engage()
+    rig.run(1.0)
+    wheels = Stamped(WheelSpeeds(rig.ecu.speed, rig.ecu.speed, "rear"), rig.now)
+    rig.step(wheel_speeds=wheels)
+    assert rig.state == GatewayState.ENGAGED  # genuine reports agree
+    wheels = Stamped(WheelSpeeds(rig.ecu.speed, rig.ecu.speed, "rear"), rig.now)
+    rig.step(wheel_speeds=wheels, long_report=_forged_long(rig, 20.0))
+    assert rig.state == GatewayState.FAULT
+    assert "disagrees with the rear wheel speeds" in rig.results[-1].diagnostics.fault
+
+
+def test_forged_angle_disagreeing_with_the_steering_wheel_faults() -> None:
+    rig = Rig()
+    rig.run(0.2)
+    steer = Stamped(dataclasses.replace(rig.ecu.steer_report(), angle=math.radians(20)), rig.now)
+    wheel = Stamped(SteeringWheelAngle(0.0), rig.now)
+    rig.step(steer_report=steer, steering_wheel=wheel)
+    assert rig.state == GatewayState.FAULT  # in any state, like report errors
+    assert "disagrees with the steering wheel" in rig.results[-1].diagnostics.fault
+
+
+def test_angle_beyond_the_mechanical_limit_is_never_taken_as_measured() -> None:
+    # 40° forged in STANDBY seeded the gate at 31°: the first engaged command was 30.3°
+    rig = Rig()
+    rig.run(0.2)
+    forged = Stamped(dataclasses.replace(rig.ecu.steer_report(), angle=math.radians(40)), rig.now)
+    result = rig.step(steer_report=forged)
+    assert abs(result.commands.steer.angle) < math.radians(1.0)  # mirrors the last good angle
+    for _ in range(10):  # the same forged report, tick after tick, counts once
+        result = rig.step(steer_report=forged)
+    assert rig.state == GatewayState.STANDBY
+
+
+def test_speed_beyond_the_physical_limit_is_invalid() -> None:
+    rig = Rig()
+    rig.engage()
+    for _ in range(6):  # 120 ms of forged reports: none refreshes the long report's age
+        rig.step(long_report=_forged_long(rig, 60.0))
+    assert rig.state == GatewayState.FAULT
+    assert "long_report age" in rig.results[-1].diagnostics.fault
+
+
+# --- plans that cannot be driven (issue 17, finding 10) -----------------------------------------
+
+
+def _refusal(trajectory: Trajectory) -> str:
+    rig = Rig(trajectory=trajectory)
+    rig.run(0.1)
+    result = rig.step(OperatorRequest.ENGAGE)
+    assert result.reply is not None and not result.reply.accepted
+    assert rig.state == GatewayState.STANDBY
+    return result.reply.reason
+
+
+@pytest.mark.parametrize("speed", [4.0, 50.0])
+def test_engage_refused_for_a_plan_faster_than_the_maneuver_limit(speed: float) -> None:
+    reason = _refusal(straight_trajectory(speed=speed))
+    assert f"speed {speed:.2f} m/s above the maneuver limit 3 m/s" in reason
+
+
+def test_engage_refused_for_a_plan_with_a_heading_flip() -> None:
+    plan = straight_trajectory()
+    heading = np.array(plan.heading)
+    heading[20:] = math.pi  # the path goes on along +x, the heading turns round
+    flipped = Trajectory(x=plan.x, y=plan.y, heading=heading, speed=plan.speed)
+    assert "heading turns 180° from the waypoint before (a flip)" in _refusal(flipped)
+
+
+def test_reversing_plan_keeps_its_heading_and_is_no_flip() -> None:
+    from leafgate.sim.scenarios import get_scenario
+
+    rig = Rig(trajectory=get_scenario("parallel-park").trajectory)
+    assert trajectory_problem(rig.trajectory, max_speed=3.0) is None
+
+
+def test_report_ages_count_up_to_where_the_bus_was_read() -> None:
+    # issue 17, finding 7: a starved receive thread faulted 11 of 71 runs on "steer_report age"
+    rig = Rig()
+    rig.engage()
+    rig.send["steer"] = False  # nothing new read for 60 ms: the thread is behind, frames wait
+    for _ in range(3):
+        rig.step(reports_as_of=rig.now - 3 * PERIOD + 0.001)
+    assert rig.state == GatewayState.ENGAGED
+    limit = GatewayConfig().watchdog.max_receive_lag
+    rig.step(reports_as_of=rig.now - limit - 0.01)  # … but not for ever
+    assert rig.state == GatewayState.FAULT
+    assert "CAN receive thread" in rig.results[-1].diagnostics.fault

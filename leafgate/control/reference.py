@@ -245,16 +245,50 @@ def validate(traj: Trajectory, source: str, rows: Sequence[int] | None = None) -
     return Spacing(float(gaps.min()), float(np.median(gaps)), float(gaps.max()))
 
 
-def trajectory_problem(traj: Trajectory, source: str = "trajectory") -> str | None:
+MAX_HEADING_STEP = math.pi / 2  # rad between neighbouring kept waypoints: more is a flip
+
+
+def trajectory_problem(
+    traj: Trajectory,
+    source: str = "trajectory",
+    *,
+    max_speed: float = math.inf,
+    max_points: int | None = None,
+) -> str | None:
     """Why ``traj`` cannot be driven, in one line, or None when it is usable (:func:`validate`).
 
     The one rule for a usable trajectory (transport, engage check, controllers). Returns a
     reason rather than raising so that more checks can be added without changing callers.
+    Besides :func:`validate` (issue 17, finding 10):
+
+    - more than ``max_points`` waypoints (the reference is built from every one of them);
+    - a waypoint speed above ``max_speed`` (the maneuver limit, m/s; the engage check passes
+      the safety gate's, which the car would never be allowed to reach);
+    - a heading flip: neighbouring kept waypoints whose headings differ by more than
+      :data:`MAX_HEADING_STEP` (a car cannot turn 90° within one waypoint spacing of ≤ 1 m; a
+      change of direction keeps the heading, only the speed's sign changes).
     """
+    if max_points is not None and len(traj) > max_points:
+        return f"{source}: {len(traj)} waypoints, at most {max_points}"
     try:
         validate(traj, source)
     except TrajectoryError as exc:
         return str(exc)
+    fastest = int(np.argmax(np.abs(traj.speed)))
+    if abs(float(traj.speed[fastest])) > max_speed:
+        return (
+            f"{source}: row {fastest + 1}: speed {float(traj.speed[fastest]):.2f} m/s above "
+            f"the maneuver limit {max_speed:g} m/s"
+        )
+    kept = _kept_points(traj)
+    heading = traj.heading[kept]
+    steps = np.abs(np.angle(np.exp(1j * np.diff(heading))))
+    if steps.size and float(steps.max()) > MAX_HEADING_STEP:
+        i = int(np.argmax(steps))
+        return (
+            f"{source}: row {int(kept[i + 1]) + 1}: heading turns "
+            f"{math.degrees(float(steps[i])):.0f}° from the waypoint before (a flip)"
+        )
     return None
 
 

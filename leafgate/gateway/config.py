@@ -20,6 +20,11 @@ class WatchdogConfig:
     localization_stop_age: float = 0.100  # s, localization older than this → STOPPING
     localization_fault_age: float = 0.500  # s, localization older than this → FAULT
     localization_max_jump: float = 1.0  # m, position jump in one sample → FAULT
+    # m, localization's displacement over localization_drift_window s may differ from dead
+    # reckoning on the ECU's measured speed by this much; more → FAULT (a spoofed or second
+    # localization source: a 2 cm-per-sample drift is caught at 0.2 m, before 0.3 m off path).
+    localization_max_drift: float = 0.2
+    localization_drift_window: float = 1.0  # s
     # s, a trajectory older than this cannot be engaged on; None: a plan never goes stale (for
     # planners that publish a parking maneuver once). While engaged, the accepted plan is followed.
     trajectory_max_age: float | None = 1.0
@@ -30,6 +35,14 @@ class WatchdogConfig:
     report_timeout_periods: float = 3.0  # report periods; an older report → FAULT
     max_report_errors: int = 5  # bad-frame counter (+1 bad, −1 good, floor 0) at which → FAULT
     max_overruns: int = 3  # consecutive late control ticks → FAULT
+    # One tick that starts later than this many periods → FAULT (a single long stall counts as
+    # one overrun only, so max_overruns alone would never see it). 5 periods = 100 ms at 50 Hz,
+    # the ECU's command timeout: a longer stall has already left the ECU without commands.
+    max_stall_periods: float = 5.0
+    # s the CAN receive thread may lag behind frames already waiting in the socket: report ages
+    # are judged up to where it has read (a starved thread must not fake a stale ECU), and a
+    # thread further behind than this is a FAULT of its own.
+    max_receive_lag: float = 0.2
 
     def __post_init__(self) -> None:
         positive(
@@ -37,11 +50,15 @@ class WatchdogConfig:
             "localization_stop_age",
             "localization_fault_age",
             "localization_max_jump",
+            "localization_max_drift",
+            "localization_drift_window",
             "steer_report_period",
             "long_report_period",
             "report_timeout_periods",
             "max_report_errors",
             "max_overruns",
+            "max_stall_periods",
+            "max_receive_lag",
         )
         if self.trajectory_max_age is not None:
             positive(self, "trajectory_max_age")

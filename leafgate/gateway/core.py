@@ -41,12 +41,13 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 from leafgate.config import VehicleConfig
 from leafgate.control.base import Controller
 from leafgate.gateway.config import GatewayConfig
+from leafgate.gateway.plausibility import MAX_SKEW, cross_check, report_range_error
 from leafgate.gateway.safety import Measured, SafetyGate, SafetyLimits, gear_sign
 from leafgate.gateway.state import (
     EngagementMachine,
@@ -79,10 +80,12 @@ from leafgate.messages import (
     Pose,
     Stamped,
     SteerCommand,
+    SteeringWheelAngle,
     SteerReport,
     SystemCommand,
     SystemReport,
     Trajectory,
+    WheelSpeeds,
 )
 
 _EPS = 1e-9  # s, slack when comparing times built from sums of periods
@@ -105,9 +108,15 @@ class GatewayInputs:
     bad_report_frames: int = 0  # report frames with bad CRC/counter/length since the last step
     request: OperatorRequest | None = None  # pending operator request
     overrun: bool = False  # this tick started late (the period was exceeded)
+    lateness: float = 0.0  # s this tick started after its deadline (a stall when long)
     bus_errors: int = 0  # command frames that could not be encoded or sent since the last step
     foreign_command_frames: int = 0  # frames on our command IDs we did not send, since last step
     foreign_command_names: tuple[str, ...] = ()  # their DBC names (for the fault reason)
+    # s, the gateway-clock time up to which the bus has been read (None: now, nothing waits)
+    reports_as_of: float | None = None
+    # CAR-CAN frames the reports are cross-checked with (None: the profile has none)
+    wheel_speeds: Stamped[WheelSpeeds] | None = None  # 0x284/0x285
+    steering_wheel: Stamped[SteeringWheelAngle] | None = None  # 0x002
 
 
 class EngagePhase(enum.Enum):
@@ -245,7 +254,7 @@ class Gateway:
         self.mode = mode
         self.limits = SafetyLimits.from_config(config.safety, vehicle, config.period)
         self.gate = SafetyGate(self.limits)
-        self.watchdogs = Watchdogs(config.watchdog)
+        self.watchdogs = Watchdogs(config.watchdog, config.period, config.safety.max_speed)
         self.machine = EngagementMachine()
         self._phase = EngagePhase.IDLE
         self._phase_since = 0.0  # s, when the current engage phase began
@@ -261,6 +270,8 @@ class Gateway:
         # fault_causes of diagnostics, sorted: kept until the machine's (frozen) set changes
         self._causes_of: frozenset[str] = frozenset()
         self._causes_sorted: tuple[str, ...] = ()
+        self._range_judged: dict[str, float] = {}  # receive time of the last report range-judged
+        self._cross_check: list[str] = []  # this tick's disagreements with CAR-CAN
         self.gate.seed(SteerCommand(angle=0.0), LongCommand(mode=mode))
 
     @property
@@ -276,6 +287,7 @@ class Gateway:
         :param now: the gateway clock at this tick, s (the clock that stamps ``received``)
         :param inputs: the latest inputs
         """
+        inputs = self._judge_reports(inputs)
         m = self.machine
         m.begin_tick()
         wd = self.watchdogs.update(
@@ -288,6 +300,8 @@ class Gateway:
             inputs.good_report_frames,
             inputs.bad_report_frames,
             inputs.overrun,
+            inputs.lateness,
+            inputs.reports_as_of,
         )
         reports = self._reports(wd)  # once per tick: several decisions below read the flags
         measured = self._measured(wd)
@@ -368,6 +382,44 @@ class Gateway:
         )
         return StepResult(Commands(steer=steer, long=long, system=system), diagnostics, reply)
 
+    def _receive_lag(self, now: float, inputs: GatewayInputs) -> str | None:
+        """Why the CAN receive thread is too far behind the bus, or None."""
+        as_of = inputs.reports_as_of
+        limit = self.config.watchdog.max_receive_lag
+        if as_of is None or not now - as_of > limit:
+            return None
+        return f"CAN receive thread {now - as_of:.3f} s behind the bus (> {limit:g} s)"
+
+    # -- report plausibility --------------------------------------------------------------------
+
+    def _judge_reports(self, inputs: GatewayInputs) -> GatewayInputs:
+        """Out-of-range reports made invalid (each counted once as a bad frame); this tick's
+        cross-check against CAR-CAN in ``_cross_check``."""
+        changes: dict[str, Any] = {}
+        bad = 0
+        for kind, stamped in (("steer", inputs.steer_report), ("long", inputs.long_report)):
+            if stamped is None or not stamped.valid:
+                continue
+            error = report_range_error(stamped.value, self.vehicle)
+            if error is None:
+                continue
+            changes[f"{kind}_report"] = Stamped(stamped.value, stamped.received, valid=False)
+            if self._range_judged.get(kind) != stamped.received:
+                self._range_judged[kind] = stamped.received
+                bad += 1
+        steer = None if "steer_report" in changes else inputs.steer_report
+        long = None if "long_report" in changes else inputs.long_report
+        self._cross_check = cross_check(
+            _near(steer, inputs.steering_wheel),
+            _near(long, inputs.wheel_speeds),
+            _near(inputs.wheel_speeds, long),
+            _near(inputs.steering_wheel, steer),
+            self.vehicle,
+        )
+        if not changes:
+            return inputs
+        return replace(inputs, bad_report_frames=inputs.bad_report_frames + bad, **changes)
+
     # -- watchdog reactions ----------------------------------------------------------------------
 
     def _react_to_watchdogs(
@@ -382,6 +434,11 @@ class Gateway:
                 causes[name] = check.detail
         if inputs.bus_errors > 0:
             causes["bus"] = f"{inputs.bus_errors} command frame(s) could not be encoded or sent"
+        lag = self._receive_lag(now, inputs)
+        if lag is not None:
+            causes["receive"] = lag
+        if self._cross_check:
+            causes["report_cross_check"] = "ECU report implausible: " + "; ".join(self._cross_check)
         if inputs.foreign_command_frames > 0:
             # Another node sends on our IDs: the ECU cannot tell whose command it follows.
             self._foreign_seen = now
@@ -533,6 +590,11 @@ class Gateway:
                 if seen is not None and now - seen < FOREIGN_QUIET - _EPS:
                     out.append(f"foreign command frames seen {now - seen:.2f} s ago")
                 continue
+            if cause == "report_cross_check":
+                out.extend(self._cross_check)
+                continue
+            if cause == "receive":
+                continue  # a thread that lagged once has caught up by the time of a reset
             if cause == "bus":
                 if bus_errors > 0:
                     out.append(f"{bus_errors} command frame(s) could not be sent")
@@ -679,3 +741,11 @@ class Gateway:
         if self._rest_since is None:
             self._rest_since = now
         return now - self._rest_since >= self.config.stop.standstill_time - _EPS
+
+
+def _near(stamped: Stamped[Any] | None, other: Stamped[Any] | None) -> Any:
+    """The value of a valid ``stamped`` when ``other`` is valid and received within
+    :data:`~leafgate.gateway.plausibility.MAX_SKEW` of it, else None (nothing to compare)."""
+    if stamped is None or other is None or not (stamped.valid and other.valid):
+        return None
+    return stamped.value if abs(stamped.received - other.received) <= MAX_SKEW else None

@@ -153,6 +153,17 @@ def log_profile(profile: Profile) -> None:
         log.info("vehicle profile %s: frame protection: %s", profile.name, profile.protection)
 
 
+def recording_refusal(cfg: LeafgateConfig, fault: str) -> str | None:
+    """Why an engage is refused for want of a recording (``recording.required``), or None."""
+    if not cfg.recording.required:
+        return None
+    if not cfg.recording.enabled:
+        return "recording is required (recording.required) but not enabled"
+    if fault:
+        return f"recording is required but failing: {fault}"
+    return None
+
+
 def run_daemon(
     cfg: LeafgateConfig,
     stop: threading.Event | None = None,
@@ -184,6 +195,14 @@ def run_daemon(
         )
 
         def answer(request: OperatorRequest) -> dict[str, Any]:
+            if request is OperatorRequest.ENGAGE:
+                refusal = recording_refusal(cfg, recording.fault)
+                if refusal is not None:
+                    return {
+                        "accepted": False,
+                        "state": runtime.gateway.state.name,
+                        "reason": refusal,
+                    }
             return requests.submit(request)
 
         if session is None:
@@ -209,8 +228,11 @@ def run_daemon(
             requests=requests,
             clock=clock,
             on_tick=recording.on_tick,
+            receive_buses=[buses.dbw] if buses.shared else [buses.dbw, buses.car],
             extra_diagnostics=lambda: {
                 "zenoh_decode_errors": transport.decode_errors,
+                "zenoh_last_errors": transport.last_errors,
+                "engage_refused_unheard": transport.request_refusals,
                 "zenoh_invalid_samples": transport.invalid_samples,
                 "recording": recording.diagnostics(),
             },

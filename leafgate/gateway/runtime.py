@@ -29,8 +29,10 @@ sent); any other is foreign. Both bus behaviours give the same verdicts.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
+import select
 import socket
 import threading
 import time
@@ -47,6 +49,7 @@ import numpy as np
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.gateway.core import Gateway, GatewayInputs, StepResult
 from leafgate.messages import (
+    STOP_REQUESTS,
     LongReport,
     OperatorRequest,
     Pose,
@@ -69,6 +72,9 @@ REQUEST_TIMEOUT = 1.0  # s an operator request waits for the control thread
 # as foreign. A foreign frame byte-identical to one we sent within this window passes as ours.
 ECHO_WINDOW = 2.0
 FOREIGN_LOGGED = 20  # foreign frames logged one by one, then every thousandth
+# s, how far back a frame's own receive timestamp (python-can ``msg.timestamp``, wall clock) is
+# believed; a timestamp older than this, in the future or unset counts as "received now".
+TIMESTAMP_TRUST = 10.0
 
 
 class LatestSlot(Generic[T]):
@@ -165,11 +171,18 @@ class CanReceiver(can.Listener):
     any other is counted as foreign (and handed to the recorder hook, as evidence).
     """
 
-    def __init__(self, codec: CanCodec, clock: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        codec: CanCodec,
+        clock: Callable[[], float],
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
         self.codec = codec
         self.clock = clock
+        self.wall_clock = wall_clock
         self.command_ids = codec.receive_ids("commands")
         self.sent = SentFrames()
+        self.horizon = -math.inf  # s, receive time of the newest frame read (any ID)
         self.own_echoes = 0  # echoes of our own frames received (udp_multicast delivers them)
         self.foreign_total = 0  # foreign frames on our command IDs since start
         self._foreign = 0  # … since the last take_foreign()
@@ -183,8 +196,25 @@ class CanReceiver(can.Listener):
         self._bad = 0
         self.on_frame: Callable[[can.Message, Decoded], None] | None = None  # recorder hook
 
-    def on_message_received(self, msg: can.Message) -> None:
+    def received_at(self, msg: can.Message) -> float:
+        """When ``msg`` arrived, on :attr:`clock`: from its receive timestamp, not from now.
+
+        python-can stamps a frame when the interface receives it (the kernel's timestamp on
+        SocketCAN, the datagram's arrival on ``udp_multicast``), on the wall clock. A Notifier
+        thread that gets to a frame late must not make the ECU's report look stale (issue 17,
+        finding 7), nor the echo of our own frame look foreign after a stall: the frame's age
+        is taken from its timestamp and subtracted from now on the monotonic clock.
+        """
         now = self.clock()
+        age = self.wall_clock() - msg.timestamp
+        if msg.timestamp > 0.0 and 0.0 <= age <= TIMESTAMP_TRUST:
+            return now - age
+        return now
+
+    def on_message_received(self, msg: can.Message) -> None:
+        now = self.received_at(msg)
+        if now > self.horizon:
+            self.horizon = now
         if msg.arbitration_id in self.command_ids and not msg.is_extended_id:
             if self.sent.take(msg, now):
                 self.own_echoes += 1
@@ -228,6 +258,11 @@ class CanReceiver(can.Listener):
             else:
                 self.car.setdefault(type(value).__name__, LatestSlot()).set(Stamped(value, now))
 
+    def car_value(self, kind: str) -> Stamped[Any] | None:
+        """The latest CAR-CAN value of a message type (``"WheelSpeeds"`` …), None if none yet."""
+        slot = self.car.get(kind)
+        return slot.get() if slot is not None else None
+
     def take_counts(self) -> tuple[int, int]:
         """Good and bad report frames since the last call."""
         with self._lock:
@@ -270,30 +305,113 @@ class _Request:
     future: Future[dict[str, Any]] = field(default_factory=Future)
 
 
-class RequestBox:
-    """Operator requests from the query thread to the control thread, answered with a reply."""
+REQUEST_BOX_LENGTH = 16  # requests waiting for the control thread; more are refused at once
 
-    def __init__(self) -> None:
-        self._queue: queue.SimpleQueue[_Request] = queue.SimpleQueue()
+
+@dataclass
+class TakenRequests:
+    """What the control thread takes from the :class:`RequestBox` in one tick.
+
+    ``chosen`` is executed by this tick's ``Gateway.step``; ``companions`` are further stops of
+    the same tick (they share its answer); ``superseded`` requests are refused unexecuted,
+    because a stop came in the same tick.
+    """
+
+    chosen: _Request | None = None
+    companions: list[_Request] = field(default_factory=list)
+    superseded: list[_Request] = field(default_factory=list)
+
+    @property
+    def request(self) -> OperatorRequest | None:
+        return self.chosen.request if self.chosen is not None else None
+
+    def answer(self, reply: dict[str, Any], state: str) -> None:
+        """Send ``reply`` to the chosen request and its companions, a refusal to the rest."""
+        for item in (self.chosen, *self.companions) if self.chosen is not None else ():
+            item.future.set_result(dict(reply))
+        for item in self.superseded:
+            item.future.set_result(
+                {
+                    "accepted": False,
+                    "state": state,
+                    "reason": f"{item.request.value} superseded by a disengage",
+                }
+            )
+
+
+class RequestBox:
+    """Operator requests from the query threads to the control thread, answered with a reply.
+
+    - A stop (``disengage``) wins: when one is pending, the control thread executes it in its
+      next tick and refuses every other pending request as superseded, so an engage queued
+      before a disengage can never run after it.
+    - A request whose caller gave up (``submit`` timed out) is withdrawn and never executed.
+    - At most ``length`` requests wait; more are refused at once.
+    """
+
+    def __init__(self, length: int = REQUEST_BOX_LENGTH) -> None:
+        self._lock = threading.Lock()
+        self._items: deque[_Request] = deque()
+        self._length = length
 
     def submit(self, request: OperatorRequest, timeout: float = REQUEST_TIMEOUT) -> dict[str, Any]:
-        """Block (on the caller's thread) until the control thread has decided."""
+        """Block (on the caller's thread) until the control thread has decided.
+
+        On timeout the request is withdrawn (never executed later) unless the control thread
+        is deciding it at that moment, in which case its decision is returned.
+        """
         item = _Request(request)
-        self._queue.put(item)
-        try:
-            return item.future.result(timeout=timeout)
-        except FutureTimeout:
+        with self._lock:
+            waiting = len(self._items)
+            if waiting < self._length:
+                self._items.append(item)
+        if waiting >= self._length:
             return {
                 "accepted": False,
                 "state": "UNKNOWN",
-                "reason": "control loop did not answer in time",
+                "reason": f"busy: {waiting} requests already wait for the control loop",
             }
-
-    def take(self) -> _Request | None:
         try:
-            return self._queue.get_nowait()
-        except queue.Empty:
-            return None
+            return item.future.result(timeout=timeout)
+        except FutureTimeout:
+            if item.future.cancel():
+                return {
+                    "accepted": False,
+                    "state": "UNKNOWN",
+                    "reason": "control loop did not answer in time (request withdrawn)",
+                }
+            return item.future.result()  # taken by this very tick: its answer comes at once
+
+    def __len__(self) -> int:
+        """Requests waiting (withdrawn ones included until the next take)."""
+        with self._lock:
+            return len(self._items)
+
+    def take(self) -> TakenRequests:
+        """The request to execute this tick (a pending stop first) and those it supersedes."""
+        taken = TakenRequests()
+        with self._lock:
+            items = list(self._items)
+            self._items.clear()
+            stops = [i for i in items if i.request in STOP_REQUESTS]
+            if not stops:
+                while items:
+                    item = items.pop(0)
+                    if item.future.set_running_or_notify_cancel():
+                        taken.chosen = item
+                        break
+                self._items.extend(items)  # one request per tick, in order
+                return taken
+        for item in items:
+            if not item.future.set_running_or_notify_cancel():
+                continue  # withdrawn by its caller
+            if item.request not in STOP_REQUESTS:
+                taken.superseded.append(item)
+            elif taken.chosen is None:
+                taken.chosen = item
+            else:
+                taken.companions.append(item)
+        return taken
 
 
 @dataclass
@@ -326,6 +444,27 @@ class LoopStats:
             "start_lateness_median_s": pct(self.lateness, 50),
             "start_lateness_p99_s": pct(self.lateness, 99),
         }
+
+
+def frames_waiting(buses: Sequence[can.BusABC]) -> bool:
+    """Whether a frame waits, unread, in any of the buses' sockets (False when unknown).
+
+    The Notifier thread reads them; while one waits, that thread is behind the bus and the
+    reports' ages can only be judged up to what it has read.
+    """
+    fds = []
+    for bus in buses:
+        try:
+            fds.append(bus.fileno())
+        except Exception:  # NotImplementedError (virtual), a closed bus …
+            continue
+    if not fds:
+        return False
+    try:
+        readable, _, _ = select.select(fds, [], [], 0.0)
+    except (OSError, ValueError):
+        return False
+    return bool(readable)
 
 
 def _watch_ids(bus: can.BusABC, ids: frozenset[int]) -> None:
@@ -384,15 +523,18 @@ class Runtime:
         | None = None,
         extra_diagnostics: Callable[[], dict[str, Any]] | None = None,
         watch_command_ids: bool = True,
+        receive_buses: Sequence[can.BusABC] | None = None,
     ) -> None:
         self.gateway = gateway
+        # the buses the Notifier reads (the dbw bus, and the car bus when separate)
+        self.receive_buses = tuple(receive_buses) if receive_buses is not None else (bus,)
         self.codec = codec
         self.bus = bus
         self.receiver = receiver
         self.inputs = inputs
         self.period = period
         self.publisher = publisher
-        self.requests = requests or RequestBox()
+        self.requests = requests if requests is not None else RequestBox()
         self.clock = clock
         self.on_tick = on_tick
         self.extra_diagnostics = extra_diagnostics
@@ -408,14 +550,21 @@ class Runtime:
     # -- one tick ----------------------------------------------------------------------------
 
     def tick(
-        self, now: float, overrun: bool = False, request: OperatorRequest | None = None
+        self,
+        now: float,
+        overrun: bool = False,
+        request: OperatorRequest | None = None,
+        lateness: float = 0.0,
     ) -> StepResult:
         """Read the slots, step the gateway, send the frames. Never raises for bus problems."""
         started = self.clock()
-        pending = self.requests.take() if request is None else None
+        pending = self.requests.take() if request is None else TakenRequests()
         good, bad = self.receiver.take_counts()
         foreign, foreign_names = self.receiver.take_foreign()
         bus_errors, self._bus_errors_pending = self._bus_errors_pending, 0
+        # Reports are judged up to where the receive thread has read the bus: now, unless
+        # frames still wait in a socket (the thread is late, not the ECU).
+        as_of = self.receiver.horizon if frames_waiting(self.receive_buses) else now
         inputs = GatewayInputs(
             pose=self.inputs.latest_pose(),
             trajectory=self.inputs.latest_trajectory(),
@@ -424,20 +573,25 @@ class Runtime:
             system_report=self.receiver.system.get(),
             good_report_frames=good,
             bad_report_frames=bad,
-            request=request if request is not None else (pending.request if pending else None),
+            request=request if request is not None else pending.request,
             overrun=overrun,
+            lateness=lateness,
             bus_errors=bus_errors,
             foreign_command_frames=foreign,
             foreign_command_names=foreign_names,
+            reports_as_of=as_of if math.isfinite(as_of) else None,
+            wheel_speeds=self.receiver.car_value("WheelSpeeds"),
+            steering_wheel=self.receiver.car_value("SteeringWheelAngle"),
         )
         result = self.gateway.step(now, inputs)
-        if pending is not None:
-            reply = result.reply
-            pending.future.set_result(
-                reply.to_dict()
-                if reply is not None
-                else {"accepted": False, "state": self.gateway.state.name, "reason": "no reply"}
-            )
+        state = self.gateway.state.name
+        reply = result.reply
+        pending.answer(
+            reply.to_dict()
+            if reply is not None
+            else {"accepted": False, "state": state, "reason": "no reply"},
+            state,
+        )
         frames = self._encode(result, now)
         sent = self.receiver.sent
         for frame in frames:
@@ -552,7 +706,7 @@ class Runtime:
                     self.stats.skipped += missed
                     k += missed
                 self.stats.lateness.append(max(0.0, lateness))
-                self.tick(now, overrun=overrun)
+                self.tick(now, overrun=overrun, lateness=lateness)
                 if not ready_sent and on_ready is not None:
                     on_ready()
                     ready_sent = True

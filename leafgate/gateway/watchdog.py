@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Generic, NamedTuple, TypeVar
 
@@ -53,6 +54,7 @@ class Status(enum.Enum):
     STALE = "stale"  # older than the stop threshold
     LOST = "lost"  # older than the fault threshold
     JUMP = "jump"  # implausible change in one sample
+    INCONSISTENT = "inconsistent"  # disagrees with dead reckoning from the ECU's reports
     ERRORS = "errors"  # error counter at or above its threshold
     OVERRUN = "overrun"  # too many late ticks in a row
 
@@ -153,25 +155,107 @@ class _SlotWatchdog(Generic[T]):
         return Status.INVALID if self.seen_invalid else Status.MISSING
 
 
+class DeadReckoning:
+    """Localization's displacement against dead reckoning, over a sliding window.
+
+    Each new sample advances a dead-reckoned point by the ECU's measured speed along the
+    sample's heading over the time since the previous sample (sender stamps when both have
+    them, else receive times). The speed is the mean of the reports received between the two
+    samples' times on the gateway clock (a pose's receive time already goes back by what its
+    stamp says it is old, so a late pose meets the speeds of its own time, not today's). Over
+    the window, the localization's displacement and the dead reckoning's must agree: the sum
+    telescopes, so the localization's own noise counts once at each end, not per sample, while
+    a source that drifts a little every sample, or a second source interleaved with the first,
+    shows as the difference.
+    """
+
+    def __init__(self, window: float) -> None:
+        self.window = window  # s
+        # (t, x, y, heading, received) of each sample and the dead-reckoned point (dx, dy) at it
+        self._points: deque[tuple[float, float, float, float, float, float, float]] = deque()
+        self._speeds: deque[tuple[float, float]] = deque()  # (received, speed) of the reports
+
+    def reset(self) -> None:
+        self._points.clear()
+        self._speeds.clear()
+
+    def note_speed(self, received: float, speed: float) -> None:
+        """A measured speed (m/s) received at ``received`` (gateway clock, s)."""
+        speeds = self._speeds
+        if speeds and received <= speeds[-1][0]:
+            return  # the same report again
+        speeds.append((received, speed))
+        while received - speeds[0][0] > 2 * self.window + 1.0:
+            speeds.popleft()
+
+    def _speed_between(self, t0: float, t1: float) -> float | None:
+        inside = [v for t, v in self._speeds if t0 <= t <= t1]
+        if inside:
+            return sum(inside) / len(inside)
+        before = [v for t, v in self._speeds if t <= t1]
+        return before[-1] if before else None
+
+    def add(self, sample: Stamped[Pose]) -> tuple[float, float]:
+        """Take a new sample; (disagreement m, span s) of the window, (0, 0) without speed."""
+        pose = sample.value
+        points = self._points
+        t = pose.stamp if math.isfinite(pose.stamp) else sample.received
+        if points:
+            t0, _, _, h0, r0, dx0, dy0 = points[-1]
+            speed = self._speed_between(r0, sample.received)
+            if speed is None or not math.isfinite(speed):
+                points.clear()
+                return 0.0, 0.0
+            t = max(t, t0)  # out-of-order stamps advance nothing (their position still counts)
+            step = speed * min(t - t0, self.window)
+            h = math.atan2(
+                math.sin(h0) + math.sin(pose.heading), math.cos(h0) + math.cos(pose.heading)
+            )
+            dx, dy = dx0 + step * math.cos(h), dy0 + step * math.sin(h)
+        else:
+            dx = dy = 0.0
+        points.append((t, pose.x, pose.y, pose.heading, sample.received, dx, dy))
+        while t - points[0][0] > self.window:
+            points.popleft()
+        first, last = points[0], points[-1]
+        error = math.hypot(
+            (last[1] - first[1]) - (last[5] - first[5]), (last[2] - first[2]) - (last[6] - first[6])
+        )
+        return error, last[0] - first[0]
+
+
 class PoseWatchdog(_SlotWatchdog[Pose]):
-    """Localization: age (stop, then fault) and position jumps."""
+    """Localization: age (stop, then fault), position jumps, and agreement with dead
+    reckoning from the ECU's measured speed (:class:`DeadReckoning`)."""
 
     name = "localization"
 
     def __init__(self, config: WatchdogConfig) -> None:
         super().__init__()
         self.config = config
+        self.dead_reckoning = DeadReckoning(config.localization_drift_window)
+        self.drift = 0.0  # m, the last disagreement with dead reckoning
 
     def _is_valid(self, sample: Stamped[Pose]) -> bool:
         return pose_is_valid(sample.value)
 
-    def update(self, now: float, sample: Stamped[Pose] | None) -> Check:
-        """Feed this tick's slot content and judge it."""
+    def update(
+        self, now: float, sample: Stamped[Pose] | None, long: Stamped[LongReport] | None = None
+    ) -> Check:
+        """Feed this tick's slot content and judge it.
+
+        :param long: the latest DBW_LONG_RPT (its speed drives the dead reckoning)
+        """
+        if long is not None and long.valid and math.isfinite(long.value.speed):
+            self.dead_reckoning.note_speed(long.received, long.value.speed)
         cfg = self.config
         previous = self.last
         jump: float | None = None
-        if self._take(sample) and previous is not None and self.last is not None:
-            jump = position_jump(previous, self.last)
+        span = 0.0
+        if self._take(sample) and self.last is not None:
+            if previous is not None:
+                jump = position_jump(previous, self.last)
+            self.drift, span = self.dead_reckoning.add(self.last)
         if self.last is None:
             status = self._missing_status()
             return Check(
@@ -192,6 +276,17 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
                 Reaction.FAULT,
                 f"localization jumped {jump:.2f} m > {cfg.localization_max_jump:g} m in one sample",
                 jump,
+            )
+        if span > 0.0 and self.drift > cfg.localization_max_drift:
+            return Check(
+                self.name,
+                Status.INCONSISTENT,
+                age,
+                cfg.localization_max_drift,
+                Reaction.FAULT,
+                f"localization disagrees with dead reckoning by {self.drift:.2f} m over "
+                f"{span:.2f} s (> {cfg.localization_max_drift:g} m): spoofed or second source?",
+                self.drift,
             )
         status = freshness(age, cfg.localization_stop_age, cfg.localization_fault_age)
         if status is Status.LOST:
@@ -222,15 +317,16 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
 
     name = "trajectory"
 
-    def __init__(self, config: WatchdogConfig) -> None:
+    def __init__(self, config: WatchdogConfig, max_speed: float = math.inf) -> None:
         super().__init__()
         self.config = config
+        self.max_speed = max_speed  # m/s, the maneuver limit a plan must respect
         self.problem = ""  # why the last unusable plan was refused (the controller's reason)
 
     def _is_valid(self, sample: Stamped[Trajectory]) -> bool:
         if self.last is not None and sample.value is self.last.value:
             return True  # the same plan re-received: its (read-only) arrays were checked
-        problem = trajectory_problem(sample.value)
+        problem = trajectory_problem(sample.value, max_speed=self.max_speed)
         if problem is not None:
             self.problem = problem  # shown while no usable plan has been received
         return problem is None
@@ -347,18 +443,30 @@ class ErrorCounter:
 
 
 class OverrunWatchdog:
-    """Control loop overruns: ``max_overruns`` late ticks in a row → FAULT."""
+    """Control loop overruns: ``max_overruns`` late ticks in a row, or one tick that started
+    more than ``stall_limit`` s late → FAULT."""
 
     name = "overrun"
 
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: int, stall_limit: float = math.inf) -> None:
         self.limit = limit
+        self.stall_limit = stall_limit  # s
         self.in_row = 0
         self._ok: Check | None = None  # the last OK verdict, reused while in_row is unchanged
 
-    def update(self, overrun: bool) -> Check:
-        """Count this tick (``overrun``: it started late)."""
+    def update(self, overrun: bool, lateness: float = 0.0) -> Check:
+        """Count this tick (``overrun``: it started late, by ``lateness`` s)."""
         self.in_row = self.in_row + 1 if overrun else 0
+        if lateness > self.stall_limit + TIME_EPS:
+            return Check(
+                self.name,
+                Status.OVERRUN,
+                lateness,
+                self.stall_limit,
+                Reaction.FAULT,
+                f"control loop stalled {lateness:.3f} s > {self.stall_limit:g} s",
+                self.in_row,
+            )
         if self.in_row >= self.limit:
             return Check(
                 self.name,
@@ -447,10 +555,12 @@ class Watchdogs:
 
     REPORTS: tuple[str, ...] = ("steer_report", "long_report", "system_report")
 
-    def __init__(self, config: WatchdogConfig) -> None:
+    def __init__(
+        self, config: WatchdogConfig, period: float = math.inf, max_speed: float = math.inf
+    ) -> None:
         self.config = config
         self.pose = PoseWatchdog(config)
-        self.trajectory = TrajectoryWatchdog(config)
+        self.trajectory = TrajectoryWatchdog(config, max_speed)
         n = config.report_timeout_periods
         self.steer: ReportWatchdog[SteerReport] = ReportWatchdog(
             "steer_report", config.steer_report_period, n
@@ -462,7 +572,7 @@ class Watchdogs:
             "system_report", config.system_report_period, n
         )
         self.errors = ErrorCounter(config.max_report_errors)
-        self.overrun = OverrunWatchdog(config.max_overruns)
+        self.overrun = OverrunWatchdog(config.max_overruns, config.max_stall_periods * period)
 
     def update(
         self,
@@ -475,16 +585,23 @@ class Watchdogs:
         good_frames: int,
         bad_frames: int,
         overrun: bool,
+        lateness: float = 0.0,
+        reports_as_of: float | None = None,
     ) -> WatchdogReport:
-        """Feed one tick's inputs to every watchdog."""
+        """Feed one tick's inputs to every watchdog.
+
+        :param reports_as_of: the time up to which the bus has been read (frames arriving
+            later still wait in the socket); the reports' ages count to it, not to ``now``
+        """
+        as_of = now if reports_as_of is None else min(now, reports_as_of)
         checks = (  # in CHECK_ORDER
-            self.pose.update(now, pose),
+            self.pose.update(now, pose, long),
             self.trajectory.update(now, trajectory),
-            self.steer.update(now, steer),
-            self.long.update(now, long),
-            self.system.update(now, system),
+            self.steer.update(as_of, steer),
+            self.long.update(as_of, long),
+            self.system.update(as_of, system),
             self.errors.update(good_frames, bad_frames),
-            self.overrun.update(overrun),
+            self.overrun.update(overrun, lateness),
         )
         return WatchdogReport(
             checks=checks,

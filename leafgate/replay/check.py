@@ -27,6 +27,15 @@ session's ``/can`` topic):
    report with a known gear yet), and the rates of the first command of a log or after a gap
    (the previous command is not in the log), which are checked against the envelope only.
 
+4. judge every ECU report as the gateway does (:mod:`leafgate.gateway.plausibility`, the same
+   functions): a report out of the physical range, or disagreeing with the CAR-CAN wheel speeds
+   or steering-wheel angle recorded within ``MAX_SKEW`` of it, is a ``report`` finding (one per
+   stretch of disagreement), and an out-of-range speed is never used as the measured state.
+
+5. look for the recorder's end-of-recording marker (the last frame of a properly closed log
+   or session): without it the recording stopped early (a crash, a full disk, a write error),
+   and an ``incomplete`` finding says after which frame and at what time it stops.
+
 An empty log, a log with no frame of the profile (another vehicle's?) and a log whose
 command frames could none be checked are findings, never "OK". Timestamps that go backwards
 are warned about.
@@ -54,9 +63,19 @@ import numpy as np
 
 from leafgate.can.codec import CanCodec, FrameStats
 from leafgate.can.profile import Profile
+from leafgate.config import VehicleConfig
+from leafgate.gateway.plausibility import MAX_SKEW, cross_check, report_range_error
 from leafgate.gateway.safety import Measured, SafetyLimits, Violation, apply_limits, check
-from leafgate.messages import Gear, LongCommand, LongReport, SteerCommand
-from leafgate.replay.logs import FrameSource, recording_context
+from leafgate.messages import (
+    Gear,
+    LongCommand,
+    LongReport,
+    SteerCommand,
+    SteeringWheelAngle,
+    SteerReport,
+    WheelSpeeds,
+)
+from leafgate.replay.logs import FrameSource, is_end_marker, recording_context
 from leafgate.settings import LeafgateConfig
 
 __all__ = ["CheckReport", "Finding", "IdStats", "check_frames", "check_log", "main_check"]
@@ -375,6 +394,7 @@ def check_frames(
     dbw_dbc: str | None = None,
     car_dbc: str | None = None,
     progress: _Progress | None = None,
+    vehicle: VehicleConfig | None = None,
 ) -> CheckReport:
     """Check a sequence of frames (the core of :func:`check_log`; see the module notes).
 
@@ -399,7 +419,13 @@ def check_frames(
     n = 0
     first = last = math.nan
     latest = -math.inf
+    judge = _ReportJudge(vehicle or VehicleConfig())
+    ended = False
     for msg in frames:
+        if is_end_marker(msg):
+            ended = True
+            continue
+        ended = False  # frames after a marker: a later file or session segment
         n += 1
         if progress is not None and not n & 0x3FF:
             progress.update(n)
@@ -440,8 +466,11 @@ def check_frames(
             continue
         invalid_before.discard(frame_id)
         for value in decoded.values:
-            if isinstance(value, LongReport):
-                commands.long_report = value
+            if isinstance(value, (SteerReport, LongReport, WheelSpeeds, SteeringWheelAngle)):
+                # judged as the gateway judges them: an implausible report is never the state
+                plausible = judge.take(t, frame_id, decoded.name or "", value)
+                if isinstance(value, LongReport) and plausible:
+                    commands.long_report = value
         if frame_id in command_ids:
             commands.frame(t, frame_id, decoded.name or "", decoded.values)
     if progress is not None:
@@ -471,6 +500,17 @@ def check_frames(
     findings.extend(
         _coverage_findings(n, first, command_frames, commands, template, merged, command_ids)
     )
+    findings.extend(judge.findings)
+    if n and not ended:
+        findings.append(
+            Finding(
+                last,
+                "incomplete",
+                None,
+                "",
+                f"no end-of-recording marker: the recording stops after frame {n} at {last:.3f} s",
+            )
+        )
     findings.sort(key=lambda f: (f.time, f.kind))
     return CheckReport(
         path=path,
@@ -556,6 +596,49 @@ def _coverage_findings(
             )
         ]
     return []
+
+
+class _ReportJudge:
+    """The gateway's report plausibility checks over a log: one finding per stretch."""
+
+    def __init__(self, vehicle: VehicleConfig) -> None:
+        self.vehicle = vehicle
+        self.latest: dict[type, tuple[float, Any]] = {}  # type → (t, value) of the last good one
+        self.findings: list[Finding] = []
+        self._range_bad: dict[type, bool] = {}  # the last report of the type was out of range
+        self._disagreeing: set[str] = set()  # cross-checks failing now
+
+    def _near(self, kind: type, t: float) -> Any:
+        entry = self.latest.get(kind)
+        return entry[1] if entry is not None and abs(t - entry[0]) <= MAX_SKEW else None
+
+    def take(self, t: float, frame_id: int, name: str, value: Any) -> bool:
+        """Judge one report or CAR-CAN frame; False when the value is out of range."""
+        kind = type(value)
+        error = (
+            report_range_error(value, self.vehicle)
+            if isinstance(value, (SteerReport, LongReport))
+            else None
+        )
+        if error is not None and not self._range_bad.get(kind):
+            self.findings.append(Finding(t, "report", frame_id, name, error))
+        self._range_bad[kind] = error is not None
+        if error is not None:
+            return False
+        self.latest[kind] = (t, value)
+        disagreements = cross_check(
+            self._near(SteerReport, t),
+            self._near(LongReport, t),
+            self._near(WheelSpeeds, t),
+            self._near(SteeringWheelAngle, t),
+            self.vehicle,
+        )
+        failing = {text.split(" ")[0] + " " + text.split(" ")[2]: text for text in disagreements}
+        for key, detail in failing.items():
+            if key not in self._disagreeing:
+                self.findings.append(Finding(t, "report", frame_id, name, detail))
+        self._disagreeing = set(failing)
+        return True
 
 
 def _violations(
@@ -774,7 +857,7 @@ def check_log(
     context = recording_context(path, config=config, profile=profile)
     cfg = context.config
     limits = SafetyLimits.from_config(cfg.gateway.safety, cfg.vehicle, cfg.gateway.period)
-    source = FrameSource(path)
+    source = FrameSource(path, markers=True)
     report = check_frames(
         source,
         limits,
@@ -784,6 +867,7 @@ def check_log(
         dbw_dbc=cfg.can.dbw_dbc,
         car_dbc=cfg.can.car_dbc,
         progress=_Progress(progress, source),
+        vehicle=cfg.vehicle,
     )
     report.truncated = source.truncated
     return report

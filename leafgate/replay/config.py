@@ -37,11 +37,15 @@ class RecordingConfig:
     max_bytes: int = 100 * 1024 * 1024  # bytes per CAN log file before rotating; 0 = never
     flush_period: float = 1.0  # s, at most this much is lost in a crash or power loss
     queue_size: int = 20_000  # items waiting for the writer thread (≈ 10 s of CAN at 2 kHz)
+    # bytes those items may hold together (a flood of 10 MB junk payloads took 1.29 GB before)
+    queue_bytes: int = 64 * 1024 * 1024
+    # while a recorder fails (or recording is off), engage is refused: the car's default
+    required: bool = False
     compression: Literal["zstd", "lz4", "none"] = "zstd"  # MCAP chunk compression
     diagnostics: bool = True  # record the gateway diagnostics of every tick in the session
 
     def __post_init__(self) -> None:
-        positive(self, "flush_period", "queue_size")
+        positive(self, "flush_period", "queue_size", "queue_bytes")
         if self.flush_period > 1.0:
             # DESIGN: a crash or power loss loses at most the last second
             raise ValueError(f"flush_period must be at most 1 s, got {self.flush_period!r}")

@@ -20,7 +20,7 @@ import functools
 import json
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Final
 
 import can
 
@@ -65,6 +65,33 @@ class _CompleteLines:
         self.file.close()
 
 
+# The end-of-recording marker: the last frame of every CAN log file and session that was
+# closed properly. `replay check` reports a log without it as incomplete, with where it stops.
+END_MARKER_ID: Final = 0x1FFFFFFF  # extended ID, outside every DBC
+END_MARKER_DATA: Final = b"LGEND\x00\x00\x00"
+
+
+def end_marker(timestamp: float, channel: Any = None) -> can.Message:
+    """The end-of-recording marker frame."""
+    return can.Message(
+        timestamp=timestamp,
+        arbitration_id=END_MARKER_ID,
+        is_extended_id=True,
+        data=END_MARKER_DATA,
+        channel=channel,
+        is_rx=False,
+    )
+
+
+def is_end_marker(msg: can.Message) -> bool:
+    """Whether ``msg`` is the end-of-recording marker."""
+    return (
+        msg.is_extended_id
+        and msg.arbitration_id == END_MARKER_ID
+        and bytes(msg.data) == END_MARKER_DATA
+    )
+
+
 def is_session(path: str | Path) -> bool:
     """True for an MCAP session file (by suffix)."""
     return Path(path).suffix.lower() == ".mcap"
@@ -73,12 +100,18 @@ def is_session(path: str | Path) -> bool:
 class FrameSource:
     """The CAN frames of a recording, in file order.
 
+    The recorder's end-of-recording marker is not a frame of the drive: it is not yielded
+    (unless ``markers``), and :attr:`ended` tells whether the recording's last frame was one.
+
     :param path: a python-can log or a ``.mcap`` session
+    :param markers: yield the end-of-recording markers too (``replay check``)
     :raises ReplayError: (on iteration) the file is missing, of an unknown format or unreadable
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, markers: bool = False) -> None:
         self.path = Path(path)
+        self.markers = markers
+        self.ended = False  # the last frame read was an end-of-recording marker
         if not self.path.is_file():
             raise ReplayError(f"{self.path}: no such file")
         self.size = self.path.stat().st_size
@@ -98,7 +131,10 @@ class FrameSource:
 
     def __iter__(self) -> Iterator[can.Message]:
         try:
-            yield from self._frames()
+            for msg in self._frames():
+                self.ended = is_end_marker(msg)
+                if self.markers or not self.ended:
+                    yield msg
         except ReplayError:
             raise
         except Exception as exc:  # each reader has its own errors (ValueError, BLFParseError …)

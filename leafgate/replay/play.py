@@ -26,7 +26,7 @@ import can
 from leafgate.can.bus import open_bus
 from leafgate.can.config import BusConfig
 from leafgate.errors import BusError, ReplayError
-from leafgate.replay.logs import FrameSource
+from leafgate.replay.logs import FrameSource, is_end_marker
 
 __all__ = ["PlayStats", "main_play", "parse_ids", "play_frames"]
 
@@ -106,7 +106,11 @@ def play_frames(
     for msg in frames:
         if t0_log is None:
             t0_log = msg.timestamp
-        if msg.timestamp - t0_log < start or (ids is not None and msg.arbitration_id not in ids):
+        if (
+            msg.timestamp - t0_log < start
+            or (ids is not None and msg.arbitration_id not in ids)
+            or is_end_marker(msg)  # the recorder's, not a frame of the drive
+        ):
             skipped += 1
             continue
         if base_log is None:

@@ -46,6 +46,7 @@ from leafgate.control.base import Controller
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.messages import ControlOutput, Pose, Trajectory
 from leafgate.replay.config import CAN_LOG_SUFFIXES, RecordingConfig
+from leafgate.replay.logs import end_marker, is_end_marker
 from leafgate.replay.session import SessionWriter, epoch_offset
 from leafgate.settings import LeafgateConfig
 
@@ -56,6 +57,8 @@ __all__ = [
     "Recorder",
     "Recording",
     "SessionRecorder",
+    "end_marker",
+    "is_end_marker",
     "open_recording",
 ]
 
@@ -65,6 +68,16 @@ Direction = Literal["rx", "tx"]
 _STOP: Final = object()
 _ROTATE_CHECK_EVERY: Final = 256  # frames between file-size checks (tell() is not free)
 DEFAULT_REORDER_WINDOW: Final = 0.25  # s, twice the worst disorder measured under load
+_ITEM_OVERHEAD: Final = 200  # bytes counted per queued item besides its payloads
+
+
+def _item_bytes(item: Any) -> int:
+    """Rough size of a queued item: its payload bytes plus a fixed overhead."""
+    if isinstance(item, can.Message):
+        return _ITEM_OVERHEAD + len(item.data)
+    if isinstance(item, tuple):
+        return _ITEM_OVERHEAD + sum(len(x) for x in item if isinstance(x, (bytes, bytearray)))
+    return _ITEM_OVERHEAD
 
 
 class Recorder(Protocol):
@@ -124,8 +137,11 @@ class _BackgroundWriter:
         flush_period: float,
         queue_size: int,
         drain: Callable[[], None] | None = None,
+        queue_bytes: int = 64 * 1024 * 1024,
     ) -> None:
         self.name = name
+        self.queue_bytes = queue_bytes
+        self._bytes = 0  # bytes of the items queued now (approximate, _item_bytes)
         self._write = write
         self._flush = flush
         self._close = close
@@ -137,6 +153,7 @@ class _BackgroundWriter:
         self.failed = False  # the file was given up after a write error
         self.errors = 0  # write/flush/close errors
         self.dropped = 0  # items not written (queue full, or after a failure)
+        self.dropped_bytes = 0  # … of which over the byte bound, their bytes
         self.written = 0
         self.flushes = 0
         self._closed = False
@@ -148,10 +165,18 @@ class _BackgroundWriter:
         if self.failed or self._closed:
             self.dropped += 1
             return
+        size = _item_bytes(item)
+        with self._lock:
+            if self._bytes + size > self.queue_bytes:
+                self.dropped += 1
+                self.dropped_bytes += size
+                return
+            self._bytes += size
         try:
             self._queue.put_nowait(item)
         except queue.Full:
             with self._lock:
+                self._bytes -= size
                 self.dropped += 1
 
     def fail(self, what: str, exc: BaseException) -> None:
@@ -161,7 +186,9 @@ class _BackgroundWriter:
         self.errors += 1
         if isinstance(exc, OSError):
             self.failed = True
-        log.error("%s", self.fault)
+            log.warning("recording failed, the file is given up: %s", self.fault)
+        else:
+            log.warning("recording problem: %s", self.fault)
 
     def _guarded(self, what: str, fn: Callable[[], None]) -> None:
         if self.failed:
@@ -183,6 +210,9 @@ class _BackgroundWriter:
                 item = None
             if item is _STOP:
                 break
+            if item is not None and not isinstance(item, threading.Event):
+                with self._lock:
+                    self._bytes -= _item_bytes(item)
             if isinstance(item, threading.Event):  # a flush request
                 if self._drain is not None:
                     self._guarded("write", self._drain)
@@ -237,6 +267,8 @@ class _BackgroundWriter:
             "errors": self.errors,
             "flushes": self.flushes,
             "queued": self._queue.qsize(),
+            "queued_bytes": self._bytes,
+            "dropped_bytes": self.dropped_bytes,
             "fault": self.fault,
         }
 
@@ -348,6 +380,7 @@ class CanLogRecorder:
         one_bus: bool = False,
         reorder_window: float = DEFAULT_REORDER_WINDOW,
         time_offset: float = 0.0,
+        queue_bytes: int = 64 * 1024 * 1024,
     ) -> None:
         self.path = Path(path)
         # s added to every frame's own timestamp (a simulated drive: simulated time → Unix time,
@@ -377,6 +410,7 @@ class CanLogRecorder:
             flush_period,
             queue_size,
             drain=self._drain,
+            queue_bytes=queue_bytes,
         )
         try:
             self._rotate()
@@ -418,6 +452,7 @@ class CanLogRecorder:
     def _rotate(self) -> None:
         if self._writer is not None:
             writer, self._writer = self._writer, None
+            self._mark_end(writer)
             writer.stop()
         name = self._next_name()
         name.parent.mkdir(parents=True, exist_ok=True)
@@ -468,12 +503,18 @@ class CanLogRecorder:
         if self.max_bytes and self._writer.file_size() >= self.max_bytes:
             self._rotate()
 
+    def _mark_end(self, writer: can.io.generic.FileIOMessageWriter[Any]) -> None:
+        stamp = self.tx_clock() if self.tx_clock is not None else time.time()
+        # never before the last frame: a simulated drive's clock runs ahead of the wall clock
+        writer.on_message_received(end_marker(max(stamp, self._last_written), self.channel))
+
     def _finish(self) -> None:
         if self._writer is not None:
             try:
                 self._drain()
             finally:
                 writer, self._writer = self._writer, None
+                self._mark_end(writer)
                 writer.stop()
 
     # -- control --
@@ -530,6 +571,7 @@ class SessionRecorder:
         channel: str | None = None,
         one_bus: bool = False,
         epoch: float | None = None,
+        queue_bytes: int = 64 * 1024 * 1024,
     ) -> None:
         self.path = Path(path)
         self.clock = clock
@@ -538,6 +580,7 @@ class SessionRecorder:
         self.tap = tap
         self.record_diagnostics = diagnostics
         self.ticks = 0
+        self._last_t = 0.0  # s, time of the last item written (for the end marker)
         self._file: IO[bytes] | None = None
         self._writer: SessionWriter | None = None
         self._bg = _BackgroundWriter(
@@ -547,6 +590,7 @@ class SessionRecorder:
             self._finish,
             flush_period,
             queue_size,
+            queue_bytes=queue_bytes,
         )
         meta = {"clock": "gateway" if clock is not None else "frame timestamps"}
         meta["started"] = datetime.now().astimezone().isoformat(timespec="seconds")
@@ -607,8 +651,10 @@ class SessionRecorder:
             ):
                 msg = _copy(msg, channel=self.channel)  # one bus, one channel name
             writer.can_frame(t, msg, rx)
+            self._last_t = t
         elif kind == "tick":
             _, now, inputs, result, xy = item
+            self._last_t = now
             writer.tick(now, inputs, result, xy, self.record_diagnostics)
             self.ticks += 1
         else:
@@ -623,6 +669,8 @@ class SessionRecorder:
     def _finish(self) -> None:
         try:
             if self._writer is not None:
+                t = self.clock() if self.clock is not None else self._last_t
+                self._writer.can_frame(t, end_marker(t), False)
                 self._writer.finish()
         finally:
             if self._file is not None:
@@ -743,6 +791,7 @@ def open_recording(
                 max_bytes=cfg.max_bytes,
                 flush_period=cfg.flush_period,
                 queue_size=cfg.queue_size,
+                queue_bytes=cfg.queue_bytes,
                 tx_clock=wall_clock,
                 channel=config.can.dbw.channel,
                 one_bus=config.can.car is None,
@@ -757,6 +806,7 @@ def open_recording(
                 clock=clock,
                 flush_period=cfg.flush_period,
                 queue_size=cfg.queue_size,
+                queue_bytes=cfg.queue_bytes,
                 compression=cfg.compression,
                 diagnostics=cfg.diagnostics,
                 channel=config.can.dbw.channel,

@@ -67,6 +67,11 @@ class EcuConfig:
     speed_max_accel: float = 1.5  # m/s², speed-mode acceleration limit
     speed_max_decel: float = 3.0  # m/s², speed-mode braking limit
     tick_rate_hz: float = 1000.0  # Hz, real-time step rate of `leafgate sim-ecu`
+    # Counter race: more than race_drops command frames dropped for their alive counter within
+    # race_window s means a second sender on the command IDs (two interleaved sequences, or a
+    # replay that wins the race) → FAULT and brake to rest at timeout_decel.
+    race_drops: int = 3
+    race_window: float = 0.5  # s
 
     def __post_init__(self) -> None:
         positive(
@@ -83,7 +88,10 @@ class EcuConfig:
             "speed_max_accel",
             "speed_max_decel",
             "tick_rate_hz",
+            "race_window",
         )
+        if not (isinstance(self.race_drops, int) and self.race_drops >= 1):
+            raise ValueError(f"race_drops must be a whole number ≥ 1, got {self.race_drops!r}")
         if not self.speed_ki >= 0.0:
             raise ValueError(f"speed_ki must be zero or positive, got {self.speed_ki!r}")
 

@@ -15,6 +15,11 @@ Semantics (defaults from :class:`~leafgate.sim.config.EcuConfig`):
 - A frame with a bad CRC, a counter that does not advance or a wrong length is dropped and
   counted by kind; the kinds seen are also latched as fault bits on DBW_SYSTEM_RPT until a
   DBW_SYSTEM_CMD with CLEAR_FAULTS.
+- Counter race: more than ``race_drops`` command frames dropped for their alive counter within
+  ``race_window`` → FAULT (disengage, brake to rest at ``timeout_decel``), latched until a
+  CLEAR_FAULTS once no counter drop has been seen for a window. Two senders on the command IDs
+  (a second gateway, a replayed stream) make exactly this pattern; whichever wins the race, it
+  can stop the car but not drive it.
 - No valid steer or long command for ``cmd_timeout`` → CMD_TIMEOUT, disengage, and brake at
   ``timeout_decel`` to a stop (kept until the next engage).
 - Driver override while engaged — steering torque above ``override_torque`` for
@@ -41,9 +46,11 @@ frames are emitted too so simulated and real logs look alike.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -136,6 +143,8 @@ class EcuCounters:
     gear_changes: int = 0
     gear_refused: int = 0  # gear requests refused while moving (once per request)
     encode_errors: int = 0  # report frames that could not be encoded (a bug if non-zero)
+    counter_races: int = 0  # counter-race faults (two senders on the command IDs)
+    malformed: int = 0  # datagrams the bus could not parse as a CAN frame (real-time loop)
 
     @property
     def rx_errors(self) -> int:
@@ -199,6 +208,8 @@ class SimulatedEcu:
         self._engaged = False
         self._override = False
         self._fault = False
+        self._race = False  # counter race: latched FAULT until CLEAR_FAULTS after a quiet window
+        self._counter_drops: deque[float] = deque()  # s, times of counter drops in the window
         self._cmd_timeout = False
         self._timeout_stop = False  # braking at timeout_decel until the next engage
         self._prev_enable: bool | None = None  # None: no fresh commands, no edge possible
@@ -231,6 +242,8 @@ class SimulatedEcu:
             return
         if not decoded.valid:
             self._count_invalid(decoded.error)
+            if decoded.error == "bad_counter":
+                self._counter_drop(now)
             return
         for value in decoded.values:  # a frame may carry steering and speed together
             if isinstance(value, SteerCommand):
@@ -251,6 +264,18 @@ class SimulatedEcu:
         decoded = self.codec.decode(msg)
         self.receive(now, decoded)
         return decoded
+
+    def _counter_drop(self, now: float) -> None:
+        """Count a command frame dropped for its counter; too many in a window is a race."""
+        drops = self._counter_drops
+        drops.append(now)
+        while drops and now - drops[0] > self.config.race_window:
+            drops.popleft()
+        if len(drops) > self.config.race_drops and not self._race:
+            self._race = True
+            self.counters.counter_races += 1
+            self._timeout_stop = True  # brake to rest, as after a command timeout
+            self._disengage()
 
     def _count_invalid(self, error: str | None) -> None:
         if error == "bad_crc":
@@ -337,7 +362,7 @@ class SimulatedEcu:
     @property
     def state(self) -> EcuState:
         """The ECU state as on DBW_SYSTEM_RPT."""
-        if self._fault:
+        if self._fault or self._race:
             return EcuState.FAULT
         if self._override:
             return EcuState.OVERRIDE
@@ -424,8 +449,13 @@ class SimulatedEcu:
         if actuator_fault:
             self._fault = True
             self._disengage()
+        if self._race:
+            self._disengage()
         if self._clear_faults_req:
             self._fault = self._fault and actuator_fault
+            drops = self._counter_drops
+            if self._race and not (drops and now - drops[-1] <= self.config.race_window):
+                self._race = False
             self._fault_bits = dict.fromkeys(self._fault_bits, False)
         self._clear_faults_req = False
 
@@ -437,7 +467,7 @@ class SimulatedEcu:
         self._prev_enable = enable if fresh else None
         if self._engaged and not enable:
             self._disengage()
-        elif edge and not (self._override or self._fault or self._cmd_timeout):
+        elif edge and not (self._override or self._fault or self._race or self._cmd_timeout):
             self._engaged = True
             self._timeout_stop = False
             self._mode = None
@@ -626,6 +656,35 @@ class RealtimeStats:
     counters: EcuCounters
 
 
+MAX_DRAIN = 2000  # frames read per tick at most, so a flood cannot hold a tick for ever
+MALFORMED_LOGGED = 5  # malformed datagrams logged one by one, then only counted
+
+log = logging.getLogger(__name__)
+
+
+def _drain(bus: can.BusABC, counters: EcuCounters) -> list[can.Message]:
+    """The frames waiting on ``bus`` (at most :data:`MAX_DRAIN`), without blocking.
+
+    A datagram that is not a CAN frame (python-can raises ``CanOperationError`` for it on
+    ``udp_multicast``) is counted in ``counters.malformed`` and skipped: it must not end the ECU.
+    """
+    frames: list[can.Message] = []
+    for _ in range(MAX_DRAIN):
+        try:
+            msg = bus.recv(timeout=0.0)
+        except can.CanError as exc:
+            counters.malformed += 1
+            if counters.malformed <= MALFORMED_LOGGED:
+                log.warning(
+                    "malformed frame on the bus dropped (%d so far): %s", counters.malformed, exc
+                )
+            continue
+        if msg is None:
+            break
+        frames.append(msg)
+    return frames
+
+
 def run_ecu_realtime(
     config: LeafgateConfig,
     stop: threading.Event | None = None,
@@ -657,7 +716,11 @@ def run_ecu_realtime(
     codec = CanCodec.for_config(config)
     ecu = SimulatedEcu(ecu_cfg, plant, config.vehicle, codec)
     car_ids = codec.receive_ids("car")
-    dbw_bus = open_bus(config.can.dbw, codec.receive_ids("commands"))
+    command_ids = codec.receive_ids("commands")
+    # Every frame is read and the command IDs picked here: python-can's software filter makes
+    # recv(timeout=0) return None at the first unrelated frame, so a busy bus would leave the
+    # commands queued behind it (the ECU fell behind and timed out at 20,000 frames/s).
+    dbw_bus = open_bus(config.can.dbw, None)
     car_bus = dbw_bus
     try:
         if config.can.car is not None:
@@ -684,9 +747,10 @@ def run_ecu_realtime(
             now = tick * period  # s, nominal time since start
             if duration is not None and now >= duration:
                 break
-            while (msg := dbw_bus.recv(timeout=0.0)) is not None:
-                received += 1
-                ecu.receive_frame(now, msg)
+            for msg in _drain(dbw_bus, ecu.counters):
+                if msg.arbitration_id in command_ids and not msg.is_extended_id:
+                    received += 1
+                    ecu.receive_frame(now, msg)
             for msg in ecu.reports(now):
                 bus = car_bus if msg.arbitration_id in car_ids else dbw_bus
                 try:

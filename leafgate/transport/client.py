@@ -64,6 +64,19 @@ def _wait_matching(entity: zenoh.Publisher | zenoh.Querier, deadline: float) -> 
         time.sleep(_POLL)
 
 
+def gateway_ids(cfg: ZenohConfig, session: zenoh.Session, timeout: float) -> set[str]:
+    """Zenoh IDs of the gateways whose liveliness token is up under ``cfg``'s prefix.
+
+    A gateway holds ``{prefix}/gateway/alive/<its Zenoh ID>`` besides ``gateway/alive``.
+    """
+    base = cfg.key(keys.ALIVE) + "/"
+    found = set()
+    for reply in session.liveliness().get(base + "*", timeout=timeout):
+        if reply.ok is not None:
+            found.add(str(reply.ok.key_expr).removeprefix(base))
+    return found
+
+
 def request(
     cfg: ZenohConfig,
     what: str | OperatorRequest,
@@ -73,42 +86,73 @@ def request(
 ) -> dict[str, Any]:
     """Ask the gateway to ``engage``, ``disengage`` or ``reset``; return its JSON reply.
 
+    Only a reply from a session holding the gateway's liveliness token counts: any other
+    reply on the key is not believed, and is listed under ``"ignored_replies"`` (replier ID and
+    reply); when more than one session claims to be the gateway, the replies of the others
+    are listed under ``"conflicting_replies"``. Either key present means someone else
+    answers on the gateway's key.
+
     :param cfg: the Zenoh section (endpoints, prefix)
     :param what: the request; sent as given, so the gateway's refusal of an unknown word
         comes back as a reply with ``accepted`` false
     :param timeout: s to wait for the gateway (``cfg.query_timeout`` if None)
     :param session: an open session to use (else one is opened and closed)
-    :returns: ``{"accepted": bool, "state": str | None, "reason": str}``
+    :returns: ``{"accepted": bool, "state": str | None, "reason": str}`` and the keys above
     :raises TransportError: if no gateway answers in time, or it answers with an error
     """
     text = what.value if isinstance(what, OperatorRequest) else str(what)
     wait = cfg.query_timeout if timeout is None else timeout
     key = cfg.key(keys.ENGAGE)
     deadline = time.monotonic() + wait
+    answers: dict[str, dict[str, Any]] = {}
+    others: list[dict[str, Any]] = []
     with _session_for(cfg, session) as s:
-        # No consolidation: take the first reply as soon as it arrives.
+        # No consolidation: every replier's reply is seen, each as soon as it arrives.
         querier = s.declare_querier(key, timeout=wait, consolidation=zenoh.ConsolidationMode.NONE)
         try:
             # A query sent before the gateway's queryable is known goes nowhere: wait for it.
             if not _wait_matching(querier, deadline):
                 raise TransportError(f"no gateway answered on {key} within {wait:g} s")
+            gateways = gateway_ids(cfg, s, max(0.05, deadline - time.monotonic()))
+            if not gateways:
+                raise TransportError(f"no gateway liveliness token under {cfg.key(keys.ALIVE)}")
             for reply in querier.get(payload=text.encode()):
+                replier = reply.replier_id
+                zid = str(replier.zid) if replier is not None else "?"
                 if reply.ok is not None:
                     try:
                         answer = json.loads(reply.ok.payload.to_bytes())
                     except ValueError:
-                        raise TransportError(f"{key}: the gateway's reply is not JSON") from None
+                        answer = None
+                    if zid not in gateways:
+                        others.append({"replier": zid, "reply": answer})
+                        continue
                     if not isinstance(answer, dict):
                         raise TransportError(f"{key}: the gateway's reply is not a JSON object")
-                    return answer
-                if reply.err is not None:
+                    answers[zid] = answer
+                elif reply.err is not None and zid in gateways:
                     detail = reply.err.payload.to_string()
                     raise TransportError(f"{key}: query failed: {detail or 'no detail'}")
         except zenoh.ZError as exc:
             raise TransportError(f"{key}: query failed: {zenoh_message(exc)}") from None
         finally:
             querier.undeclare()
-    raise TransportError(f"no gateway answered on {key} within {wait:g} s")
+    if not answers:
+        raise TransportError(
+            f"no gateway answered on {key} within {wait:g} s"
+            + (
+                f" ({len(others)} reply(ies) from sessions without its token ignored)"
+                if others
+                else ""
+            )
+        )
+    first, *rest = sorted(answers)
+    result = dict(answers[first])
+    if others:
+        result["ignored_replies"] = others
+    if rest:
+        result["conflicting_replies"] = [{"replier": z, "reply": answers[z]} for z in rest]
+    return result
 
 
 def watch_diagnostics(

@@ -95,9 +95,18 @@ class ZenohConfig:
     node_namespace: str = "/"
     # ROS names by role (keys of DEFAULT_TOPICS); unnamed roles keep Autoware's default.
     topics: dict[str, str] = field(default_factory=dict)
+    # Input bounds (issue 17, finding 5): a larger payload is dropped before it is decoded; a
+    # plan with more points is refused (the controller's reference is built from every point;
+    # a 10⁶-point plan made one tick last 4.36 s). The scenarios have at most 143 points.
+    max_payload_bytes: int = 1_000_000
+    max_plan_points: int = 2000
+    # s, how far the localization sender's clock may be off ours. A pose whose header stamp is
+    # older than that counts as received that much earlier (400 ms-old stamps are stale however
+    # promptly they arrive); a stamp further in the future marks the pose invalid.
+    max_clock_offset: float = 0.05
 
     def __post_init__(self) -> None:
-        positive(self, "query_timeout")
+        positive(self, "query_timeout", "max_payload_bytes", "max_plan_points", "max_clock_offset")
         unknown = set(self.topics) - set(DEFAULT_TOPICS)
         if unknown:
             raise ValueError(

@@ -10,11 +10,12 @@ values are counted per key and dropped.
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import dataclasses
 import json
 import logging
 import math
-import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -26,6 +27,7 @@ from leafgate.control.reference import trajectory_problem
 from leafgate.errors import TransportError
 from leafgate.jsonconv import to_json
 from leafgate.messages import (
+    STOP_REQUESTS,
     Gear,
     LongReport,
     OperatorRequest,
@@ -72,6 +74,69 @@ _CONTROL_MODE_REQUESTS: dict[int, OperatorRequest] = {
 }
 _NO_COMMAND = 0
 QUERY_JOIN_TIMEOUT = 2.0  # s, how long close() waits for an engage handler still running
+MAX_REQUEST_BYTES = 16  # longer request payloads are refused before they are decoded
+MAX_SERVICE_REQUEST_BYTES = 64  # a ControlModeCommand request is 4 + 12 bytes of CDR
+REQUEST_QUEUE_LENGTH = 8  # queries waiting per lane (stops, others); more are refused at once
+# s a query may wait in its lane before the handler sees it; an older one is dropped as
+# abandoned. With the runtime's 1 s decision timeout a request is answered or withdrawn within
+# 1.5 s, before a tool's default query_timeout (2 s) has given up on it.
+REQUEST_MAX_AGE = 0.5
+
+
+@dataclasses.dataclass
+class _PendingQuery:
+    query: zenoh.Query
+    request: OperatorRequest
+    received: float  # s, on the transport's clock
+    service: bool = False  # a ROS ControlModeCommand call: answered in CDR
+
+
+class _QueryLanes:
+    """Queries waiting for the handler, in two bounded lanes: stops, and everything else.
+
+    Each lane has its own worker thread, so a stop never waits behind an engage the handler
+    is still deciding. A stop that arrives drops every queued engage and reset (they are
+    answered as superseded): nothing asked before a disengage runs after it.
+    """
+
+    def __init__(self, length: int) -> None:
+        self.length = length
+        self.cond = threading.Condition()
+        self.stops: collections.deque[_PendingQuery] = collections.deque()
+        self.others: collections.deque[_PendingQuery] = collections.deque()
+        self.closed = False
+
+    def put(self, item: _PendingQuery) -> tuple[bool, list[_PendingQuery]]:
+        """Queue ``item``: (queued, items it displaced, to be answered by the caller)."""
+        with self.cond:
+            if self.closed:
+                return False, []
+            if item.request in STOP_REQUESTS:
+                displaced = list(self.others)
+                self.others.clear()
+                if len(self.stops) >= self.length:  # keep the newest stops: one is enough
+                    displaced.append(self.stops.popleft())
+                self.stops.append(item)
+            elif len(self.others) >= self.length:
+                return False, []
+            else:
+                self.others.append(item)
+                displaced = []
+            self.cond.notify_all()
+        return True, displaced
+
+    def get(self, stops: bool) -> _PendingQuery | None:
+        """The oldest query of a lane, waiting for one; None once closed and drained."""
+        lane = self.stops if stops else self.others
+        with self.cond:
+            while not lane and not self.closed:
+                self.cond.wait()
+            return lane.popleft() if lane else None
+
+    def close(self) -> None:
+        with self.cond:
+            self.closed = True
+            self.cond.notify_all()
 
 
 class LatestSlot(Generic[T]):
@@ -137,7 +202,10 @@ def pose_is_valid(pose: Pose) -> bool:
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
     """A decoded trajectory is usable by the controller's one rule (:func:`~leafgate.control.
-    reference.trajectory_problem`): finite, four or more waypoints once overlaps are removed."""
+    reference.trajectory_problem`): finite, four or more waypoints once overlaps are removed.
+
+    The plan-size bound is the subscriber's (a plan above it is dropped with its reason).
+    """
     return trajectory_problem(trajectory) is None
 
 
@@ -153,13 +221,35 @@ def _reply_json(reply: Mapping[str, Any]) -> dict[str, Any]:
 def parse_request(query_payload: bytes | None, parameter: str | None) -> OperatorRequest | str:
     """The operator request of a query: payload text, else the ``request=`` parameter.
 
-    :returns: the request, or the unrecognised text (for the refusal's reason)
+    Strict: the text must be exactly one of the request words (lower case, nothing around
+    it); anything else, longer than :data:`MAX_REQUEST_BYTES` or not ASCII, is refused. When
+    both a payload and a parameter are given they must agree.
+
+    :returns: the request, or a short quotable description of what was sent (for the refusal)
     """
-    text = query_payload.decode("utf-8", errors="replace") if query_payload else parameter or ""
+    texts = [t for t in (query_payload, parameter.encode() if parameter else None) if t]
+    if not texts:
+        return ""
+    for raw in texts:
+        if len(raw) > MAX_REQUEST_BYTES:
+            return f"<{len(raw)} bytes, at most {MAX_REQUEST_BYTES}>"
+    if len(texts) == 2 and texts[0] != texts[1]:
+        return f"{_quotable(texts[0])} with request={_quotable(texts[1])}"
     try:
-        return OperatorRequest(text.strip().lower())
-    except ValueError:
-        return text
+        return OperatorRequest(texts[0].decode("ascii"))
+    except ValueError:  # UnicodeDecodeError included
+        return _quotable(texts[0])
+
+
+def unknown_request(text: str) -> str:
+    """The refusal reason for text that is not a request word."""
+    known = ", ".join(r.value for r in OperatorRequest)
+    return f"unknown request {text!r} (expected one of: {known})"
+
+
+def _quotable(raw: bytes) -> str:
+    """Bounded text of a refused request for its reply (never the whole payload)."""
+    return raw[:MAX_REQUEST_BYTES].decode("utf-8", errors="replace")
 
 
 def _valid_value(sample: Any, kind: type[T]) -> T | None:
@@ -217,14 +307,19 @@ class GatewayTransport:
         self.on_raw: Callable[[str, bytes, float, str | None], None] | None = None
         self._tap_errors = 0
         self._lock = threading.Lock()
-        # Queries are answered on a thread of our own: the handler may wait for the control
-        # thread, and a Zenoh callback that blocks stalls the link it arrived on (and with it
-        # the localization samples behind it).
-        self._queries: queue.SimpleQueue[zenoh.Query | None] = queue.SimpleQueue()
-        self._query_worker = threading.Thread(
-            target=self._answer_queries, name="leafgate-engage", daemon=True
-        )
-        self._query_worker.start()
+        # Queries are parsed on Zenoh's thread (refusals answered there at once) and answered
+        # on threads of our own: the handler may wait for the control thread, and a Zenoh
+        # callback that blocks stalls the link it arrived on (and with it the localization
+        # samples behind it). Stops have their own lane and thread.
+        self._engage_key = cfg.key(keys.ENGAGE)
+        self._lanes = _QueryLanes(REQUEST_QUEUE_LENGTH)
+        self._request_refusals = 0  # queries refused before the handler (parse, key, busy, age)
+        self._query_workers = [
+            threading.Thread(target=self._answer_queries, args=(stops,), name=name, daemon=True)
+            for stops, name in ((False, "leafgate-engage"), (True, "leafgate-stop"))
+        ]
+        for worker in self._query_workers:
+            worker.start()
 
         self._declared: list[Any] = []
         self._publishers: dict[str, tuple[RosPublisher, Codec[Any] | None]] = {}
@@ -262,15 +357,13 @@ class GatewayTransport:
                     ),
                 )
             )
-            self._declared.append(
-                session.declare_queryable(cfg.key(keys.ENGAGE), self._queries.put)
-            )
+            self._declared.append(session.declare_queryable(self._engage_key, self._on_query))
             self._service_key = ""
             if cfg.encoding == "cdr" and cfg.topic("control_mode_request"):
                 self._service_key = self.ros.key("control_mode_request", cdr.CONTROL_MODE_COMMAND)
                 self._declared.append(
                     self.ros.service(
-                        "control_mode_request", cdr.CONTROL_MODE_COMMAND, self._queries.put
+                        "control_mode_request", cdr.CONTROL_MODE_COMMAND, self._on_service_query
                     )
                 )
             for role, codec in (
@@ -299,6 +392,10 @@ class GatewayTransport:
                 None,
             )
             self._declared.append(session.liveliness().declare_token(cfg.key(keys.ALIVE)))
+            # The operator tools take a reply only from the session holding this token.
+            self._declared.append(
+                session.liveliness().declare_token(f"{cfg.key(keys.ALIVE)}/{session.info.zid()}")
+            )
         except zenoh.ZError as exc:
             self.close()
             raise TransportError(
@@ -341,8 +438,17 @@ class GatewayTransport:
         typename_or_none = typename if self._cfg.encoding == "cdr" else None
         name = topic or slot.key
 
+        max_bytes = self._cfg.max_payload_bytes
+        max_points = self._cfg.max_plan_points
+        max_offset = self._cfg.max_clock_offset
+        stamp_clock = self._stamp_clock
+
         def on_sample(sample: zenoh.Sample) -> None:
             received = clock()  # before decoding: the age counts from arrival
+            size = len(sample.payload)
+            if size > max_bytes:  # refused before it is copied or decoded
+                slot.count_error(f"payload of {size} bytes > {max_bytes} (max_payload_bytes)")
+                return
             payload = sample.payload.to_bytes()
             if self.on_raw is not None:
                 try:
@@ -355,6 +461,16 @@ class GatewayTransport:
             except Exception as exc:  # PayloadError, or a bug: never raise into Zenoh
                 slot.count_error(str(exc))
                 return
+            if isinstance(value, Trajectory) and len(value) > max_points:
+                slot.count_error(f"plan of {len(value)} points > {max_points} (max_plan_points)")
+                return
+            if isinstance(value, Pose) and math.isfinite(value.stamp):
+                # The measurement's age by its header stamp counts as well as the arrival's.
+                lag = stamp_clock() - value.stamp
+                if lag > max_offset:
+                    received -= lag - max_offset
+                elif lag < -max_offset:
+                    ok = False  # from the future: the sender's clock is off, or the stamp forged
             slot.put(Stamped(value, received, valid=ok))
 
         return on_sample
@@ -371,6 +487,14 @@ class GatewayTransport:
     def decode_errors(self) -> dict[str, int]:
         """Dropped payloads per input key."""
         return {self.pose.key: self.pose.errors, self.trajectory.key: self.trajectory.errors}
+
+    @property
+    def last_errors(self) -> dict[str, str]:
+        """Why the last dropped payload of each input key was dropped ("" if none was)."""
+        return {
+            self.pose.key: self.pose.last_error,
+            self.trajectory.key: self.trajectory.last_error,
+        }
 
     @property
     def invalid_samples(self) -> dict[str, int]:
@@ -391,34 +515,104 @@ class GatewayTransport:
 
     # --- engage queryable -----------------------------------------------------------------
 
-    def _answer_queries(self) -> None:
-        while (query := self._queries.get()) is not None:
-            if self._service_key and str(query.key_expr) == self._service_key:
-                self._reply_control_mode(query)
-            else:
-                self._reply(query)
-            del query  # drop our reference before waiting for the next one
-
-    def _reply_control_mode(self, query: zenoh.Query) -> None:
-        """Answer a ROS ``ControlModeCommand`` call (CDR request → the engage handler → CDR
-        response): AUTONOMOUS engages, MANUAL disengages, NO_COMMAND does nothing; the
-        partial modes are refused (the DBW ECU engages steering and speed together)."""
+    def _on_query(self, query: zenoh.Query) -> None:
+        """Zenoh's callback: check and parse at once, queue what the handler must decide."""
+        received = self._clock()
         try:
-            mode: int | None = None
+            self._queue(query, self._check_query(query), received, service=False)
+        except Exception as exc:  # never raise into Zenoh
+            log.warning("could not handle an engage query: %s", exc)
+            query.drop()
+
+    def _on_service_query(self, query: zenoh.Query) -> None:
+        """A ROS ``ControlModeCommand`` call (CDR request): AUTONOMOUS engages, MANUAL
+        disengages, NO_COMMAND does nothing; the partial modes are refused (the DBW ECU engages
+        steering and speed together). Queued in the same lanes as the engage queries."""
+        received = self._clock()
+        try:
+            request: OperatorRequest | str
             try:
                 payload = query.payload.to_bytes() if query.payload is not None else b""
+                if len(payload) > MAX_SERVICE_REQUEST_BYTES:
+                    raise PayloadError(
+                        f"{len(payload)} bytes (at most {MAX_SERVICE_REQUEST_BYTES})"
+                    )
                 mode = int(cdr.deserialize(payload, cdr.CONTROL_MODE_COMMAND_REQUEST).mode)
             except PayloadError as exc:
                 log.warning("bad ControlModeCommand request: %s", exc)
-            if mode == _NO_COMMAND:
-                success = True
-            elif mode in _CONTROL_MODE_REQUESTS:
-                success = bool(self.answer(_CONTROL_MODE_REQUESTS[mode])["accepted"])
+                request = f"bad ControlModeCommand request: {exc}"
             else:
-                success = False
+                if mode == _NO_COMMAND:
+                    self._send_service_reply(query, {"accepted": True})
+                    return
+                request = _CONTROL_MODE_REQUESTS.get(mode, f"control mode {mode} not supported")
+            self._queue(query, request, received, service=True)
+        except Exception as exc:  # never raise into Zenoh
+            log.warning("could not handle a ControlModeCommand call: %s", exc)
+            query.drop()
+
+    def _queue(
+        self, query: zenoh.Query, request: OperatorRequest | str, received: float, service: bool
+    ) -> None:
+        if not isinstance(request, OperatorRequest):
+            self._refuse(query, request, service)
+            return
+        queued, displaced = self._lanes.put(_PendingQuery(query, request, received, service))
+        for item in displaced:
+            self._refuse(
+                item.query, f"{item.request.value} superseded by a disengage", item.service
+            )
+        if not queued:
+            self._refuse(
+                query, f"busy: {REQUEST_QUEUE_LENGTH} {request.value} requests wait", service
+            )
+
+    def _check_query(self, query: zenoh.Query) -> OperatorRequest | str:
+        """The request of a query, or why it is refused (exact key, bounded size, one word)."""
+        key = str(query.key_expr)
+        if key != self._engage_key:
+            return f"requests are taken on {self._engage_key} exactly, not on {key}"
+        payload = query.payload
+        if payload is not None and len(payload) > MAX_REQUEST_BYTES:
+            return f"request of {len(payload)} bytes refused (at most {MAX_REQUEST_BYTES})"
+        request = parse_request(
+            payload.to_bytes() if payload is not None else None,
+            query.parameters.get(REQUEST_PARAMETER),
+        )
+        return request if isinstance(request, OperatorRequest) else unknown_request(request)
+
+    def _refuse(self, query: zenoh.Query, reason: str, service: bool = False) -> None:
+        with self._lock:
+            self._request_refusals += 1
+        reply = {"accepted": False, "state": None, "reason": reason}
+        if service:
+            self._send_service_reply(query, reply)
+        else:
+            self._send_reply(query, reply)
+
+    def _answer_queries(self, stops: bool) -> None:
+        while (item := self._lanes.get(stops)) is not None:
+            waited = self._clock() - item.received
+            if waited > REQUEST_MAX_AGE:
+                # Its client has given up by now: never execute it late.
+                self._refuse(
+                    item.query,
+                    f"{item.request.value} abandoned after waiting {waited:.2f} s "
+                    f"(at most {REQUEST_MAX_AGE:g} s)",
+                    item.service,
+                )
+            elif item.service:
+                self._send_service_reply(item.query, self.answer(item.request))
+            else:
+                self._send_reply(item.query, self.answer(item.request))
+            del item  # drop our reference before waiting for the next one
+
+    def _send_service_reply(self, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
+        """The ControlModeCommand response (``success``) for an engage-handler reply."""
+        try:
             types = cdr.store().types
             response = cdr.serialize(
-                types[cdr.CONTROL_MODE_COMMAND_RESPONSE](success=success),
+                types[cdr.CONTROL_MODE_COMMAND_RESPONSE](success=bool(reply.get("accepted"))),
                 cdr.CONTROL_MODE_COMMAND_RESPONSE,
             )
             query.reply(
@@ -432,12 +626,10 @@ class GatewayTransport:
         finally:
             query.drop()
 
-    def _reply(self, query: zenoh.Query) -> None:
+    def _send_reply(self, query: zenoh.Query, reply: Mapping[str, Any]) -> None:
         try:
-            payload = query.payload.to_bytes() if query.payload is not None else None
-            reply = self.answer(parse_request(payload, query.parameters.get(REQUEST_PARAMETER)))
             query.reply(
-                self._cfg.key(keys.ENGAGE),
+                self._engage_key,
                 json.dumps(reply).encode(),
                 encoding=zenoh.Encoding("application/json"),
             )
@@ -448,6 +640,11 @@ class GatewayTransport:
             # sees the reply once the query is final, which waiting for the GC would delay.
             query.drop()
 
+    @property
+    def request_refusals(self) -> int:
+        """Queries refused before reaching the handler (bad word or key, too big, busy, stale)."""
+        return self._request_refusals
+
     def answer(self, request: OperatorRequest | str) -> dict[str, Any]:
         """The JSON reply to an operator request (unrecognised text is refused here).
 
@@ -455,12 +652,7 @@ class GatewayTransport:
         query open.
         """
         if not isinstance(request, OperatorRequest):
-            known = ", ".join(r.value for r in OperatorRequest)
-            return {
-                "accepted": False,
-                "state": None,
-                "reason": f"unknown request {request!r} (expected one of: {known})",
-            }
+            return {"accepted": False, "state": None, "reason": unknown_request(request)}
         try:
             return _reply_json(self._handler(request))
         except Exception as exc:  # the handler's bug must not kill Zenoh's thread
@@ -566,9 +758,10 @@ class GatewayTransport:
             with contextlib.suppress(zenoh.ZError):  # already gone with a closed session
                 entity.undeclare()
         self._declared.clear()
-        self._queries.put(None)  # stop the query thread once it has answered what is queued
-        if self._query_worker is not threading.current_thread():
-            self._query_worker.join(timeout=QUERY_JOIN_TIMEOUT)
+        self._lanes.close()  # stop the query threads once they have answered what is queued
+        for worker in self._query_workers:
+            if worker is not threading.current_thread():
+                worker.join(timeout=QUERY_JOIN_TIMEOUT)
         if self._owns_session:
             self._session.close()
 

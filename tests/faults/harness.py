@@ -87,6 +87,8 @@ def write_config(
         wd["report_timeout_periods"] = 10.0  # 100 ms of DBW_STEER_RPT instead of DESIGN's 30 ms
     if not overrun_design_threshold:
         wd["max_overruns"] = 25  # late ticks in a row: 0.5 s instead of DESIGN's 3
+        wd["max_stall_periods"] = 25.0  # one tick 0.5 s late instead of 100 ms
+        wd["max_receive_lag"] = 1.0  # the receive thread 1 s behind instead of 0.2 s
     wd.update(watchdog or {})
     cfg["recording"] = {
         "enabled": True,

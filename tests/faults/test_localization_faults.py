@@ -78,25 +78,29 @@ def test_localization_jump_of_2_m_faults(make_run: Callable[..., FaultRun]) -> N
 
 
 def test_localization_400_ms_late_stops(make_run: Callable[..., FaultRun]) -> None:
-    """Each sample published 0.4 s after its stamp: the 0.4 s gap at the onset is > 100 ms.
+    """Each sample published 0.4 s after its stamp: the car stops.
 
-    The samples then arrive at the normal rate, only old; the gateway judges age by receive
-    time, so what it sees is the gap (a controlled stop, not a fault: the gap stays under
-    500 ms), after which the old-but-regular samples let the stop finish in STANDBY.
+    The gateway judges a pose's age by its header stamp (beyond the 50 ms clock-offset bound)
+    as well as by receive time (issue 17): from the onset every pose is about 0.35 s old, a
+    controlled stop. Whether it also passes the 500 ms FAULT age depends on how late the
+    loaded machine delivers it on top of its 0.4 s; either way the car ends at rest, and the
+    first reaction is the stop.
     """
     run = make_run(
         "localization 400 ms late",
         injections=["localization-delay@3:delay=0.4"],
         localization_design_thresholds=True,
     )
-    injected, status = _drive_until(run, "localization-delay", {GatewayState.STANDBY})
+    injected, status = _drive_until(
+        run, "localization-delay", {GatewayState.STANDBY, GatewayState.FAULT}
+    )
     outcome = run.outcome(injected, status=status)
     outcome.report()
 
-    assert status["state"] == "STANDBY"
-    assert "controlled stop (localization age" in status["reason"], status["reason"]
+    assert status["state"] in ("STANDBY", "FAULT"), status
+    assert "localization age" in status["reason"], status["reason"]
     after = [t for t in transitions(run.recording_files()[1]) if t["time"] >= injected - 0.05]
-    assert [t["to"] for t in after] == ["STOPPING", "STANDBY"], after
+    assert after[0]["to"] == "STOPPING" and after[-1]["to"] in ("STANDBY", "FAULT"), after
     assert outcome.reaction_s is not None and outcome.reaction_s <= STOP_AGE + SLACK
     assert outcome.safe_state_s is not None and outcome.safe_state_s <= STOP_TIME + 2 * SLACK
     assert outcome.frames_missing == 0
