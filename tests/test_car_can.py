@@ -536,7 +536,7 @@ def test_a_session_names_a_shared_bus_once_too(tmp_path: Path) -> None:
 def test_session_frames_are_read_on_the_gateway_clock(tmp_path: Path) -> None:
     # a daemon session: received frames carry the kernel's epoch time, sent ones the gateway's
     path = tmp_path / "s.mcap"
-    ticks = iter([100.0, 100.01])
+    ticks = iter([100.0, 100.01, 100.02])  # the last read stamps the end-of-recording marker
     with SessionRecorder(path, LeafgateConfig(), clock=lambda: next(ticks), epoch=1e9) as rec:
         rec.on_can_frame(can.Message(timestamp=1.7e9, arbitration_id=0x0B0), "rx")
         rec.on_can_frame(can.Message(timestamp=100.009, arbitration_id=0x0A0), "tx")

@@ -329,7 +329,7 @@ class Replayer:
 
 def _engage_sequence() -> list[can.Message]:
     """The gateway's frames of an engagement (ENABLE=0, then ENABLE=1), as recorded."""
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     out = [codec.encode(v) for _ in range(8) for v in (SteerCommand(0.0), LongCommand())]
     out += [codec.encode(v) for _ in range(8) for v in on(accel=1.5)]
     return out

@@ -321,13 +321,13 @@ def test_check_reports_a_log_without_its_end_marker_as_incomplete(tmp_path: Path
     with CanLogRecorder(closed) as rec:
         for k in range(5):
             rec.on_can_frame(frame(1_700_000_000.0 + 0.01 * k), "rx")
-    report = check_log(rec.files[0])
+    report = check_log(rec.files[0], profile="leafgate-dbw")
     assert report.count("incomplete") == 0
     cut = tmp_path / "cut.log"
     with can.Logger(cut) as writer:
         for msg in list(FrameSource(rec.files[0]))[:3]:  # a log that stops early
             writer.on_message_received(msg)
-    report = check_log(cut)
+    report = check_log(cut, profile="leafgate-dbw")
     (finding,) = [f for f in report.findings if f.kind == "incomplete"]
     assert "stops after frame 3" in finding.detail
     assert finding.time == pytest.approx(1_700_000_000.02)

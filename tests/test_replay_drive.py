@@ -211,7 +211,7 @@ def test_check_finds_a_forged_speed_report_by_the_wheel_speeds(
 ) -> None:
     # issue 17, finding 4: `replay check` passed a log whose long reports said 20 m/s at 2 m/s
     frames = frames_of(drive.logs[".log"])
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     t0 = frames[0].timestamp
     forged_at = [f.timestamp for f in frames if f.arbitration_id == 0x0B1 and f.timestamp > t0 + 8]
     out = []
@@ -220,7 +220,9 @@ def test_check_finds_a_forged_speed_report_by_the_wheel_speeds(
             decoded = codec.decode(f)  # the recorded counter follows on
             assert decoded.valid
             forged = dataclasses.replace(decoded.value, speed=20.0)
-            data = e2e.apply(0x0B1, CanCodec().encode(forged).data, e2e.counter_of(f.data))
+            data = e2e.apply(
+                0x0B1, CanCodec(profile="leafgate-dbw").encode(forged).data, e2e.counter_of(f.data)
+            )
             f = can.Message(
                 timestamp=f.timestamp,
                 arbitration_id=0x0B1,
@@ -233,7 +235,7 @@ def test_check_finds_a_forged_speed_report_by_the_wheel_speeds(
     with can.Logger(path) as writer:
         for f in out:
             writer.on_message_received(f)
-    report = check_log(path)
+    report = check_log(path, profile="leafgate-dbw")
     reports = [f for f in report.findings if f.kind == "report"]
     assert reports, report.findings
     assert "disagrees with the" in reports[0].detail and "wheel speeds" in reports[0].detail

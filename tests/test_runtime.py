@@ -329,8 +329,10 @@ if os.name != "posix":  # AF_UNIX datagram sockets
 
 def test_report_age_counts_from_the_frames_receive_timestamp() -> None:
     # issue 17, finding 7: a starved receive thread made the ECU's reports look 31-54 ms old
-    codec = CanCodec()
-    receiver = CanReceiver(CanCodec(), lambda: 100.0, wall_clock=lambda: 5000.0)
+    codec = CanCodec(profile="leafgate-dbw")
+    receiver = CanReceiver(
+        CanCodec(profile="leafgate-dbw"), lambda: 100.0, wall_clock=lambda: 5000.0
+    )
     msg = codec.encode(SteerReport(0.0, 0.0, 0.0, False, False, False, False))
     msg.timestamp = 5000.0 - 0.045  # arrived 45 ms before the Notifier thread got to it
     receiver.on_message_received(msg)
@@ -347,7 +349,7 @@ def test_report_age_counts_from_the_frames_receive_timestamp() -> None:
 def test_late_echo_after_a_stall_is_still_our_own() -> None:
     # issue 17, finding 5: after a 4 s stall the gateway's own echoes counted as foreign
     now, wall = [10.0], [1000.0]
-    codec = CanCodec()
+    codec = CanCodec(profile="leafgate-dbw")
     receiver = CanReceiver(codec, lambda: now[0], wall_clock=lambda: wall[0])
     frame = codec.encode(SteerCommand(0.0))
     receiver.sent.add(frame, now[0])

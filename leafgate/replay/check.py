@@ -395,6 +395,7 @@ def check_frames(
     car_dbc: str | None = None,
     progress: _Progress | None = None,
     vehicle: VehicleConfig | None = None,
+    require_end: bool = False,
 ) -> CheckReport:
     """Check a sequence of frames (the core of :func:`check_log`; see the module notes).
 
@@ -402,6 +403,8 @@ def check_frames(
     :param limits: the safety gate's limits the commands must respect
     :param profile: the vehicle profile the frames follow (command IDs, signals, periods)
     :param gap_periods: an interval longer than this many nominal periods is a gap
+    :param require_end: the frames include the recorder's end-of-recording markers (a file read
+        with ``FrameSource(markers=True)``): a recording without one is ``incomplete``
     """
     t_start = time.perf_counter()
     template = CanCodec(dbw_dbc, car_dbc, profile)
@@ -501,7 +504,7 @@ def check_frames(
         _coverage_findings(n, first, command_frames, commands, template, merged, command_ids)
     )
     findings.extend(judge.findings)
-    if n and not ended:
+    if require_end and n and not ended:
         findings.append(
             Finding(
                 last,
@@ -868,6 +871,7 @@ def check_log(
         car_dbc=cfg.can.car_dbc,
         progress=_Progress(progress, source),
         vehicle=cfg.vehicle,
+        require_end=True,
     )
     report.truncated = source.truncated
     return report

@@ -530,6 +530,11 @@ class GatewayTransport:
         steering and speed together). Queued in the same lanes as the engage queries."""
         received = self._clock()
         try:
+            if str(query.key_expr) != self._service_key:  # a wildcard: never a service call
+                with self._lock:
+                    self._request_refusals += 1
+                query.drop()
+                return
             request: OperatorRequest | str
             try:
                 payload = query.payload.to_bytes() if query.payload is not None else b""
