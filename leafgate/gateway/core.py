@@ -91,6 +91,7 @@ from leafgate.messages import (
 )
 
 _EPS = 1e-9  # s, slack when comparing times built from sums of periods
+END_REACHED = "trajectory end reached"  # the reason of an engagement that drove its plan
 FOREIGN_QUIET = 1.0  # s without foreign command frames before a command conflict may be reset
 
 #: The last valid ECU reports (steer, long, system), read from a tick's WatchdogReport.
@@ -333,9 +334,9 @@ class Gateway:
                 self._stop(now, f"controller: {output.status} (converged={output.converged})")
             elif output.finished:
                 if standstill:
-                    m.fire(Event.AT_REST, now, "trajectory end reached")
+                    m.fire(Event.AT_REST, now, END_REACHED)
                 else:
-                    self._stop(now, "trajectory end reached")
+                    self._stop(now, END_REACHED)
             elif self._phase is EngagePhase.ACTIVE:
                 progress = self._judge_progress(now, wd, output, measured, standstill)
                 if progress.reaction >= Reaction.STOP:
