@@ -30,6 +30,7 @@ import math
 from dataclasses import dataclass
 from typing import Generic, NamedTuple, TypeVar
 
+from leafgate.control.reference import trajectory_problem
 from leafgate.gateway.config import WatchdogConfig
 from leafgate.messages import (
     EcuState,
@@ -111,13 +112,9 @@ def pose_is_valid(pose: Pose) -> bool:
 
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
-    """A trajectory is usable when it has two or more points and only finite values."""
-    if len(trajectory) < 2:
-        return False
-    return all(
-        bool(math.isfinite(float(arr.sum())))  # the sum is non-finite iff an element is
-        for arr in (trajectory.x, trajectory.y, trajectory.heading, trajectory.speed)
-    )
+    """A trajectory is usable by the controller's one rule (:func:`~leafgate.control.reference.
+    trajectory_problem`): finite, and four or more waypoints once overlapping ones are removed."""
+    return trajectory_problem(trajectory) is None
 
 
 def position_jump(previous: Stamped[Pose], current: Stamped[Pose]) -> float:
@@ -231,11 +228,15 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
     def __init__(self, config: WatchdogConfig) -> None:
         super().__init__()
         self.config = config
+        self.problem = ""  # why the last unusable plan was refused (the controller's reason)
 
     def _is_valid(self, sample: Stamped[Trajectory]) -> bool:
         if self.last is not None and sample.value is self.last.value:
             return True  # the same plan re-received: its (read-only) arrays were checked
-        return trajectory_is_valid(sample.value)
+        problem = trajectory_problem(sample.value)
+        if problem is not None:
+            self.problem = problem  # shown while no usable plan has been received
+        return problem is None
 
     def update(self, now: float, sample: Stamped[Trajectory] | None) -> Check:
         """Feed this tick's slot content and judge it."""
@@ -244,9 +245,10 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
         limit = math.inf if max_age is None else max_age
         if self.last is None:
             status = self._missing_status()
-            return Check(
-                self.name, status, None, limit, Reaction.NONE, f"trajectory {status.value}"
-            )
+            detail = f"trajectory {status.value}"
+            if status is Status.INVALID and self.problem:
+                detail += f": {self.problem}"
+            return Check(self.name, status, None, limit, Reaction.NONE, detail)
         age = now - self.last.received
         if age > limit + TIME_EPS:
             return Check(
