@@ -480,7 +480,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
     p.add_argument("--controller", choices=("mpc", "pure-pursuit", "stanley"))
-    p.add_argument("--solver", choices=("hildreth", "osqp"))
+    p.add_argument("--solver", choices=("daqp", "hildreth", "osqp"))
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
         "--profile",
