@@ -567,11 +567,11 @@ def run(
     ended = [tr for tr in transitions if tr["to"] in ("FAULT", "STOPPING", "STANDBY")]
     if not engaged_once:
         why_not = "the gateway never engaged" + (f": {r}" if (r := _refusal(timeline)) else "")
-    elif gateway.state != GatewayState.STANDBY:
-        why_not = f"time limit {scenario.duration:.0f} s reached in {gateway.state.name}"
     elif ended and (ended[0]["to"] != "STANDBY" or ended[0]["reason"] != END_REACHED):
         first = ended[0]
         why_not = f"{first['to']} at t = {first['t']:.2f} s: {first['reason']}"
+    elif gateway.state != GatewayState.STANDBY:
+        why_not = f"time limit {scenario.duration:.0f} s reached in {gateway.state.name}"
     extra["finished"] = not why_not
     return _finish(config, scenario, rec, solve_times, extra, timeline, label, why_not)
 
