@@ -147,9 +147,16 @@ def cmd_sim(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.realtime:
         from leafgate.sim.realtime import run_realtime
+        from leafgate.sim.runner import finish_verdict
 
         outcome = run_realtime(cfg, scenario)
         metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
+        final = metrics["final_state"]
+        metrics["finished"], reason = finish_verdict(
+            metrics, final == "STANDBY", f"the gateway ended in {final}"
+        )
+        if reason:
+            metrics["not_finished_reason"] = reason
         loop = "real time (daemon runtime, in-process Zenoh, virtual CAN)"
     else:
         if args.direct:

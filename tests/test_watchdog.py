@@ -409,6 +409,30 @@ def test_progress_watchdog_turning_the_wheel_at_rest_is_no_stop_but_a_stuck_whee
     assert _feed(ProgressWatchdog(CFG), 10.0, steer_rate=0.0)[0] is not None
 
 
+def test_progress_watchdog_braking_to_a_commanded_stop_is_no_stall_but_resting_after_is() -> None:
+    # Past a segment's end (an overshoot) progress stands still while the car brakes to rest.
+    wd = ProgressWatchdog(CFG)
+    for k in range(250):  # 5 s braking from 2.5 m/s at 0.5 m/s²
+        check = wd.update(k * PERIOD, "plan", 6.8, 8.6, 0.0, False, False, commanded_speed=0.0)
+        assert check.ok, k
+    # at rest, nothing pending, the target still zero: that is a stall
+    t0 = 250 * PERIOD
+    stop_at = None
+    for k in range(300):
+        check = wd.update(t0 + k * PERIOD, "plan", 6.8, 8.6, 0.0, True, False, commanded_speed=0.0)
+        if check.reaction is Reaction.STOP:
+            stop_at = (k + 1) * PERIOD  # since the last braking tick
+            break
+    assert stop_at == pytest.approx(CFG.no_progress_time, abs=PERIOD)
+
+
+def test_progress_watchdog_leaves_the_last_stretch_to_the_goal_check() -> None:
+    wd = ProgressWatchdog(CFG)
+    for k in range(500):
+        check = wd.update(k * PERIOD, "plan", 27.85, 27.9, 0.0, True, False, commanded_speed=0.0)
+        assert check.ok
+
+
 def test_progress_watchdog_counts_progress_across_re_sent_plans() -> None:
     # A planner's rolling window: a new plan object every 0.5 s, progress counted from its start.
     def rolling(speed: float) -> float | None:

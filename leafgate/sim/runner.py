@@ -230,7 +230,7 @@ class SimResult:
 FINISH_TOLERANCE = 0.5  # m: a run finished only when it ended this close to the route's end
 
 
-def _verdict(metrics: dict[str, Any], claimed: bool, why_not: str) -> tuple[bool, str]:
+def finish_verdict(metrics: dict[str, Any], claimed: bool, why_not: str) -> tuple[bool, str]:
     """Did the run finish the maneuver? Checked against the route, not only taken from the
     gateway: the car must have got along the whole route and stopped on its end."""
     length, progress = metrics["route_length_m"], metrics["progress_m"]
@@ -264,7 +264,7 @@ def _finish(
     metrics["solve_time_median_s"] = float(np.median(solve))
     metrics["solve_time_p99_s"] = float(np.percentile(solve, 99))
     metrics.update(extra)
-    metrics["finished"], reason = _verdict(metrics, bool(extra["finished"]), why_not)
+    metrics["finished"], reason = finish_verdict(metrics, bool(extra["finished"]), why_not)
     if reason:
         metrics["not_finished_reason"] = reason
     speed_ref = path_errors(traj, arr["x"], arr["y"], arr["heading"], arr["speed"]).speed_ref
