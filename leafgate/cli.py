@@ -216,7 +216,7 @@ def _start_pose(text: str | None) -> Any:
     """``X,Y,HEADING_DEG`` → a pose at rest (SI), or None."""
     if not text:
         return None
-    from math import radians
+    from math import isfinite, radians
 
     from leafgate.messages import Pose
 
@@ -227,15 +227,9 @@ def _start_pose(text: str | None) -> Any:
         raise ConfigError(
             f"--start {text!r}: expected X,Y,HEADING_DEG (m, m, degrees), e.g. 0,0,90"
         ) from None
-    if not all(map(_finite, (x, y, heading_deg))):
+    if not all(isfinite(v) for v in (x, y, heading_deg)):
         raise ConfigError(f"--start {text!r}: values must be finite")
     return Pose(x=x, y=y, heading=radians(heading_deg), speed=0.0)
-
-
-def _finite(value: float) -> bool:
-    from math import isfinite
-
-    return isfinite(value)
 
 
 # --- the daemon and its tools ------------------------------------------------------------------
