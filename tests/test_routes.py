@@ -277,3 +277,25 @@ def test_a_car_stuck_on_its_route_is_stopped_by_the_no_progress_watchdog(
     assert m["final_state"] == "STANDBY"
     stop = next(tr for tr in m["transitions"] if tr["to"] == "STOPPING")
     assert stop["t"] < m["duration_s"] - 0.5  # stopped, not run out of time
+
+
+@pytest.mark.parametrize("lateral, heading_deg", [(0.9, 25.0), (-0.9, -25.0), (0.9, -25.0)])
+def test_engage_on_a_route_that_crosses_its_start_is_judged_by_its_first_pass(
+    lateral: float, heading_deg: float
+) -> None:
+    # The figure-eight crosses itself at its start: 0.9 m beside the start the car is nearer
+    # the crossing leg, 65–115° off. The old check measured that leg and refused the engage.
+    from test_gateway_core import Rig
+
+    from leafgate.gateway.state import path_deviation
+    from leafgate.messages import GatewayState, OperatorRequest
+
+    sc = offset_start(get_scenario("figure-eight"), lateral, math.radians(heading_deg))
+    d, err = path_deviation(sc.start, sc.trajectory, within=1.0)
+    assert d == pytest.approx(0.9, abs=0.01) and math.degrees(err) == pytest.approx(25.0, abs=1)
+    rig = Rig(trajectory=sc.trajectory)
+    rig.pose_offset, rig.heading = (sc.start.x, sc.start.y), sc.start.heading
+    rig.run(0.1)
+    reply = rig.step(OperatorRequest.ENGAGE).reply
+    assert reply is not None and reply.accepted, reply
+    assert rig.gw.state == GatewayState.ENGAGED

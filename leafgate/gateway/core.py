@@ -465,8 +465,10 @@ class Gateway:
         if traj is None or traj.value is self._plan or wd.pose is None:
             return None
         self._plan = traj.value
-        distance, heading_error = path_deviation(wd.pose.value, traj.value)
         limits = self.config.engage
+        distance, heading_error = path_deviation(
+            wd.pose.value, traj.value, within=limits.max_distance
+        )
         if distance > limits.max_distance:
             return (
                 f"trajectory replaced: vehicle {distance:.2f} m from the new plan "
