@@ -653,10 +653,14 @@ class Progress:
         """Whether a car at rest at ``(x, y)`` has finished the current segment.
 
         By progress and within ``tolerance`` of the end (:meth:`at_end`); a segment before a
-        cusp also ends with a stop past its end (the next segment corrects what is left).
+        cusp also ends with a stop past its end, or with the progress within ``tolerance`` of
+        the end however far aside the car stopped (the next segment corrects what is left).
         """
-        last = self.seg_index + 1 == len(self.path.segments)
-        return self.at_end(x, y, tolerance) or (self.passed and not last)
+        if self.at_end(x, y, tolerance):
+            return True
+        if self.seg_index + 1 == len(self.path.segments):
+            return False
+        return self.passed or self.s >= float(self.path.s[self.segment.end]) - tolerance
 
     def update(self, x: float, y: float, heading: float) -> float:
         """Advance the progress to the car at ``(x, y)``; the arc length of its projection, m.
