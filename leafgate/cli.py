@@ -122,6 +122,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
     )
     if args.profile:
         cfg = with_profile(cfg, args.profile)
+    if not _model_given(args.config, args.set):  # the steering-aware model where the wheel lags
+        from leafgate.sim.runner import default_model
+
+        mpc = dataclasses.replace(cfg.controller.mpc, model=default_model(cfg.sim.plant.kind))
+        cfg = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, mpc=mpc))
     if args.trajectory and args.scenario:
         raise ConfigError("sim: give --scenario NAME or --trajectory FILE, not both")
     if args.start and not args.trajectory:
@@ -176,7 +181,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"  t={t:7.2f} s  {event}")
     print(
         f"scenario {scenario.name}: controller {cfg.controller.kind}, "
-        f"solver {cfg.controller.mpc.solver}, mode {cfg.controller.mpc.mode}, "
+        f"model {cfg.controller.mpc.model}, solver {cfg.controller.mpc.solver}, "
+        f"mode {cfg.controller.mpc.mode}, "
         f"plant {cfg.sim.plant.kind}; {loop}"
     )
     print(format_metrics(metrics))
@@ -184,6 +190,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         {
             "scenario": scenario.name,
             "controller": cfg.controller.kind,
+            "model": cfg.controller.mpc.model,
             "solver": cfg.controller.mpc.solver,
             "mode": cfg.controller.mpc.mode,
             "plant": cfg.sim.plant.kind,
@@ -210,6 +217,22 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
         return EXIT_ERROR
     return 0
+
+
+def _model_given(path: str | None, sets: Sequence[str]) -> bool:
+    """Whether the config file or a ``--set`` chooses ``controller.mpc.model``."""
+    if "controller.mpc.model" in parse_overrides(sets):
+        return True
+    if path is None:
+        return False
+    from leafgate.config import load_yaml
+
+    node: Any = load_yaml(path)
+    for key in ("controller", "mpc", "model"):
+        if not isinstance(node, dict) or key not in node:
+            return False
+        node = node[key]
+    return True
 
 
 def _start_pose(text: str | None) -> Any:

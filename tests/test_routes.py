@@ -19,7 +19,7 @@ from leafgate.messages import ControlOutput, Pose, Trajectory
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim import runner
 from leafgate.sim.metrics import path_steer_sign_changes, route_goal_misses
-from leafgate.sim.runner import FINISH_TOLERANCE, RollingWindow, run
+from leafgate.sim.runner import FINISH_TOLERANCE, RollingWindow, default_model, run
 from leafgate.sim.scenarios import get_scenario, offset_start
 
 LIBRARY = (
@@ -148,7 +148,9 @@ def test_offset_start_moves_the_car_left_and_turns_it() -> None:
 
 
 def _config(plant: str) -> LeafgateConfig:
-    return load_config(None, {"sim.plant.kind": plant})
+    return load_config(
+        None, {"sim.plant.kind": plant, "controller.mpc.model": default_model(plant)}
+    )
 
 
 def _misses(result: runner.SimResult, plant: str) -> list[str]:

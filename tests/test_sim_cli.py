@@ -154,3 +154,19 @@ def test_sim_help_lists_the_scenarios_and_the_trajectory_format(
         assert name in text
     for words in ("x,y,heading,speed", "--trajectory", "--start", "--set", "negative = reverse"):
         assert words in text
+
+
+@pytest.mark.parametrize(
+    "args, model",
+    [
+        (["--plant", "steer-lag"], "kinematic_steer_lag"),
+        (["--plant", "dynamic"], "kinematic_steer_lag"),
+        ([], "kinematic"),
+        (["--plant", "steer-lag", "--set", "controller.mpc.model=kinematic"], "kinematic"),
+    ],
+)
+def test_sim_uses_the_steering_aware_model_where_the_wheel_lags(
+    args: list[str], model: str, tmp_path: Path
+) -> None:
+    assert _sim("--scenario", "straight", *args, "--out", str(tmp_path)) == 0
+    assert json.loads((tmp_path / "metrics.json").read_text())["model"] == model

@@ -26,7 +26,7 @@ from typing import Any
 
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.metrics import route_goal_misses
-from leafgate.sim.runner import FINISH_TOLERANCE, RollingWindow, run
+from leafgate.sim.runner import FINISH_TOLERANCE, RollingWindow, default_model, run
 from leafgate.sim.scenarios import SCENARIOS, get_scenario, offset_start
 
 PLANTS = ("kinematic", "steer-lag", "dynamic")
@@ -52,7 +52,9 @@ KEEP = (
 
 
 def config_for(plant: str) -> LeafgateConfig:
-    return load_config(None, {"sim.plant.kind": plant})
+    return load_config(
+        None, {"sim.plant.kind": plant, "controller.mpc.model": default_model(plant)}
+    )
 
 
 def _one(task: dict[str, Any]) -> dict[str, Any]:

@@ -18,7 +18,7 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import can
 import numpy as np
@@ -68,6 +68,13 @@ ECU_INJECTIONS = {
     "actuator-fault": ("actuator-fault", {}, None),
 }
 INJECTION_KINDS = sorted(GATEWAY_INJECTIONS | set(ECU_INJECTIONS))
+
+
+def default_model(plant: str) -> Literal["kinematic", "kinematic_steer_lag"]:
+    """The MPC prediction model the simulator uses on ``plant`` unless told otherwise: the
+    steering-aware one wherever the wheel lags (as on the car), the paper's kinematic one on
+    the kinematic plant."""
+    return "kinematic" if plant == "kinematic" else "kinematic_steer_lag"
 
 
 @dataclass(frozen=True)
