@@ -25,7 +25,7 @@ import numpy as np
 
 from leafgate.can.codec import CanCodec, EncodeError
 from leafgate.control import make_controller
-from leafgate.control.reference import MIN_POINTS, split_segments
+from leafgate.control.reference import MIN_POINTS
 from leafgate.errors import ConfigError
 from leafgate.gateway.core import END_REACHED, Gateway, GatewayInputs
 from leafgate.messages import (
@@ -147,7 +147,8 @@ class _Recorder:
         }
 
 
-#: ``trace.csv`` columns: name, unit, the recorder's series (SI inside; degrees at this edge).
+#: ``trace.csv`` columns (name with its unit) and the recorder's series behind each (SI inside;
+#: degrees only in the file).
 TRACE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("t_s", "t"),
     ("x_m", "x"),
@@ -164,9 +165,9 @@ TRACE_COLUMNS: tuple[tuple[str, str], ...] = (
 class RollingWindow:
     """A planner's rolling plan: the next ``length`` of the route, re-sent every ``period``.
 
-    Each plan starts at the waypoint the car last passed (never before the start of the
-    direction segment it drives on) and is a new object with a new receive time, as from a
-    planner over Zenoh.
+    Each plan starts at the waypoint the car last passed (its projection on the route, followed
+    in time order and in its direction of travel) and is a new object with a new receive time,
+    as from a planner over Zenoh (the transport makes a new object of every message).
     """
 
     length: float = 30.0  # m
@@ -187,7 +188,6 @@ class _Planner:
         self.route = route
         self.window = window
         self.projector = Projector(route)
-        self.segments = split_segments(route.speed)
         self.last_sent: float | None = None
         self.plan: Stamped[Trajectory] | None = None
 
@@ -198,9 +198,8 @@ class _Planner:
         if self.plan is not None and not due:
             return self.plan
         route, proj = self.route, self.projector
-        seg_start = max(seg.start for seg in self.segments if seg.start <= k)
         n = len(route)
-        first = min(max(k, seg_start), n - MIN_POINTS)
+        first = min(k, n - MIN_POINTS)  # a plan has at least four waypoints
         end_s = proj.s[first] + self.window.length
         last = max(int(np.searchsorted(proj.s, end_s, side="right")), first + MIN_POINTS)
         cut = slice(first, min(last, n))
