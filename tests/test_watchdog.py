@@ -352,6 +352,7 @@ def _feed(
     steer_rate: float = 0.0,
     gear_change: bool = False,
     progress0: float = 0.0,
+    route_length: float = 50.0,
 ) -> tuple[float | None, float]:
     """Feed ticks at 50 Hz; return when the first STOP came (or None) and the end time."""
     t = t0
@@ -361,7 +362,7 @@ def _feed(
             t,
             plan,
             progress0 + speed * (t - t0),
-            50.0,
+            route_length,
             steer_rate * (t - t0),
             standstill=abs(speed) < 0.05,
             gear_change=gear_change,
@@ -428,9 +429,12 @@ def test_progress_watchdog_braking_to_a_commanded_stop_is_no_stall_but_resting_a
 
 def test_progress_watchdog_leaves_the_last_stretch_to_the_goal_check() -> None:
     wd = ProgressWatchdog(CFG)
-    for k in range(500):
-        check = wd.update(k * PERIOD, "plan", 27.85, 27.9, 0.0, True, False, commanded_speed=0.0)
+    for k in range(500):  # creeping onto the goal, progress saturated at the plan's end
+        check = wd.update(k * PERIOD, "plan", 27.85, 27.9, 0.0, False, False, commanded_speed=0.1)
         assert check.ok
+    # at rest on the goal and still not finished: the goal check had its time
+    stop_at, _ = _feed(wd, 10.0, t0=10.0, progress0=27.85, route_length=27.9)
+    assert stop_at == pytest.approx(10.0 + CFG.no_progress_time, abs=2 * PERIOD)
 
 
 def test_progress_watchdog_counts_progress_across_re_sent_plans() -> None:

@@ -516,8 +516,8 @@ class ProgressWatchdog:
     The timer does not run while the car legitimately waits: while a gear change is pending
     (cusp), while the steering is still turning at standstill (the MPC sets the wheel before it
     drives off), while the car brakes to a stop the controller asked for (target speed zero,
-    still moving: a stop ends by itself), and on the last ``no_progress_distance`` of the plan,
-    where the controller's goal check decides. "Turning" means the measured angle left a ±0.5°
+    still moving: a stop ends by itself), and while the car creeps along the last
+    ``no_progress_distance`` of the plan, where the controller's goal check decides. "Turning" means the measured angle left a ±0.5°
     band within the last 0.5 s, so a steering actuator that does not move is no excuse, and a
     car at rest with nothing to wait for is judged whatever the controller says. A new plan object
     (a planner's rolling window) changes where progress is counted from: the progress gained on
@@ -585,7 +585,9 @@ class ProgressWatchdog:
         self._last_progress = progress
         turning_at_rest = standstill and now - self._steer_moved < STEER_SETTLE_TIME - TIME_EPS
         braking = not standstill and abs(commanded_speed) < STOP_COMMAND_SPEED
-        at_end = route_length - progress < self.distance  # nothing left to progress along
+        # creeping onto the goal: nothing left to progress along (at rest there, the goal
+        # check must have decided within the time)
+        at_end = not standstill and route_length - progress < self.distance
         gained = self._carried + max(progress - self._base, 0.0)
         waiting = gear_change or turning_at_rest or braking or at_end
         if self._since is None or gained >= self.distance or waiting:
