@@ -310,8 +310,8 @@ def test_a_car_stuck_on_its_route_is_stopped_by_the_no_progress_watchdog(
     from dataclasses import replace
 
     def stall(out: ControlOutput, n: int) -> ControlOutput:
-        if out.gear.name == "R" and out.progress > 20.0:
-            return replace(out, accel=min(out.accel, 0.0) if out.speed < 0 else 0.0, speed=0.0)
+        if out.gear.name == "R" and out.progress > 20.0:  # 3 m into the reverse leg
+            return replace(out, accel=0.5, speed=0.0)  # d(signed v)/dt > 0 in reverse: brakes
         return out
 
     _wrap_controller(monkeypatch, stall)
