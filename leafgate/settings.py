@@ -13,7 +13,7 @@ import numpy as np
 
 from leafgate.can.config import CanConfig
 from leafgate.can.profile import Profile, SteerRateTable, load_profile
-from leafgate.config import _UNIT_SUFFIXES, VehicleConfig, from_mapping, load_yaml
+from leafgate.config import _UNIT_SUFFIXES, VehicleConfig, apply_overrides, from_mapping, load_yaml
 from leafgate.control.config import ControllerConfig
 from leafgate.errors import ConfigError
 from leafgate.gateway.config import GatewayConfig, SafetyConfig
@@ -49,19 +49,46 @@ class LeafgateConfig:
         return LongMode.SPEED if self.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
 
 
-def load_config(path: str | Path | None) -> LeafgateConfig:
+def load_config(
+    path: str | Path | None, overrides: Mapping[str, Any] | None = None
+) -> LeafgateConfig:
     """Load a deployment config; ``None`` gives the embedded defaults.
+
+    :param overrides: dotted keys set on top of the file (``leafgate sim --set KEY=VALUE``,
+        :func:`~leafgate.config.parse_overrides`), checked like the file's own keys
 
     The vehicle profile is applied (:func:`apply_profile`).
 
     :raises ConfigError: naming the file and the key of the first problem
     """
-    if path is None:
+    if path is None and not overrides:
         return apply_profile(LeafgateConfig())
-    data = load_yaml(path)
-    cfg = from_mapping(LeafgateConfig, data, str(path))
-    explicit = dict.fromkeys(explicit_keys(data), str(path))
-    return apply_profile(cfg, str(path), explicit)
+    data = {} if path is None else load_yaml(path)
+    source = "defaults" if path is None else str(path)
+    explicit = dict.fromkeys(explicit_keys(data), source)
+    if overrides:
+        data = {} if data is None else data
+        if not isinstance(data, dict):
+            raise ConfigError(f"{source}: the configuration is not a mapping")
+        source += " with command-line overrides"
+        apply_overrides(data, overrides, source)
+        explicit.update(dict.fromkeys(explicit_keys(_nested(overrides)), "command line"))
+    return apply_profile(from_mapping(LeafgateConfig, data, source), source, explicit)
+
+
+def _nested(overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """Dotted overrides as the nested mapping a file would hold (for :func:`explicit_keys`)."""
+    out: dict[str, Any] = {}
+    for dotted, value in overrides.items():
+        node = out
+        *parents, key = dotted.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                break
+        else:
+            node[key] = value
+    return out
 
 
 def explicit_keys(data: Any, prefix: str = "") -> list[str]:

@@ -43,6 +43,11 @@ class WatchdogConfig:
     # are judged up to where it has read (a starved thread must not fake a stale ECU), and a
     # thread further behind than this is a FAULT of its own.
     max_receive_lag: float = 0.2
+    # Engaged and commanded to move, the car must gain no_progress_distance along the plan within
+    # every no_progress_time (waiting for a gear change or the wheel, braking to a commanded
+    # stop and the plan's last no_progress_distance excepted) → STOP
+    no_progress_time: float = 3.0  # s
+    no_progress_distance: float = 0.1  # m
 
     def __post_init__(self) -> None:
         positive(
@@ -59,6 +64,8 @@ class WatchdogConfig:
             "max_overruns",
             "max_stall_periods",
             "max_receive_lag",
+            "no_progress_time",
+            "no_progress_distance",
         )
         if self.trajectory_max_age is not None:
             positive(self, "trajectory_max_age")
