@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Any
 
 from leafgate import __version__
 from leafgate.errors import ConfigError, LeafgateError
+from leafgate.journal import setup_logging
 from leafgate.settings import LeafgateConfig, apply_profile, load_config, with_profile
 from leafgate.sim.scenarios import Scenario
 
@@ -226,7 +228,18 @@ def cmd_status(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     seen: list[dict[str, Any]] = []
 
+    closed: list[BrokenPipeError] = []
+
     def show(diag: dict[str, Any]) -> None:
+        # On a Zenoh thread: a closed stdout is noted here and raised in the main thread.
+        if closed:
+            return
+        try:
+            _show(diag)
+        except BrokenPipeError as exc:
+            closed.append(exc)
+
+    def _show(diag: dict[str, Any]) -> None:
         seen.append(diag)
         if args.json:
             print(json.dumps(diag), flush=True)
@@ -249,6 +262,8 @@ def cmd_status(args: argparse.Namespace) -> int:
         )
 
     watch_diagnostics(tool_view(cfg.zenoh), show, args.duration)
+    if closed:
+        raise closed[0]
     if not seen:
         print(
             f"leafgate: error: no diagnostics from a gateway within {args.duration:g} s",
@@ -524,42 +539,94 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def setup_logging(fmt: str, verbose: bool) -> None:
-    handler = logging.StreamHandler(sys.stdout)
-    if fmt == "json":
+EXIT_PIPE = 141  # 128 + SIGPIPE, as a shell reports a command killed by a closed pipe
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
 
-        class _Json(logging.Formatter):
-            def format(self, record: logging.LogRecord) -> str:
-                return json.dumps(
-                    {
-                        "t": record.created,
-                        "level": record.levelname,
-                        "logger": record.name,
-                        "msg": record.getMessage(),
-                    }
-                )
 
-        handler.setFormatter(_Json())
-    else:
-        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(logging.DEBUG if verbose else logging.INFO)
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush cannot fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # stdout has no file descriptor (tests capture it)
+        pass
+
+
+def _one_line(exc: OSError) -> str:
+    """``Permission denied: 'out/x'``: the reason and the path, without the errno prefix."""
+    what = exc.strerror or str(exc)
+    if exc.filename is not None:
+        return f"{what}: {os.fsdecode(exc.filename)}"
+    return what
+
+
+#: options naming a folder the command writes into, checked before any work starts
+OUTPUT_FOLDERS = ("out", "record")
+#: options naming a file the command writes, whose folder is checked the same way
+OUTPUT_FILES = ("trace",)
+
+
+def output_folder(path: str | Path, option: str) -> Path:
+    """Create ``path`` (and its parents) for ``option``; one line naming both when impossible.
+
+    :raises LeafgateError: the folder cannot be created or is not a folder
+    """
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LeafgateError(
+            f"{option} {path}: cannot create the output folder: {_one_line(exc)}"
+        ) from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise LeafgateError(f"{option} {path}: the output folder is not writable")
+    return folder
+
+
+def _prepare_outputs(args: argparse.Namespace) -> None:
+    """Fail before any work when an output folder cannot be made (not after a long run)."""
+    for name in OUTPUT_FOLDERS:
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value:
+            output_folder(value, f"--{name}")
+    for name in OUTPUT_FILES:
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value:
+            output_folder(Path(value).parent, f"--{name}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one ``leafgate`` command; every way it can end is one line and an exit status.
+
+    - a :class:`LeafgateError` (bad config, file, bus …): its line, status 1 (2 for config);
+    - a file or folder that cannot be written: the reason and the path, status 1;
+    - stdout closed by the reader (``leafgate decode … | head``): status 141, quietly on
+      stdout, one line on stderr;
+    - Ctrl-C: "interrupted", status 130.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args(["sim", *(argv or [])])
-    setup_logging(args.log_format, args.verbose)
+    # The daemon logs from its control thread: through a queue, so stdout never delays a tick.
+    setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     try:
+        _prepare_outputs(args)
         return int(args.func(args))
     except LeafgateError as exc:
         print(f"leafgate: error: {exc}", file=sys.stderr)
         return EXIT_USAGE if isinstance(exc, ConfigError) else EXIT_ERROR
     except KeyboardInterrupt:
-        return 130
+        print("leafgate: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        _silence_stdout()
+        print("leafgate: output closed by the reader; stopped", file=sys.stderr)
+        return EXIT_PIPE
+    except OSError as exc:
+        print(f"leafgate: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":
