@@ -26,6 +26,7 @@ log = logging.getLogger("leafgate")
 
 EXIT_ERROR = 1
 EXIT_USAGE = 2
+ENGAGE_WAIT = 15.0  # s, how long `engage` waits for a starting gateway's inputs by default
 
 
 def _replace_path(cfg: Any, dotted: str, value: Any) -> Any:
@@ -211,14 +212,29 @@ def cmd_sim_ecu(args: argparse.Namespace) -> int:
     )
 
 
+EXIT_UNCHANGED = 3  # an operator request found nothing to do (already in the requested state)
+
+
 def cmd_request(args: argparse.Namespace) -> int:
+    """engage / disengage / reset: print the reply; exit 0 only when it was carried out."""
     from leafgate.gateway.daemon import tool_view
-    from leafgate.transport.client import request
+    from leafgate.transport.client import engage, request
 
     cfg = load_config(args.config)
-    reply = request(tool_view(cfg.zenoh), args.command, timeout=args.timeout)
+    zcfg = tool_view(cfg.zenoh)
+    wait = getattr(args, "wait", 0.0)
+    if args.command == "engage" and wait > 0:
+
+        def waiting(reason: str) -> None:
+            print(f"leafgate: waiting (up to {wait:g} s): {reason}", file=sys.stderr, flush=True)
+
+        reply = engage(zcfg, max(wait, args.timeout or 0.0), on_waiting=waiting)
+    else:
+        reply = request(zcfg, args.command, timeout=args.timeout)
     print(json.dumps(reply))
-    return 0 if reply.get("accepted") else EXIT_ERROR
+    if reply.get("accepted"):
+        return 0
+    return EXIT_UNCHANGED if reply.get("changed") is False else EXIT_ERROR
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -284,11 +300,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     except ConfigError as exc:  # a check across sections: name the file too
         raise ConfigError(f"{args.file}: {exc}") from None
     _scenario(cfg.sim.scenario)
+    port = f" port {cfg.can.dbw.kwargs['port']}" if "port" in cfg.can.dbw.kwargs else ""
     print(
         f"{args.file}: ok — controller {cfg.controller.kind} at {cfg.gateway.rate_hz:g} Hz, "
-        f"dbw bus {cfg.can.dbw.interface}:{cfg.can.dbw.channel}, "
+        f"dbw bus {cfg.can.dbw.interface}:{cfg.can.dbw.channel}{port}, "
         f"car bus {'shared' if cfg.can.car is None else cfg.can.car.interface + ':' + cfg.can.car.channel}, "
         f"zenoh {cfg.zenoh.mode} prefix {cfg.zenoh.prefix!r}"
+        + (f" on {', '.join(cfg.zenoh.listen)}" if cfg.zenoh.listen else "")
     )
     profile = cfg.profile
     caps = profile.capabilities
@@ -387,6 +405,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--log-format", choices=("text", "json"), default="text", help="log line format on stdout"
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument(
+        "--bench",
+        type=int,
+        metavar="N",
+        help="simulation bench N: a config with `bench:` takes its CAN and Zenoh ports from N "
+        "(same as LEAFGATE_BENCH=N)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser(
@@ -458,9 +483,24 @@ def build_parser() -> argparse.ArgumentParser:
         ("disengage", "ask the gateway to disengage"),
         ("reset", "ask the gateway to clear a latched fault"),
     ):
-        p = sub.add_parser(name, help=text)
+        p = sub.add_parser(
+            name,
+            help=text,
+            description=f"{text[0].upper()}{text[1:]}. Prints the JSON reply. Exit status: 0 "
+            "carried out, 1 refused, 3 nothing to do (already so).",
+        )
         p.add_argument("--config", required=True, help="YAML config naming the Zenoh endpoints")
         p.add_argument("--timeout", type=float, default=None, help="s to wait for the gateway")
+        if name == "engage":
+            p.add_argument(
+                "--wait",
+                type=float,
+                default=ENGAGE_WAIT,
+                metavar="SECONDS",
+                help="while the gateway refuses for want of its inputs (just started, no plan "
+                "yet), ask again for up to this long, saying what it waits for "
+                f"(default {ENGAGE_WAIT:g}; 0: ask once)",
+            )
         p.set_defaults(func=cmd_request)
 
     p = sub.add_parser("status", help="live diagnostics of a running gateway")
@@ -610,6 +650,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         args = parser.parse_args(["sim", *(argv or [])])
     # The daemon logs from its control thread: through a queue, so stdout never delays a tick.
+    if args.bench is not None:
+        from leafgate.settings import BENCH_ENV
+
+        os.environ[BENCH_ENV] = str(args.bench)  # every config this process loads
     setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     try:
         _prepare_outputs(args)

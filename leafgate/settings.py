@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +53,57 @@ def load_config(path: str | Path | None) -> LeafgateConfig:
     """
     if path is None:
         return apply_profile(LeafgateConfig())
-    return apply_profile(from_mapping(LeafgateConfig, load_yaml(path), str(path)), str(path))
+    data = apply_bench(load_yaml(path), str(path))
+    return apply_profile(from_mapping(LeafgateConfig, data, str(path)), str(path))
+
+
+#: environment variable that picks the bench of a config with a ``bench:`` key
+BENCH_ENV = "LEAFGATE_BENCH"
+BENCH_CAN_PORT = 43113  # udp_multicast port of bench 0; bench N uses this + N
+BENCH_ZENOH_PORT = 17447  # Zenoh TCP port (loopback) of bench 0; bench N uses this + N
+MAX_BENCH = 999
+
+
+def bench_ports(bench: int) -> tuple[int, int]:
+    """(udp_multicast port, Zenoh port) of bench ``bench``."""
+    return BENCH_CAN_PORT + bench, BENCH_ZENOH_PORT + bench
+
+
+def apply_bench(data: Any, where: str) -> Any:
+    """Derive a simulation bench's ports from its number, so two benches on a host stay apart.
+
+    A config with ``bench: N`` (``LEAFGATE_BENCH=N`` or ``leafgate --bench N`` overrides N)
+    gets ``can.dbw.kwargs.port`` = 43113 + N and ``zenoh.listen`` = ``tcp/127.0.0.1:`` 17447 + N,
+    unless the file sets them itself (test harnesses pick free ports that way). A config
+    without ``bench:`` is left as written (the car's config names its own buses and endpoints).
+
+    :raises ConfigError: a bench that is not a number in 0–999
+    """
+    if not isinstance(data, dict) or "bench" not in data:
+        return data
+    data = dict(data)
+    value: Any = data.pop("bench")
+    source = f"{where}: bench"
+    override = os.environ.get(BENCH_ENV, "").strip()
+    if override:
+        value, source = override, f"{BENCH_ENV}={override!r}"
+    try:
+        bench = int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {value!r} is not a bench number (0–{MAX_BENCH})") from None
+    if isinstance(value, bool) or not 0 <= bench <= MAX_BENCH:
+        raise ConfigError(f"{source}: {value!r} is not a bench number (0–{MAX_BENCH})")
+    can_port, zenoh_port = bench_ports(bench)
+    can = dict(data.get("can") or {})
+    dbw = dict(can.get("dbw") or {})
+    kwargs = dict(dbw.get("kwargs") or {})
+    zenoh = dict(data.get("zenoh") or {})
+    kwargs.setdefault("port", can_port)  # a port the file gives itself wins
+    dbw["kwargs"] = kwargs
+    can["dbw"] = dbw
+    zenoh.setdefault("listen", [f"tcp/127.0.0.1:{zenoh_port}"])
+    data["can"], data["zenoh"] = can, zenoh
+    return data
 
 
 def with_profile(cfg: LeafgateConfig, profile: str) -> LeafgateConfig:

@@ -31,7 +31,7 @@ from leafgate.control import make_controller
 from leafgate.control.base import Controller
 from leafgate.gateway.core import Gateway, StepResult
 from leafgate.gateway.runtime import CanReceiver, InputSource, RequestBox, Runtime, sd_notify
-from leafgate.gateway.watchdog import CHECK_ORDER, Status
+from leafgate.gateway.watchdog import CHECK_ORDER, Check, Status
 from leafgate.journal import ERR, NOTICE, WARNING
 from leafgate.messages import GatewayState, OperatorRequest, Pose, Stamped, Trajectory
 from leafgate.settings import LeafgateConfig
@@ -173,7 +173,7 @@ class StateLog:
     def __init__(self, logger: logging.Logger | None = None) -> None:
         self._log = logger or log
         self._status: dict[str, Status] = {}
-        self._since: dict[str, float] = {}  # when each watchdog left OK
+        self._since: dict[str, float] = {}  # last good sample of each watchdog not OK
 
     def on_tick(
         self, now: float, _inputs: Any, result: StepResult, _frames: Sequence[can.Message]
@@ -196,11 +196,10 @@ class StateLog:
             if previous is check.status:
                 continue
             self._status[check.name] = check.status
-            self._input_changed(now, check.name, previous, check.status, check.detail)
+            self._input_changed(now, check, previous)
 
-    def _input_changed(
-        self, now: float, name: str, previous: Status | None, status: Status, detail: str
-    ) -> None:
+    def _input_changed(self, now: float, check: Check, previous: Status | None) -> None:
+        name, status, detail = check.name, check.status, check.detail
         kind = "input" if name in INPUT_CHECKS else "watchdog"
         fields = {"event": kind, kind: name, "status": status.value}
         if status is Status.OK:
@@ -219,7 +218,8 @@ class StateLog:
             return
         if previous is None and status is Status.MISSING:
             return  # nothing yet at start: not a loss
-        self._since.setdefault(name, now)
+        # from the last good sample: the watchdog notices only once its age passed the limit
+        self._since.setdefault(name, now - (check.age or 0.0))
         verb = "lost" if kind == "input" and previous is Status.OK else status.value
         self._log.warning(
             "%s %s %s: %s", kind, name, verb, detail or status.value, extra={"fields": fields}

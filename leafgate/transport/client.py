@@ -109,6 +109,42 @@ def request(
     raise TransportError(f"no gateway answered on {key} within {wait:g} s")
 
 
+def engage(
+    cfg: ZenohConfig,
+    wait: float,
+    *,
+    on_waiting: Callable[[str], None] | None = None,
+    session: zenoh.Session | None = None,
+    poll: float = 0.2,
+) -> dict[str, Any]:
+    """Ask the gateway to engage, asking again while it refuses for a reason that may pass.
+
+    A gateway that has just started lacks inputs for a moment (localization, trajectory, the
+    ECU's reports): its refusal names what is missing, and this asks again every ``poll`` s
+    until ``wait`` s have passed. A refusal that waiting cannot cure ends at once: a latched
+    fault (reset first) or a request that changes nothing (already engaged).
+
+    :param wait: s to wait for the gateway and for its inputs, in all
+    :param on_waiting: called with the refusal's reason each time it changes
+    :returns: the last reply
+    :raises TransportError: if no gateway answers within ``wait``
+    """
+    deadline = time.monotonic() + wait
+    last = ""
+    with _session_for(cfg, session) as s:
+        while True:
+            left = max(deadline - time.monotonic(), 0.1)
+            reply = request(cfg, "engage", timeout=left, session=s)
+            final = reply.get("state") == "FAULT" or reply.get("changed") is False
+            if reply.get("accepted") or final or time.monotonic() + poll >= deadline:
+                return reply
+            reason = str(reply.get("reason", ""))
+            if reason != last and on_waiting is not None:
+                on_waiting(reason)
+            last = reason
+            time.sleep(poll)
+
+
 def watch_diagnostics(
     cfg: ZenohConfig,
     callback: Callable[[dict[str, Any]], None],
