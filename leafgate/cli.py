@@ -174,6 +174,15 @@ def cmd_sim(args: argparse.Namespace) -> int:
         f"wrote {out / 'metrics.json'}"
         + ("" if args.no_plots else ", path.png, steering.png, speed.png")
     )
+    finished = metrics.get("finished", metrics.get("final_state") == "STANDBY")
+    if not finished and not injections:  # an injection's demonstration is meant to stop it
+        final = metrics.get("final_state")
+        print(
+            "leafgate: error: the maneuver did not finish"
+            + (f" (final state {final})" if final else ""),
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
     return 0
 
 
@@ -366,17 +375,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
             args.log, config=args.config, as_json=args.json, gap_periods=args.gap_periods
         )
     if args.replay_command == "play":
-        from leafgate.replay.play import main_play
+        from leafgate.replay.play import play_from_args
 
-        return main_play(
-            args.log,
-            interface=args.interface,
-            channel=args.channel,
-            speed=args.speed,
-            start=args.start,
-            ids=args.ids,
-            bitrate=args.bitrate,
-        )
+        return play_from_args(args)
     if args.replay_command == "rerun":
         from leafgate.replay.rerun import main_rerun
 
@@ -528,16 +529,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--gap-periods", type=float, default=3.0, help="a gap is this many periods of silence"
     )
-    r = rsub.add_parser("play", help="timed playback of a log onto a bus")
-    r.add_argument("log")
-    r.add_argument(
-        "--interface", required=True, help="python-can interface (socketcan, udp_multicast, …)"
+    r = rsub.add_parser(
+        "play",
+        help="timed playback of a log onto a bus (the gateway's command IDs left out by default)",
     )
-    r.add_argument("--channel", required=True)
-    r.add_argument("--speed", type=float, default=1.0, help="speed factor (0: as fast as possible)")
-    r.add_argument("--start", type=float, default=0.0, help="s into the log to start at")
-    r.add_argument("--ids", help="only these IDs, hex, comma-separated (e.g. 0A0,0A1)")
-    r.add_argument("--bitrate", type=int, default=500_000)
+    from leafgate.replay.play import add_arguments as add_play_arguments
+
+    add_play_arguments(r)
     r = rsub.add_parser("rerun", help="re-run a recorded session through Gateway.step and compare")
     r.add_argument("session", help="session .mcap")
     r.add_argument(
