@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import os
 import sys
 from collections.abc import Sequence
@@ -246,6 +247,25 @@ def cmd_request(args: argparse.Namespace) -> int:
     return EXIT_UNCHANGED if reply.get("changed") is False else EXIT_ERROR
 
 
+def vehicle_text(vehicle: Any) -> str:
+    """``1.23 m/s, wheel -2.1°, plan 42 % (120/285)``; ``?`` for what the gateway lacks."""
+    if not isinstance(vehicle, dict):
+        vehicle = {}
+    speed, angle = vehicle.get("speed"), vehicle.get("steer_angle")
+    progress, index = vehicle.get("plan_progress"), vehicle.get("plan_index")
+    waypoints = vehicle.get("plan_waypoints")
+    speed_text = f"{speed:5.2f} m/s" if isinstance(speed, (int, float)) else "  ? m/s"
+    angle_deg = math.degrees(angle) if isinstance(angle, (int, float)) else None
+    angle_text = f"wheel {angle_deg:+5.1f}°" if angle_deg is not None else "wheel ?"
+    if isinstance(progress, (int, float)):
+        plan_text = f"plan {progress * 100:3.0f} % ({index}/{waypoints})"
+    elif waypoints:
+        plan_text = f"plan of {waypoints} points"
+    else:
+        plan_text = "no plan"
+    return f"{speed_text}, {angle_text}, {plan_text}"
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     from leafgate.gateway.daemon import tool_view
     from leafgate.transport.client import watch_diagnostics
@@ -282,6 +302,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         compute_text = f"{compute * 1e6:.0f} µs" if isinstance(compute, (int, float)) else "?"
         print(
             f"{diag.get('state', '?'):<9} {diag.get('reason', '')!s:<32} "
+            f"{vehicle_text(diag.get('vehicle'))} | "
             f"loop {compute_text} median, {loop.get('overruns', 0)} overruns | {', '.join(parts)}",
             flush=True,
         )

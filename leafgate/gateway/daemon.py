@@ -226,6 +226,39 @@ class StateLog:
         )
 
 
+class VehicleView:
+    """What ``leafgate status`` shows of the car: speed, road-wheel angle, progress on the plan.
+
+    Updated on the control thread at most every ``period`` s; read by the diagnostics
+    publisher (one dict replaced whole, so a reader never sees half of one).
+    """
+
+    def __init__(self, period: float = 0.1) -> None:
+        self.period = period
+        self.latest: dict[str, Any] = {}
+        self._next = -float("inf")
+
+    def on_tick(
+        self, now: float, inputs: Any, result: StepResult, _frames: Sequence[can.Message]
+    ) -> None:
+        if now < self._next:
+            return
+        self._next = now + self.period
+        long, steer, plan = inputs.long_report, inputs.steer_report, inputs.trajectory
+        figures = result.diagnostics.controller
+        waypoints = len(plan.value) if plan is not None else 0
+        index = figures.nearest_index if figures is not None else None
+        self.latest = {
+            "speed": None if long is None else long.value.speed,  # m/s
+            "steer_angle": None if steer is None else steer.value.angle,  # rad, road wheel
+            "plan_waypoints": waypoints,
+            "plan_index": index,
+            "plan_progress": index / (waypoints - 1)
+            if index is not None and waypoints > 1
+            else None,
+        }
+
+
 class SystemdWatchdog:
     """Sends ``WATCHDOG=1`` from the control loop at half of systemd's ``WatchdogSec``.
 
@@ -326,6 +359,7 @@ def run_daemon(
         )
         stack.callback(notifier.stop)
         state_log = StateLog()
+        vehicle = VehicleView()
         watchdog = SystemdWatchdog.from_environment()
 
         def on_tick(
@@ -333,6 +367,7 @@ def run_daemon(
         ) -> None:
             recording.on_tick(now, inputs, result, frames)
             state_log.on_tick(now, inputs, result, frames)
+            vehicle.on_tick(now, inputs, result, frames)
             watchdog.kick(now)
 
         runtime = Runtime(
@@ -350,6 +385,7 @@ def run_daemon(
                 "zenoh_decode_errors": transport.decode_errors,
                 "zenoh_invalid_samples": transport.invalid_samples,
                 "recording": recording.diagnostics(),
+                "vehicle": vehicle.latest,
             },
         )
         if on_runtime is not None:
