@@ -105,10 +105,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from leafgate.sim.runner import Injection, run, run_direct
 
     cfg = load_config(args.config)
+    if args.controller:  # the names `compare` uses: mpc-steer is the MPC with the lag model
+        from leafgate.sim.compare import drive_config
+
+        cfg = drive_config(cfg, args.controller, cfg.sim.plant.kind)
     cfg = _with_overrides(
         cfg,
         {
-            "controller.kind": args.controller,
             "controller.mpc.solver": args.solver,
             "controller.mpc.mode": args.mode,
             "sim.plant.kind": args.plant,
@@ -127,7 +130,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if args.realtime:
         from leafgate.sim.realtime import run_realtime
 
-        outcome = run_realtime(cfg, scenario)
+        from leafgate.progress import Progress
+
+        with Progress(f"sim --realtime {scenario.name}", scenario.duration, "s") as shown:
+            outcome = run_realtime(cfg, scenario, lambda t, state: shown.update(round(t), state))
         metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
         loop = "real time (daemon runtime, in-process Zenoh, virtual CAN)"
     else:
@@ -436,13 +442,30 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    from leafgate.sim.compare import CONTROLLERS, PLANTS
+    from leafgate.sim.names import TO_SIM, TO_SIM_ECU, injection_names
+    from leafgate.sim.realtime import SIM_ECU_INJECTIONS
+    from leafgate.sim.runner import INJECTION_KINDS
+    from leafgate.sim.scenarios import SCENARIOS
+
+    scenario_help = f"maneuver to drive: {', '.join(SCENARIOS)} (default: the config's, s-curve)"
     p = sub.add_parser(
-        "sim", help="closed-loop simulation on a simulated clock (the embedded default)"
+        "sim",
+        help="closed-loop simulation on a simulated clock (the embedded default)",
+        description="Drive a scenario through the whole gateway on a simulated clock.",
+        epilog=f"scenarios: {', '.join(SCENARIOS)}. "
+        f"controllers: {', '.join(CONTROLLERS)}. "
+        f"injections: {injection_names(INJECTION_KINDS, TO_SIM)}. "
+        "The same names as `compare` and `sim-ecu`.",
     )
     p.add_argument("--config", help="YAML config (default: the embedded simulation defaults)")
-    p.add_argument("--scenario", help="maneuver to drive (default: s-curve)")
-    p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
-    p.add_argument("--controller", choices=("mpc", "pure-pursuit", "stanley"))
+    p.add_argument("--scenario", metavar="NAME", help=scenario_help)
+    p.add_argument("--plant", choices=PLANTS)
+    p.add_argument(
+        "--controller",
+        choices=tuple(CONTROLLERS),
+        help="mpc-steer: the MPC with the steering-lag model (as in `compare`)",
+    )
     p.add_argument("--solver", choices=("hildreth", "osqp"))
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
@@ -458,7 +481,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="KIND@T[+DUR]",
-        help="fault or driver action, e.g. localization-dropout@8s, override@10s (repeatable)",
+        help="fault or driver action, e.g. localization-dropout@8s, override@10s (repeatable): "
+        + injection_names(INJECTION_KINDS, TO_SIM),
     )
     p.add_argument(
         "--record", metavar="DIR", help="record the drive (CAN log and session .mcap) into DIR"
@@ -479,14 +503,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
-        "sim-ecu", help="simulated drive-by-wire ECU and plant on a real bus, localization on Zenoh"
+        "sim-ecu",
+        help="simulated drive-by-wire ECU and plant on a real bus, localization on Zenoh",
+        epilog=f"scenarios: {', '.join(SCENARIOS)}. "
+        f"injections: {injection_names(SIM_ECU_INJECTIONS, TO_SIM_ECU)}. "
+        "The same names as `sim`.",
     )
     p.add_argument("--config", required=True, help="YAML config, e.g. config/sim.yaml")
     p.add_argument(
         "--scenario",
-        help="start the plant on this scenario's first waypoint (default: sim.scenario)",
+        metavar="NAME",
+        help="start the plant on this scenario's first waypoint (default: sim.scenario): "
+        + ", ".join(SCENARIOS),
     )
-    p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
+    p.add_argument("--plant", choices=PLANTS)
     p.add_argument(
         "--trace", metavar="CSV", help="write the plant's states there on exit (every 20 ms)"
     )

@@ -42,6 +42,7 @@ from leafgate.messages import GatewayState, Pose
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.config import LocalizationConfig
 from leafgate.sim.ecu import INJECTION_KINDS as ECU_INJECTION_KINDS
+from leafgate.sim.names import TO_SIM_ECU
 from leafgate.sim.ecu import SimulatedEcu, run_ecu_realtime
 from leafgate.sim.metrics import path_errors, tracking_metrics
 from leafgate.sim.plots import Trace
@@ -93,7 +94,7 @@ class EngagedInjection:
                 f"--inject {text!r}: expected KIND@TIME[s][+DURATION[s]][:NAME=VALUE,...], "
                 "e.g. localization-stop@3s"
             )
-        kind = m.group("kind")
+        kind = TO_SIM_ECU.get(m.group("kind"), m.group("kind"))  # sim's name for the same fault
         defaults = SIM_ECU_INJECTIONS.get(kind)
         if defaults is None:
             raise ConfigError(
@@ -399,7 +400,11 @@ class _PlantTrace:
                 f.write("# " + json.dumps(record) + "\n")
 
 
-def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
+def run_realtime(
+    cfg: LeafgateConfig,
+    scenario: Scenario,
+    progress: Callable[[float, str], None] | None = None,
+) -> dict[str, Any]:
     """Drive ``scenario`` in real time through the daemon's runtime; return metrics and trace.
 
     Everything runs in this process: the ECU loop and the gateway runtime on their own threads,
@@ -493,6 +498,8 @@ def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
                         engaged = True
                     else:
                         engage_after = t + 0.5
+                if progress is not None:  # wall s since start, and the gateway's state
+                    progress(t - wall0, "" if state is None else state.name)
                 drove |= state in (GatewayState.ENGAGED, GatewayState.STOPPING)
                 idle = state in (GatewayState.STANDBY, GatewayState.FAULT)
                 if drove and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
