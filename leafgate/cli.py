@@ -128,9 +128,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.realtime:
-        from leafgate.sim.realtime import run_realtime
-
         from leafgate.progress import Progress
+        from leafgate.sim.realtime import run_realtime
 
         with Progress(f"sim --realtime {scenario.name}", scenario.duration, "s") as shown:
             outcome = run_realtime(cfg, scenario, lambda t, state: shown.update(round(t), state))

@@ -42,9 +42,9 @@ from leafgate.messages import GatewayState, Pose
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.config import LocalizationConfig
 from leafgate.sim.ecu import INJECTION_KINDS as ECU_INJECTION_KINDS
-from leafgate.sim.names import TO_SIM_ECU
 from leafgate.sim.ecu import SimulatedEcu, run_ecu_realtime
 from leafgate.sim.metrics import path_errors, tracking_metrics
+from leafgate.sim.names import TO_SIM_ECU
 from leafgate.sim.plots import Trace
 from leafgate.sim.scenarios import Scenario
 
