@@ -17,11 +17,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from leafgate import __version__
-from leafgate.errors import ConfigError, LeafgateError
-from leafgate.journal import setup_logging
-from leafgate.settings import LeafgateConfig, apply_profile, load_config, with_profile
-from leafgate.sim.scenarios import Scenario
+try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line, as later
+    from leafgate import __version__
+    from leafgate.errors import ConfigError, LeafgateError
+    from leafgate.journal import setup_logging
+    from leafgate.settings import LeafgateConfig, apply_profile, load_config, with_profile
+    from leafgate.sim.scenarios import Scenario
+except KeyboardInterrupt:
+    print("leafgate: interrupted", file=sys.stderr)
+    raise SystemExit(130) from None
 
 log = logging.getLogger("leafgate")
 
@@ -693,15 +697,19 @@ def main(argv: Sequence[str] | None = None) -> int:
       stdout, one line on stderr;
     - Ctrl-C: "interrupted", status 130.
     """
-    parser = build_parser()
+    try:
+        parser = build_parser()  # imports what the subcommands' options list
+    except KeyboardInterrupt:
+        print("leafgate: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args(["sim", *(argv or [])])
-    # The daemon logs from its control thread: through a queue, so stdout never delays a tick.
     if args.bench is not None:
         from leafgate.settings import BENCH_ENV
 
         os.environ[BENCH_ENV] = str(args.bench)  # every config this process loads
+    # The daemon logs from its control thread: through a queue, so stdout never delays a tick.
     setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     try:
         _prepare_outputs(args)

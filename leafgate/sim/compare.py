@@ -176,7 +176,10 @@ def run_compare(
                 for future in as_completed([pool.submit(_drive, t) for t in tasks]):
                     done.append(future.result())
                     progress.update(len(done))
-            except BaseException:  # Ctrl-C: drop the drives not started yet
+            except BaseException:  # Ctrl-C: stop the workers mid-drive, not after every drive
+                # (the executor has no public way to; at exit it would wait for them)
+                for process in list((pool._processes or {}).values()):
+                    process.terminate()
                 pool.shutdown(wait=False, cancel_futures=True)
                 raise
             pool.shutdown()

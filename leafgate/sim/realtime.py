@@ -476,39 +476,41 @@ def run_realtime(
             )
             ecu_thread.start()
             gw_thread.start()
-            deadline = time.perf_counter() + scenario.duration + 5.0
-            engaged = drove = False
-            next_plan = 0.0
-            last_state: GatewayState | None = None
-            engage_after = time.perf_counter() + 0.5
-            while time.perf_counter() < deadline and not errors:
-                t = time.perf_counter()
-                if t >= next_plan:
-                    plan.publish(scenario.trajectory)
-                    next_plan = t + TRAJECTORY_REPUBLISH
-                runtime = runtime_box[0] if runtime_box else None
-                state = runtime.gateway.state if runtime is not None else None
-                if state is not None and state != last_state:
-                    timeline.append((t - wall0, f"gateway {state.name}"))
-                    last_state = state
-                if runtime is not None and not engaged and t >= engage_after:
-                    reply = request(cfg.zenoh, "engage", timeout=2.0, session=session)
-                    timeline.append((t - wall0, f"operator engage: {reply}"))
-                    if reply.get("accepted"):
-                        engaged = True
-                    else:
-                        engage_after = t + 0.5
-                if progress is not None:  # wall s since start, and the gateway's state
-                    progress(t - wall0, "" if state is None else state.name)
-                drove |= state in (GatewayState.ENGAGED, GatewayState.STOPPING)
-                idle = state in (GatewayState.STANDBY, GatewayState.FAULT)
-                if drove and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
-                    break
-                time.sleep(0.02)
-            stop_gw.set()
-            gw_thread.join(timeout=5.0)
-            stop_ecu.set()
-            ecu_thread.join(timeout=5.0)
+            try:
+                deadline = time.perf_counter() + scenario.duration + 5.0
+                engaged = drove = False
+                next_plan = 0.0
+                last_state: GatewayState | None = None
+                engage_after = time.perf_counter() + 0.5
+                while time.perf_counter() < deadline and not errors:
+                    t = time.perf_counter()
+                    if t >= next_plan:
+                        plan.publish(scenario.trajectory)
+                        next_plan = t + TRAJECTORY_REPUBLISH
+                    runtime = runtime_box[0] if runtime_box else None
+                    state = runtime.gateway.state if runtime is not None else None
+                    if state is not None and state != last_state:
+                        timeline.append((t - wall0, f"gateway {state.name}"))
+                        last_state = state
+                    if runtime is not None and not engaged and t >= engage_after:
+                        reply = request(cfg.zenoh, "engage", timeout=2.0, session=session)
+                        timeline.append((t - wall0, f"operator engage: {reply}"))
+                        if reply.get("accepted"):
+                            engaged = True
+                        else:
+                            engage_after = t + 0.5
+                    if progress is not None:  # wall s since start, and the gateway's state
+                        progress(t - wall0, "" if state is None else state.name)
+                    drove |= state in (GatewayState.ENGAGED, GatewayState.STOPPING)
+                    idle = state in (GatewayState.STANDBY, GatewayState.FAULT)
+                    if drove and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
+                        break
+                    time.sleep(0.02)
+            finally:  # also on Ctrl-C: the threads stop before the session closes
+                stop_gw.set()
+                gw_thread.join(timeout=5.0)
+                stop_ecu.set()
+                ecu_thread.join(timeout=5.0)
     finally:
         session.close()
     if errors:
