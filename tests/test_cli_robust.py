@@ -172,6 +172,12 @@ def _check(name: str, condition: str, status: int | None, stderr: str) -> None:
         assert lines, f"{name} × {condition}: non-zero status {status} without a line"
 
 
+def _start(args: list[str], stdout: Any, err: Any, cwd: Path) -> subprocess.Popen[Any]:
+    return subprocess.Popen(
+        [*CLI, *args], stdout=stdout, stderr=err, cwd=cwd, preexec_fn=_default_sigint
+    )
+
+
 def _stop(process: subprocess.Popen[Any]) -> int | None:
     try:
         return process.wait(timeout=120)
@@ -192,13 +198,7 @@ def test_the_sweep_covers_every_subcommand(files: dict[str, str]) -> None:
 def test_sigint(name: str, files: dict[str, str], tmp_path: Path) -> None:
     args = commands(files)[name]["work"]
     with (tmp_path / "err").open("w+") as err:
-        process = subprocess.Popen(
-            [*CLI, *args],
-            stdout=subprocess.DEVNULL,
-            stderr=err,
-            cwd=tmp_path,
-            preexec_fn=_default_sigint,
-        )
+        process = _start(args, subprocess.DEVNULL, err, tmp_path)
         deadline = time.monotonic() + SIGINT_AFTER
         while time.monotonic() < deadline and process.poll() is None:
             time.sleep(0.05)
@@ -216,13 +216,7 @@ def test_closed_stdout(name: str, files: dict[str, str], tmp_path: Path) -> None
     spec = commands(files)[name]
     args = spec.get("pipe", spec["work"])
     with (tmp_path / "err").open("w+") as err:
-        process = subprocess.Popen(
-            [*CLI, *args],
-            stdout=subprocess.PIPE,
-            stderr=err,
-            cwd=tmp_path,
-            preexec_fn=_default_sigint,
-        )
+        process = _start(args, subprocess.PIPE, err, tmp_path)
         assert process.stdout is not None
         process.stdout.close()  # the reader is gone (`… | head` after its lines)
         if name in STOP_BY_SIGNAL:  # they keep working without their log; stop them
