@@ -11,7 +11,8 @@ How a block runs:
   ``set -e``: a command that fails fails the block (a pipeline's status is its last command's,
   as in an interactive shell);
 - with ``.venv`` pointing at the running interpreter's venv and its ``bin`` first on ``PATH``,
-  as after ``. .venv/bin/activate``. A line ``python3 -m venv .venv && .venv/bin/pip install
+  as after ``. .venv/bin/activate``, and the copy's own ``leafgate`` package first on
+  ``PYTHONPATH`` (a checkout edited meanwhile does not change a run). A line ``python3 -m venv .venv && .venv/bin/pip install
   … && REST`` runs only ``REST`` (installing is what ``--install`` adds: a real venv, from the
   network); a line that only installs is left out, and the report says so;
 - with ``LEAFGATE_BENCH`` set to a bench whose ports are free, so the hardware-in-the-loop
@@ -220,7 +221,9 @@ def check_once(install: bool, run_slow: bool, log: Any) -> list[dict[str, Any]]:
         env["PATH"] = f"{cwd / '.venv' / 'bin'}{os.pathsep}{env.get('PATH', '')}"
         env["VIRTUAL_ENV"] = str(cwd / ".venv")
         env["LEAFGATE_BENCH"] = str(free_bench())
-        env.pop("PYTHONPATH", None)
+        # the copy's code, not the checkout's: what a fresh clone would run (the venv's
+        # editable install finds the checkout only after PYTHONPATH)
+        env["PYTHONPATH"] = str(cwd)
         for block in blocks(readme):
             if block.skip or (block.slow and not run_slow):
                 reason = block.skip or f"{block.slow}; --all runs it"
