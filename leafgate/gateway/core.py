@@ -102,6 +102,7 @@ class GatewayInputs:
     system_report: Stamped[SystemReport] | None
     good_report_frames: int = 0  # valid DBW report frames received since the last step
     bad_report_frames: int = 0  # report frames with bad CRC/counter/length since the last step
+    report_error_cause: str = ""  # what the receiver makes of them (a second sender), or ""
     request: OperatorRequest | None = None  # pending operator request
     overrun: bool = False  # this tick started late (the period was exceeded)
     bus_errors: int = 0  # command frames that could not be encoded or sent since the last step
@@ -300,6 +301,7 @@ class Gateway:
             inputs.good_report_frames,
             inputs.bad_report_frames,
             inputs.overrun,
+            inputs.report_error_cause,
         )
         reports = self._reports(wd)  # once per tick: several decisions below read the flags
         measured = self._measured(wd)

@@ -352,6 +352,7 @@ def run(
                 system_report=slots.system,
                 good_report_frames=good,
                 bad_report_frames=bad,
+                report_error_cause=gw_codec.second_senders() if bad else "",
                 request=request,
             )
             result = gateway.step(now, inputs)
