@@ -162,8 +162,10 @@ def copy_repo(dest: Path) -> None:
             continue
         rel = Path(os.fsdecode(raw))
         source = ROOT / rel
-        if source.is_file():
-            (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+        (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+        if source.is_symlink():  # e.g. leafgate/data/dbc → ../../dbc: kept a link
+            (dest / rel).symlink_to(os.readlink(source))
+        elif source.is_file():
             shutil.copy2(source, dest / rel)
 
 
