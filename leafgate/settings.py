@@ -94,10 +94,12 @@ def apply_bench(data: Any, where: str) -> Any:
     if isinstance(value, bool) or not 0 <= bench <= MAX_BENCH:
         raise ConfigError(f"{source}: {value!r} is not a bench number (0–{MAX_BENCH})")
     can_port, zenoh_port = bench_ports(bench)
-    can = dict(data.get("can") or {})
-    dbw = dict(can.get("dbw") or {})
-    kwargs = dict(dbw.get("kwargs") or {})
-    zenoh = dict(data.get("zenoh") or {})
+    can, zenoh = data.get("can") or {}, data.get("zenoh") or {}
+    dbw = can.get("dbw") or {} if isinstance(can, dict) else None
+    kwargs = dbw.get("kwargs") or {} if isinstance(dbw, dict) else None
+    if not (isinstance(kwargs, dict) and isinstance(zenoh, dict)):
+        return data  # a section that is no mapping: the loader names it
+    can, dbw, kwargs, zenoh = dict(can), dict(dbw), dict(kwargs), dict(zenoh)  # type: ignore[arg-type]
     kwargs.setdefault("port", can_port)  # a port the file gives itself wins
     dbw["kwargs"] = kwargs
     can["dbw"] = dbw
