@@ -111,7 +111,8 @@ class _StdoutHandler(logging.StreamHandler):  # type: ignore[type-arg,unused-ign
 
     def handleError(self, record: logging.LogRecord) -> None:
         if isinstance(sys.exc_info()[1], (BrokenPipeError, ValueError)):
-            self.setStream(open(os.devnull, "w", encoding="utf-8"))  # noqa: SIM115
+            # not setStream(): it flushes the old stream, which fails the same way
+            self.stream = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115
             return
         super().handleError(record)
 

@@ -159,3 +159,19 @@ def test_rt_priority_applies_to_the_calling_thread_only(caplog: pytest.LogCaptur
     if not result[0]:
         assert "SCHED_FIFO 10 refused" in caplog.text
     assert set_rt_priority(0) is False
+
+
+def test_a_closed_log_stream_goes_quiet_without_a_traceback(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from leafgate.journal import setup_logging
+
+    stream = io.StringIO()
+    handler = setup_logging("text", stream=stream, queued=False)
+    try:
+        stream.close()  # the reader went away (`leafgate run | head`, a closed journal)
+        logging.getLogger("test.closed").warning("still running")
+        logging.getLogger("test.closed").warning("and again")
+        assert "Logging error" not in capsys.readouterr().err
+    finally:
+        logging.getLogger().removeHandler(handler)
