@@ -114,3 +114,26 @@ def test_unit_verifies_without_warnings(tmp_path: Path) -> None:
     # verify exits 0 on unknown keys and bad values too, with a warning: none is allowed
     problems = [line for line in done.stderr.splitlines() if str(unit) in line]
     assert done.returncode == 0 and not problems, done.stderr
+
+
+def test_a_start_that_fails_on_the_bus_leaves_no_recording(tmp_path: Path) -> None:
+    """With Restart=on-failure every failed start would leave an empty .blf + .mcap pair."""
+    import dataclasses
+
+    from leafgate.can.config import BusConfig
+    from leafgate.errors import LeafgateError
+    from leafgate.gateway.daemon import run_daemon
+    from leafgate.settings import load_config
+
+    cfg = load_config(ROOT / "config" / "sim.yaml")
+    rec = tmp_path / "recordings"
+    cfg = dataclasses.replace(
+        cfg,
+        can=dataclasses.replace(
+            cfg.can, dbw=BusConfig(interface="socketcan", channel="leafgate-none0")
+        ),
+        recording=dataclasses.replace(cfg.recording, enabled=True, directory=str(rec)),
+    )
+    with pytest.raises(LeafgateError):
+        run_daemon(cfg)
+    assert not rec.exists() or not any(rec.iterdir()), sorted(rec.iterdir())
