@@ -401,8 +401,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.replay_command == "check":
         from leafgate.replay.check import main_check
 
-        return main_check(
-            args.log, config=args.config, as_json=args.json, gap_periods=args.gap_periods
+        # a rotated log's parts (a glob): each checked in turn, the worst status wins
+        return max(
+            main_check(log, config=args.config, as_json=args.json, gap_periods=args.gap_periods)
+            for log in args.log
         )
     if args.replay_command == "play":
         from leafgate.replay.play import play_from_args
@@ -577,7 +579,11 @@ def build_parser() -> argparse.ArgumentParser:
     r = rsub.add_parser(
         "check", help="offline safety check of a CAN log or session (exit 1 on any finding)"
     )
-    r.add_argument("log", help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap)")
+    r.add_argument(
+        "log",
+        nargs="+",
+        help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap); a rotated log's parts",
+    )
     r.add_argument("--config", help="the deployment config whose limits apply (default: built-in)")
     r.add_argument("--json", action="store_true", help="machine-readable report")
     r.add_argument(

@@ -86,3 +86,17 @@ def test_bus_kwargs_reach_the_bus_and_a_bus_is_required(
         main(["replay", "play", log, "-i", "virtual", "-c", "x", "--bus-kwargs", "channel=y"]) == 1
     )
     assert "kwargs must not repeat channel" in capsys.readouterr().err
+
+
+def test_replay_check_takes_a_rotated_logs_parts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _write(tmp_path / "can-1_000.log", 100.0, (REPORT,), n=4)
+    _write(tmp_path / "can-1_001.log", 100.04, (REPORT,), n=3)
+    parts = sorted(str(p) for p in tmp_path.glob("can-*.log"))
+    # old code: "unrecognized arguments" (one log only), exit 2
+    status = main(["replay", "check", *parts])
+    out = capsys.readouterr().out
+    assert status in (0, 1) and "can-1_000.log" in out and "can-1_001.log" in out
+    assert main(["replay", "check", parts[0], str(tmp_path / "missing.log")]) == 1
+    assert "missing.log" in capsys.readouterr().err
