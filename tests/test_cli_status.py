@@ -35,7 +35,7 @@ def _result(nearest: int | None) -> Any:
 def test_vehicle_view_from_the_ticks() -> None:
     plan = get_scenario("s-curve").trajectory
     inputs = SimpleNamespace(
-        long_report=Stamped(LongReport(1.5, 0.0, None, 0.0, 0.0, True, False, False, False), 0.0),  # type: ignore[arg-type]
+        long_report=Stamped(LongReport(1.5, 0.0, Gear.D, 0.0, 0.0, True, False, False, False), 0.0),
         steer_report=Stamped(SteerReport(0.1, 0.0, 0.0, True, False, False, False), 0.0),
         trajectory=Stamped(plan, 0.0),
     )
