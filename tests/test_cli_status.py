@@ -9,7 +9,7 @@ from typing import Any
 
 from leafgate.cli import vehicle_text
 from leafgate.gateway.daemon import VehicleView
-from leafgate.messages import LongReport, Stamped, SteerReport
+from leafgate.messages import Gear, LongReport, Stamped, SteerReport
 from leafgate.sim.scenarios import get_scenario
 
 
