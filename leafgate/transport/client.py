@@ -6,7 +6,7 @@ These are tooling, not control path: failures raise
 Example, with a gateway running on the configured endpoints::
 
     request(cfg, "engage", timeout=2.0)
-    # {'accepted': True, 'state': 'ENGAGED', 'reason': ''}
+    # {'accepted': True, 'state': 'ENGAGED', 'reason': 'engaged', 'changed': True}
 """
 
 from __future__ import annotations
@@ -76,7 +76,8 @@ def request(
         comes back as a reply with ``accepted`` false
     :param timeout: s to wait for the gateway (``cfg.query_timeout`` if None)
     :param session: an open session to use (else one is opened and closed)
-    :returns: ``{"accepted": bool, "state": str | None, "reason": str}``
+    :returns: ``{"accepted": bool, "state": str | None, "reason": str, "changed": bool}``
+        (``changed`` false: the request found nothing to do)
     :raises TransportError: if no gateway answers in time, or it answers with an error
     """
     text = what.value if isinstance(what, OperatorRequest) else str(what)
