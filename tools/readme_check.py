@@ -122,8 +122,9 @@ def script(block: Block, install: bool) -> tuple[str, list[str]]:
     body = "\n".join(out)
     return (
         "set -e\n"
-        # a job still running at the end is stopped (the daemon disengages on SIGTERM)
-        "trap 'jobs -p | xargs -r kill 2>/dev/null; wait' EXIT\n" + body + "\n",
+        # a job still running at the end is stopped (the daemon disengages on SIGTERM); set +e:
+        # a job that ends between `jobs` and `kill` must not fail the block (kill → xargs 123)
+        "trap 'set +e; jobs -p | xargs -r kill 2>/dev/null; wait' EXIT\n" + body + "\n",
         notes,
     )
 
