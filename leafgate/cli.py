@@ -10,22 +10,29 @@ import argparse
 import dataclasses
 import json
 import logging
+import math
 import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from leafgate import __version__
-from leafgate.config import parse_overrides
-from leafgate.errors import ConfigError, LeafgateError
-from leafgate.settings import LeafgateConfig, load_config, with_profile
-from leafgate.sim.scenarios import Scenario
+try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line, as later
+    from leafgate import __version__
+    from leafgate.config import parse_overrides
+    from leafgate.errors import ConfigError, LeafgateError
+    from leafgate.journal import setup_logging
+    from leafgate.settings import LeafgateConfig, load_config, with_profile
+    from leafgate.sim.scenarios import Scenario
+except KeyboardInterrupt:
+    print("leafgate: interrupted", file=sys.stderr)
+    raise SystemExit(130) from None
 
 log = logging.getLogger("leafgate")
 
 EXIT_ERROR = 1
 EXIT_USAGE = 2
+ENGAGE_WAIT = 15.0  # s, how long `engage` waits for a starting gateway's inputs by default
 
 
 def _load(path: str | None, flags: dict[str, Any], sets: Sequence[str] = ()) -> LeafgateConfig:
@@ -111,19 +118,20 @@ def cmd_sim(args: argparse.Namespace) -> int:
     from leafgate.sim.plots import plot_drive
     from leafgate.sim.runner import Injection, run, run_direct
 
-    cfg = _load(
-        args.config,
-        {
-            "controller.kind": args.controller,
-            "controller.mpc.solver": args.solver,
-            "controller.mpc.mode": args.mode,
-            "sim.plant.kind": args.plant,
-        },
-        args.set,
-    )
+    flags = {
+        "controller.mpc.solver": args.solver,
+        "controller.mpc.mode": args.mode,
+        "sim.plant.kind": args.plant,
+    }
+    if args.controller:  # the names `compare` uses: mpc-steer is the MPC with the lag model
+        from leafgate.sim.compare import CONTROLLERS
+
+        flags["controller.kind"], flags["controller.mpc.model"] = CONTROLLERS[args.controller]
+    cfg = _load(args.config, flags, args.set)
     if args.profile:
         cfg = with_profile(cfg, args.profile)
-    if not _model_given(args.config, args.set):  # the steering-aware model where the wheel lags
+    # the steering-aware model where the wheel lags, unless the model was chosen
+    if not args.controller and not _model_given(args.config, args.set):
         from leafgate.sim.runner import default_model
 
         mpc = dataclasses.replace(cfg.controller.mpc, model=default_model(cfg.sim.plant.kind))
@@ -152,10 +160,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.realtime:
+        from leafgate.progress import Progress
         from leafgate.sim.realtime import run_realtime
         from leafgate.sim.runner import finish_verdict
 
-        outcome = run_realtime(cfg, scenario)
+        with Progress(f"sim --realtime {scenario.name}", scenario.duration, "s") as shown:
+            outcome = run_realtime(cfg, scenario, lambda t, state: shown.update(round(t), state))
         metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
         final = metrics["final_state"]
         metrics["finished"], reason = finish_verdict(
@@ -216,7 +226,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         + ("" if args.realtime else ", trace.csv")
         + ("" if args.no_plots else ", path.png, steering.png, speed.png")
     )
-    if not metrics.get("finished"):
+    if not metrics.get("finished") and not injections:  # an injection is meant to stop it
         reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
         return EXIT_ERROR
@@ -293,12 +303,25 @@ def cmd_sim_ecu(args: argparse.Namespace) -> int:
     )
 
 
+EXIT_UNCHANGED = 3  # an operator request found nothing to do (already in the requested state)
+
+
 def cmd_request(args: argparse.Namespace) -> int:
+    """engage / disengage / reset: print the reply; exit 0 only when it was carried out."""
     from leafgate.gateway.daemon import tool_view
-    from leafgate.transport.client import request
+    from leafgate.transport.client import engage, request
 
     cfg = load_config(args.config)
-    reply = request(tool_view(cfg.zenoh), args.command, timeout=args.timeout)
+    zcfg = tool_view(cfg.zenoh)
+    wait = getattr(args, "wait", 0.0)
+    if args.command == "engage" and wait > 0:
+
+        def waiting(reason: str) -> None:
+            print(f"leafgate: waiting (up to {wait:g} s): {reason}", file=sys.stderr, flush=True)
+
+        reply = engage(zcfg, max(wait, args.timeout or 0.0), on_waiting=waiting)
+    else:
+        reply = request(zcfg, args.command, timeout=args.timeout)
     print(json.dumps(reply))
     for field, what in (
         ("ignored_replies", "replies from sessions that are not the gateway were ignored"),
@@ -306,7 +329,28 @@ def cmd_request(args: argparse.Namespace) -> int:
     ):
         if reply.get(field):
             print(f"leafgate: warning: {len(reply[field])} {what}", file=sys.stderr)
-    return 0 if reply.get("accepted") and "conflicting_replies" not in reply else EXIT_ERROR
+    if reply.get("accepted") and "conflicting_replies" not in reply:
+        return 0
+    return EXIT_UNCHANGED if reply.get("changed") is False else EXIT_ERROR
+
+
+def vehicle_text(vehicle: Any) -> str:
+    """``1.23 m/s, wheel -2.1°, plan 42 % (120/285)``; ``?`` for what the gateway lacks."""
+    if not isinstance(vehicle, dict):
+        vehicle = {}
+    speed, angle = vehicle.get("speed"), vehicle.get("steer_angle")
+    progress, index = vehicle.get("plan_progress"), vehicle.get("plan_index")
+    waypoints = vehicle.get("plan_waypoints")
+    speed_text = f"{speed:5.2f} m/s" if isinstance(speed, (int, float)) else "  ? m/s"
+    angle_deg = math.degrees(angle) if isinstance(angle, (int, float)) else None
+    angle_text = f"wheel {angle_deg:+5.1f}°" if angle_deg is not None else "wheel ?"
+    if isinstance(progress, (int, float)):
+        plan_text = f"plan {progress * 100:3.0f} % ({index}/{waypoints})"
+    elif waypoints:
+        plan_text = f"plan of {waypoints} points"
+    else:
+        plan_text = "no plan"
+    return f"{speed_text}, {angle_text}, {plan_text}"
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -316,7 +360,18 @@ def cmd_status(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     seen: list[dict[str, Any]] = []
 
+    closed: list[BrokenPipeError] = []
+
     def show(diag: dict[str, Any]) -> None:
+        # On a Zenoh thread: a closed stdout is noted here and raised in the main thread.
+        if closed:
+            return
+        try:
+            _show(diag)
+        except BrokenPipeError as exc:
+            closed.append(exc)
+
+    def _show(diag: dict[str, Any]) -> None:
         seen.append(diag)
         if args.json:
             print(json.dumps(diag), flush=True)
@@ -334,11 +389,14 @@ def cmd_status(args: argparse.Namespace) -> int:
         compute_text = f"{compute * 1e6:.0f} µs" if isinstance(compute, (int, float)) else "?"
         print(
             f"{diag.get('state', '?'):<9} {diag.get('reason', '')!s:<32} "
+            f"{vehicle_text(diag.get('vehicle'))} | "
             f"loop {compute_text} median, {loop.get('overruns', 0)} overruns | {', '.join(parts)}",
             flush=True,
         )
 
     watch_diagnostics(tool_view(cfg.zenoh), show, args.duration)
+    if closed:
+        raise closed[0]
     if not seen:
         print(
             f"leafgate: error: no diagnostics from a gateway within {args.duration:g} s",
@@ -359,11 +417,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     except ConfigError as exc:  # a check across sections: name the file too
         raise ConfigError(f"{args.file}: {exc}") from None
     _scenario(cfg.sim.scenario)
+    port = f" port {cfg.can.dbw.kwargs['port']}" if "port" in cfg.can.dbw.kwargs else ""
     print(
         f"{args.file}: ok — controller {cfg.controller.kind} at {cfg.gateway.rate_hz:g} Hz, "
-        f"dbw bus {cfg.can.dbw.interface}:{cfg.can.dbw.channel}, "
+        f"dbw bus {cfg.can.dbw.interface}:{cfg.can.dbw.channel}{port}, "
         f"car bus {'shared' if cfg.can.car is None else cfg.can.car.interface + ':' + cfg.can.car.channel}, "
         f"zenoh {cfg.zenoh.mode} prefix {cfg.zenoh.prefix!r}"
+        + (f" on {', '.join(cfg.zenoh.listen)}" if cfg.zenoh.listen else "")
     )
     profile = cfg.profile
     caps = profile.capabilities
@@ -430,27 +490,21 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.replay_command == "check":
         from leafgate.replay.check import main_check
 
-        return main_check(
-            args.log,
-            config=args.config,
-            profile=args.profile,
-            as_json=args.json,
-            gap_periods=args.gap_periods,
+        # a rotated log's parts (a glob): each checked in turn, the worst status wins
+        return max(
+            main_check(
+                log,
+                config=args.config,
+                profile=args.profile,
+                as_json=args.json,
+                gap_periods=args.gap_periods,
+            )
+            for log in args.log
         )
     if args.replay_command == "play":
-        from leafgate.replay.play import main_play
+        from leafgate.replay.play import play_from_args
 
-        return main_play(
-            args.log,
-            interface=args.interface,
-            channel=args.channel,
-            speed=args.speed,
-            start=args.start,
-            ids=args.ids,
-            bitrate=args.bitrate,
-            config=args.config,
-            profile=args.profile,
-        )
+        return play_from_args(args)
     if args.replay_command == "rerun":
         from leafgate.replay.rerun import main_rerun
 
@@ -481,7 +535,6 @@ PROFILE_HELP = (
     "vehicle profile NAME (leafgate-dbw, sze-hlc, leaf-ze1-lkas) or FILE; default: the "
     "--config's, or the one a session recorded"
 )
-EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, as a shell tool killed by a closed pipe
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -494,8 +547,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--log-format", choices=("text", "json"), default="text", help="log line format on stdout"
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument(
+        "--bench",
+        type=int,
+        metavar="N",
+        help="simulation bench N: a config with `bench:` takes its CAN and Zenoh ports from N "
+        "(same as LEAFGATE_BENCH=N)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    from leafgate.sim.compare import CONTROLLERS, PLANTS
+    from leafgate.sim.names import TO_SIM, TO_SIM_ECU, injection_names
+    from leafgate.sim.realtime import SIM_ECU_INJECTIONS
+    from leafgate.sim.runner import INJECTION_KINDS
     from leafgate.sim.scenarios import SCENARIOS
 
     p = sub.add_parser(
@@ -505,14 +569,17 @@ def build_parser() -> argparse.ArgumentParser:
         "gateway on a simulated clock. Writes metrics.json, trace.csv (one row per control "
         "tick) and plots to --out; exits 1 with the reason on stderr when the maneuver did "
         "not finish.",
-        epilog=TRAJECTORY_FORMAT,
+        epilog=f"scenarios: {', '.join(SCENARIOS)}.\n"
+        f"controllers: {', '.join(CONTROLLERS)}.\n"
+        f"injections: {injection_names(INJECTION_KINDS, TO_SIM)}.\n"
+        "The same names as `compare` and `sim-ecu`.\n\n" + TRAJECTORY_FORMAT,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--config", help="YAML config (default: the embedded simulation defaults)")
     p.add_argument(
         "--scenario",
         metavar="NAME",
-        help=f"maneuver to drive (default: s-curve): {', '.join(SCENARIOS)}",
+        help=f"maneuver to drive: {', '.join(SCENARIOS)} (default: the config's, s-curve)",
     )
     p.add_argument(
         "--trajectory",
@@ -544,8 +611,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="s between rolling-window plans (default 0.5)",
     )
-    p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
-    p.add_argument("--controller", choices=("mpc", "pure-pursuit", "stanley"))
+    p.add_argument("--plant", choices=PLANTS)
+    p.add_argument(
+        "--controller",
+        choices=tuple(CONTROLLERS),
+        help="mpc-steer: the MPC with the steering-lag model (as in `compare`)",
+    )
     p.add_argument("--solver", choices=("daqp", "hildreth", "osqp"))
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
@@ -561,7 +632,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="KIND@T[+DUR]",
-        help="fault or driver action, e.g. localization-dropout@8s, override@10s (repeatable)",
+        help="fault or driver action, e.g. localization-dropout@8s, override@10s (repeatable): "
+        + injection_names(INJECTION_KINDS, TO_SIM),
     )
     p.add_argument(
         "--record", metavar="DIR", help="record the drive (CAN log and session .mcap) into DIR"
@@ -582,14 +654,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
-        "sim-ecu", help="simulated drive-by-wire ECU and plant on a real bus, localization on Zenoh"
+        "sim-ecu",
+        help="simulated drive-by-wire ECU and plant on a real bus, localization on Zenoh",
+        epilog=f"scenarios: {', '.join(SCENARIOS)}. "
+        f"injections: {injection_names(SIM_ECU_INJECTIONS, TO_SIM_ECU)}. "
+        "The same names as `sim`.",
     )
     p.add_argument("--config", required=True, help="YAML config, e.g. config/sim.yaml")
     p.add_argument(
         "--scenario",
-        help="start the plant on this scenario's first waypoint (default: sim.scenario)",
+        metavar="NAME",
+        help="start the plant on this scenario's first waypoint (default: sim.scenario): "
+        + ", ".join(SCENARIOS),
     )
-    p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
+    p.add_argument("--plant", choices=PLANTS)
     p.add_argument(
         "--trace", metavar="CSV", help="write the plant's states there on exit (every 20 ms)"
     )
@@ -608,9 +686,24 @@ def build_parser() -> argparse.ArgumentParser:
         ("disengage", "ask the gateway to disengage"),
         ("reset", "ask the gateway to clear a latched fault"),
     ):
-        p = sub.add_parser(name, help=text)
+        p = sub.add_parser(
+            name,
+            help=text,
+            description=f"{text[0].upper()}{text[1:]}. Prints the JSON reply. Exit status: 0 "
+            "carried out, 1 refused, 3 nothing to do (already so).",
+        )
         p.add_argument("--config", required=True, help="YAML config naming the Zenoh endpoints")
         p.add_argument("--timeout", type=float, default=None, help="s to wait for the gateway")
+        if name == "engage":
+            p.add_argument(
+                "--wait",
+                type=float,
+                default=ENGAGE_WAIT,
+                metavar="SECONDS",
+                help="while the gateway refuses for want of its inputs (just started, no plan "
+                "yet), ask again for up to this long, saying what it waits for "
+                f"(default {ENGAGE_WAIT:g}; 0: ask once)",
+            )
         p.set_defaults(func=cmd_request)
 
     p = sub.add_parser("status", help="live diagnostics of a running gateway")
@@ -632,29 +725,24 @@ def build_parser() -> argparse.ArgumentParser:
     r = rsub.add_parser(
         "check", help="offline safety check of a CAN log or session (exit 1 on any finding)"
     )
-    r.add_argument("log", help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap)")
+    r.add_argument(
+        "log",
+        nargs="+",
+        help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap); a rotated log's parts",
+    )
     r.add_argument("--config", help="the deployment config whose limits and profile apply")
     r.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
     r.add_argument("--json", action="store_true", help="machine-readable report")
     r.add_argument(
         "--gap-periods", type=float, default=3.0, help="a gap is this many periods of silence"
     )
-    r = rsub.add_parser("play", help="timed playback of a log onto a bus")
-    r.add_argument("log")
-    r.add_argument(
-        "--interface", required=True, help="python-can interface (socketcan, udp_multicast, …)"
+    r = rsub.add_parser(
+        "play",
+        help="timed playback of a log onto a bus (the gateway's command IDs left out by default)",
     )
-    r.add_argument("--channel", required=True)
-    r.add_argument("--speed", type=float, default=1.0, help="speed factor (0: as fast as possible)")
-    r.add_argument("--start", type=float, default=0.0, help="s into the log to start at")
-    r.add_argument(
-        "--ids",
-        help="only these IDs, hex, comma-separated (e.g. 0A0,0A1), or 'commands' / 'reports': "
-        "the profile's command or report frames",
-    )
-    r.add_argument("--config", help="the deployment config naming the vehicle profile")
-    r.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
-    r.add_argument("--bitrate", type=int, default=500_000)
+    from leafgate.replay.play import add_arguments as add_play_arguments
+
+    add_play_arguments(r)
     r = rsub.add_parser("rerun", help="re-run a recorded session through Gateway.step and compare")
     r.add_argument("session", help="session .mcap")
     r.add_argument(
@@ -710,49 +798,105 @@ def _naming_the_file(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
     return ConfigError(f"{path}: {text}")
 
 
-def setup_logging(fmt: str, verbose: bool) -> None:
-    handler = logging.StreamHandler(sys.stdout)
-    if fmt == "json":
+EXIT_PIPE = 141  # 128 + SIGPIPE, as a shell reports a command killed by a closed pipe
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
 
-        class _Json(logging.Formatter):
-            def format(self, record: logging.LogRecord) -> str:
-                return json.dumps(
-                    {
-                        "t": record.created,
-                        "level": record.levelname,
-                        "logger": record.name,
-                        "msg": record.getMessage(),
-                    }
-                )
 
-        handler.setFormatter(_Json())
-    else:
-        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(logging.DEBUG if verbose else logging.INFO)
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush cannot fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # stdout has no file descriptor (tests capture it)
+        pass
+
+
+def _one_line(exc: OSError) -> str:
+    """``Permission denied: 'out/x'``: the reason and the path, without the errno prefix."""
+    what = exc.strerror or str(exc)
+    if exc.filename is not None:
+        return f"{what}: {os.fsdecode(exc.filename)}"
+    return what
+
+
+#: options naming a folder the command writes into, checked before any work starts
+OUTPUT_FOLDERS = ("out", "record")
+#: options naming a file the command writes, whose folder is checked the same way
+OUTPUT_FILES = ("trace",)
+
+
+def output_folder(path: str | Path, option: str) -> Path:
+    """Create ``path`` (and its parents) for ``option``; one line naming both when impossible.
+
+    :raises LeafgateError: the folder cannot be created or is not a folder
+    """
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LeafgateError(
+            f"{option} {path}: cannot create the output folder: {_one_line(exc)}"
+        ) from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise LeafgateError(f"{option} {path}: the output folder is not writable")
+    return folder
+
+
+def _prepare_outputs(args: argparse.Namespace) -> None:
+    """Fail before any work when an output folder cannot be made (not after a long run)."""
+    for name in OUTPUT_FOLDERS:
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value:
+            output_folder(value, f"--{name}")
+    for name in OUTPUT_FILES:
+        value = getattr(args, name, None)
+        if isinstance(value, str) and value:
+            output_folder(Path(value).parent, f"--{name}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    """Run one ``leafgate`` command; every way it can end is one line and an exit status.
+
+    - a :class:`LeafgateError` (bad config, file, bus …): its line, status 1 (2 for config);
+    - a file or folder that cannot be written: the reason and the path, status 1;
+    - stdout closed by the reader (``leafgate decode … | head``): status 141, quietly on
+      stdout, one line on stderr;
+    - Ctrl-C: "interrupted", status 130.
+    """
+    try:
+        parser = build_parser()  # imports what the subcommands' options list
+    except KeyboardInterrupt:
+        print("leafgate: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args(["sim", *(argv or [])])
-    setup_logging(args.log_format, args.verbose)
+    if args.bench is not None:
+        from leafgate.settings import BENCH_ENV
+
+        os.environ[BENCH_ENV] = str(args.bench)  # every config this process loads
+    # The daemon logs from its control thread: through a queue, so stdout never delays a tick.
+    setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     try:
+        _prepare_outputs(args)
         try:
             return int(args.func(args))
         except ConfigError as exc:
             raise _naming_the_file(exc, args) from None
-    except BrokenPipeError:  # `leafgate decode LOG | head`: the reader has gone, stop quietly
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())  # no second error when Python flushes at exit
-        return EXIT_BROKEN_PIPE
     except LeafgateError as exc:
         print(f"leafgate: error: {exc}", file=sys.stderr)
         return EXIT_USAGE if isinstance(exc, ConfigError) else EXIT_ERROR
     except KeyboardInterrupt:
-        return 130
+        print("leafgate: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        _silence_stdout()
+        print("leafgate: output closed by the reader; stopped", file=sys.stderr)
+        return EXIT_PIPE
+    except OSError as exc:
+        print(f"leafgate: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_ERROR
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,7 +64,7 @@ def load_config(
     """
     if path is None and not overrides:
         return apply_profile(LeafgateConfig())
-    data = {} if path is None else load_yaml(path)
+    data = {} if path is None else apply_bench(load_yaml(path), str(path))
     source = "defaults" if path is None else str(path)
     explicit = dict.fromkeys(explicit_keys(data), source)
     if overrides:
@@ -107,6 +108,57 @@ def explicit_keys(data: Any, prefix: str = "") -> list[str]:
         keys.append(dotted)
         keys.extend(explicit_keys(value, dotted + "."))
     return keys
+
+
+#: environment variable that picks the bench of a config with a ``bench:`` key
+BENCH_ENV = "LEAFGATE_BENCH"
+BENCH_CAN_PORT = 43113  # udp_multicast port of bench 0; bench N uses this + N
+BENCH_ZENOH_PORT = 17447  # Zenoh TCP port (loopback) of bench 0; bench N uses this + N
+MAX_BENCH = 999
+
+
+def bench_ports(bench: int) -> tuple[int, int]:
+    """(udp_multicast port, Zenoh port) of bench ``bench``."""
+    return BENCH_CAN_PORT + bench, BENCH_ZENOH_PORT + bench
+
+
+def apply_bench(data: Any, where: str) -> Any:
+    """Derive a simulation bench's ports from its number, so two benches on a host stay apart.
+
+    A config with ``bench: N`` (``LEAFGATE_BENCH=N`` or ``leafgate --bench N`` overrides N)
+    gets ``can.dbw.kwargs.port`` = 43113 + N and ``zenoh.listen`` = ``tcp/127.0.0.1:`` 17447 + N,
+    unless the file sets them itself (test harnesses pick free ports that way). A config
+    without ``bench:`` is left as written (the car's config names its own buses and endpoints).
+
+    :raises ConfigError: a bench that is not a number in 0–999
+    """
+    if not isinstance(data, dict) or "bench" not in data:
+        return data
+    data = dict(data)
+    value: Any = data.pop("bench")
+    source = f"{where}: bench"
+    override = os.environ.get(BENCH_ENV, "").strip()
+    if override:
+        value, source = override, f"{BENCH_ENV}={override!r}"
+    try:
+        bench = int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: {value!r} is not a bench number (0–{MAX_BENCH})") from None
+    if isinstance(value, bool) or not 0 <= bench <= MAX_BENCH:
+        raise ConfigError(f"{source}: {value!r} is not a bench number (0–{MAX_BENCH})")
+    can_port, zenoh_port = bench_ports(bench)
+    can, zenoh = data.get("can") or {}, data.get("zenoh") or {}
+    dbw = can.get("dbw") or {} if isinstance(can, dict) else None
+    kwargs = dbw.get("kwargs") or {} if isinstance(dbw, dict) else None
+    if not (isinstance(kwargs, dict) and isinstance(zenoh, dict)):
+        return data  # a section that is no mapping: the loader names it
+    can, dbw, kwargs, zenoh = dict(can), dict(dbw), dict(kwargs), dict(zenoh)  # type: ignore[arg-type]
+    kwargs.setdefault("port", can_port)  # a port the file gives itself wins
+    dbw["kwargs"] = kwargs
+    can["dbw"] = dbw
+    zenoh.setdefault("listen", [f"tcp/127.0.0.1:{zenoh_port}"])
+    data["can"], data["zenoh"] = can, zenoh
+    return data
 
 
 def with_profile(cfg: LeafgateConfig, profile: str) -> LeafgateConfig:

@@ -8,6 +8,7 @@ from pathlib import Path
 import can
 import pytest
 
+from leafgate.can.config import BusConfig
 from leafgate.errors import ReplayError
 from leafgate.replay.logs import FrameSource
 from leafgate.replay.play import main_play, parse_ids, play_frames
@@ -80,7 +81,11 @@ def test_main_play_sends_a_log_onto_a_virtual_bus(tmp_path: Path) -> None:
         out = io.StringIO()
         assert (
             main_play(
-                tmp_path / "drive.log", interface="virtual", channel="play-3", speed=0, out=out
+                tmp_path / "drive.log",
+                bus=BusConfig(interface="virtual", channel="play-3"),
+                speed=0,
+                all_ids=True,
+                out=out,
             )
             == 0
         )
@@ -95,4 +100,4 @@ def test_bad_ids_and_missing_logs_are_replay_errors(tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match="not a hexadecimal"):
         parse_ids("0A0,zz")
     with pytest.raises(ReplayError, match="no such file"):
-        main_play(tmp_path / "missing.log", interface="virtual", channel="x")
+        main_play(tmp_path / "missing.log", bus=BusConfig(interface="virtual", channel="x"))

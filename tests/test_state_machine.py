@@ -251,12 +251,14 @@ def test_disengage_hands_back_at_once() -> None:
 def test_disengage_in_standby_and_reset_while_engaged() -> None:
     rig = Rig()
     reply = rig.step(OperatorRequest.DISENGAGE).reply
-    assert reply is not None and reply.accepted and rig.state == S.STANDBY
+    assert reply is not None and not reply.accepted and not reply.changed
+    assert rig.state == S.STANDBY
     rig.engage()
     reply = rig.step(OperatorRequest.RESET).reply
     assert reply is not None and not reply.accepted and rig.state == S.ENGAGED
     reply = rig.step(OperatorRequest.ENGAGE).reply
-    assert reply is not None and reply.accepted and reply.reason == "already engaged"
+    assert reply is not None and not reply.accepted and reply.reason == "already engaged"
+    assert not reply.changed and reply.state == S.ENGAGED
 
 
 def test_controlled_stop_brakes_within_comfort_limits_holds_steering_then_standby() -> None:

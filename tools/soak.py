@@ -538,7 +538,8 @@ class Driver:
             if now - self._since < REPUBLISH_PERIOD:
                 return  # the new plan first: engaging on the old one would end at once
             reply = self._request("engage")
-            if reply.get("accepted"):
+            # "already engaged" (accepted: false since issue 19) after a reply that was lost
+            if reply.get("accepted") or reply.get("state") == "ENGAGED":
                 self._phase, self._since = "drive", now
                 return
             self.refusals[str(reply.get("reason"))] += 1

@@ -1139,6 +1139,15 @@ class CanCodec:
         counts[_FRAMES] += 1
         counts[_UNKNOWN] += 1
 
+    def second_senders(self) -> str:
+        """``""``, or which received IDs' alive counters run as two interleaved sequences: a
+        second node sends them (another ECU on the bus, a replay), named for a fault reason."""
+        ids = self._rx_counters.second_senders()
+        if not ids:
+            return ""
+        names = ", ".join(f"{self.name_of(i) or 'ID'} (0x{i:03X})" for i in ids)
+        return f"two interleaved alive-counter sequences on {names}: a second sender on the bus"
+
     def reset_counters(self, frame_id: int | None = None) -> None:
         """Forget the receive counter state (of one ID, or all): the next frame is accepted.
 

@@ -258,10 +258,17 @@ class CounterChecker:
     ['first', 'ok', 'repeated', 'skipped', 'ok']
     """
 
-    __slots__ = ("_last",)
+    __slots__ = ("_before", "_last", "interleaved")
+
+    #: counter errors in a row that continue the counter before last: two senders take turns
+    INTERLEAVED_IN_ROW = 3
 
     def __init__(self) -> None:
         self._last: dict[int, int] = {}
+        self._before: dict[int, int] = {}  # the counter before the last one
+        #: per ID, counter errors in a row whose counter continues the one *before* the last:
+        #: two interleaved sequences (5, 11, 6, 12, 7 …), i.e. a second sender of the ID
+        self.interleaved: dict[int, int] = {}
 
     def check(self, frame_id: int, counter: int, modulo: int = COUNTER_MODULO) -> CounterStatus:
         """Check ``counter`` of a frame of ``frame_id`` (``modulo``: 16 for a 4-bit counter,
@@ -270,12 +277,24 @@ class CounterChecker:
         self._last[frame_id] = counter
         if last is None:
             return CounterStatus.FIRST
+        before = self._before.get(frame_id)
+        self._before[frame_id] = last
         step = (counter - last) % modulo
         if step == 1:
+            self.interleaved[frame_id] = 0
             return CounterStatus.OK
+        if before is not None and (counter - before) % modulo == 1:
+            self.interleaved[frame_id] = self.interleaved.get(frame_id, 0) + 1
+        else:
+            self.interleaved[frame_id] = 0
         if step == 0:
             return CounterStatus.REPEATED
         return CounterStatus.SKIPPED
+
+    def second_senders(self) -> list[int]:
+        """IDs whose counters currently run as two interleaved sequences (a second sender)."""
+        # list() copies in one step: the receive thread may add an ID meanwhile
+        return sorted(i for i, n in list(self.interleaved.items()) if n >= self.INTERLEAVED_IN_ROW)
 
     def reset(self, frame_id: int | None = None) -> None:
         """Forget the last counter of ``frame_id`` (all IDs when None): the next is FIRST.
@@ -284,5 +303,9 @@ class CounterChecker:
         """
         if frame_id is None:
             self._last.clear()
+            self._before.clear()
+            self.interleaved.clear()
         else:
             self._last.pop(frame_id, None)
+            self._before.pop(frame_id, None)
+            self.interleaved.pop(frame_id, None)

@@ -155,9 +155,15 @@ class GatewayConfig:
     engage: EngageConfig = field(default_factory=EngageConfig)
     stop: StopConfig = field(default_factory=StopConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    # SCHED_FIFO priority of the control thread only (1–99; 0: normal scheduling). The daemon
+    # sets it from inside, on the loop's own thread, so Zenoh, CAN receive and recorder threads
+    # keep normal priority and cannot starve the loop while holding the GIL.
+    rt_priority: int = 0
 
     def __post_init__(self) -> None:
         positive(self, "rate_hz", "system_period")
+        if not 0 <= self.rt_priority <= 99:
+            raise ValueError("rt_priority must lie in 0–99 (0: normal scheduling)")
         if self.stop.jerk > self.safety.max_jerk:
             raise ValueError("stop.jerk must not exceed safety.max_jerk (the gate would clamp it)")
 

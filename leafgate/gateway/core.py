@@ -114,6 +114,7 @@ class GatewayInputs:
     system_report: Stamped[SystemReport] | None
     good_report_frames: int = 0  # valid DBW report frames received since the last step
     bad_report_frames: int = 0  # report frames with bad CRC/counter/length since the last step
+    report_error_cause: str = ""  # what the receiver makes of them (a second sender), or ""
     request: OperatorRequest | None = None  # pending operator request
     overrun: bool = False  # this tick started late (the period was exceeded)
     lateness: float = 0.0  # s this tick started after its deadline (a stall when long)
@@ -311,6 +312,7 @@ class Gateway:
             inputs.overrun,
             inputs.lateness,
             inputs.reports_as_of,
+            inputs.report_error_cause,
         )
         reports = self._reports(wd)  # once per tick: several decisions below read the flags
         measured = self._measured(wd)
@@ -377,8 +379,8 @@ class Gateway:
         self._enable_sent = steer.enable or long.enable
 
         system = self._system_command(now, clear_faults)
-        if reply is not None:
-            reply = EngageReply(reply.accepted, m.state, reply.reason)
+        if reply is not None and inputs.request is not None:
+            reply = reply.after_tick(inputs.request, m.state, m.reason)
         if m.fault_causes is not self._causes_of:  # sort only when the latched causes change
             self._causes_of, self._causes_sorted = m.fault_causes, tuple(sorted(m.fault_causes))
         diagnostics = Diagnostics(
@@ -561,7 +563,7 @@ class Gateway:
             return None, False
         if request is OperatorRequest.ENGAGE:
             if state == GatewayState.ENGAGED:
-                return EngageReply(True, state, "already engaged"), False
+                return EngageReply.unchanged(state, "already engaged"), False
             refusal = engage_refusal(state, m.fault_reason, wd, self.config.engage)
             if refusal is not None:
                 return EngageReply(False, state, refusal), False
@@ -579,12 +581,17 @@ class Gateway:
                 m.fire(Event.DISENGAGE, now, "operator disengage")
                 return EngageReply(True, m.state, "disengaged"), False
             if state == GatewayState.FAULT:
-                self._fault_braking = False
-                return EngageReply(True, state, f"fault stays latched ({m.fault_reason})"), False
-            return EngageReply(True, state, "already in STANDBY"), False
+                braking, self._fault_braking = self._fault_braking, False
+                handed = "stopped braking; " if braking else ""
+                text = f"fault stays latched ({m.fault_reason}); {handed}reset to leave FAULT"
+                return EngageReply(False, state, text, changed=braking), False
+            return EngageReply.unchanged(state, "already in STANDBY"), False
         # RESET
         if state == GatewayState.STANDBY:
-            return EngageReply(True, state, "ECU faults cleared"), True
+            fault = ecu_fault(*reports)
+            if fault is None:  # CLEAR_FAULTS goes out all the same: it costs nothing
+                return EngageReply.unchanged(state, "nothing to reset: no fault latched"), True
+            return EngageReply(True, state, f"clearing the ECU's faults ({fault})"), True
         if state != GatewayState.FAULT:
             return EngageReply(
                 False, state, f"reset only in STANDBY or FAULT (is {state.name})"

@@ -12,11 +12,12 @@ from __future__ import annotations
 import dataclasses
 import gc
 import logging
+import os
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from typing import Any
 
@@ -28,9 +29,11 @@ from leafgate.can.codec import CanCodec
 from leafgate.can.profile import Profile
 from leafgate.control import make_controller
 from leafgate.control.base import Controller
-from leafgate.gateway.core import Gateway
+from leafgate.gateway.core import Gateway, StepResult
 from leafgate.gateway.runtime import CanReceiver, InputSource, RequestBox, Runtime, sd_notify
-from leafgate.messages import OperatorRequest, Pose, Stamped, Trajectory
+from leafgate.gateway.watchdog import CHECK_ORDER, Check, Status
+from leafgate.journal import ERR, NOTICE, WARNING
+from leafgate.messages import GatewayState, OperatorRequest, Pose, Stamped, Trajectory
 from leafgate.settings import LeafgateConfig
 from leafgate.transport.config import ZenohConfig
 
@@ -164,6 +167,171 @@ def recording_refusal(cfg: LeafgateConfig, fault: str) -> str | None:
     return None
 
 
+#: the watchdogs that watch an input (the others watch the error counter and the loop)
+INPUT_CHECKS = frozenset(CHECK_ORDER[:5])
+
+#: syslog priority of entering each state (the journal files the line at it)
+STATE_PRIORITY = {
+    GatewayState.FAULT: ERR,
+    GatewayState.STOPPING: WARNING,
+    GatewayState.ENGAGED: NOTICE,
+    GatewayState.STANDBY: NOTICE,
+}
+
+
+class StateLog:
+    """Logs every state transition with its reason, and each input lost and regained.
+
+    Called on the control thread after every tick; it only compares a few enums per tick and
+    logs (through the queued handler) when something changed.
+
+    - ``state STANDBY → ENGAGED: operator engage`` at notice, → STOPPING at warning, → FAULT at
+      err; JSON lines carry ``event``, ``from``, ``to``, ``reason``.
+    - ``input localization lost: …`` (warning) when a watchdog leaves OK, ``input localization
+      back after 0.62 s`` (notice) when it returns; a first sample is ``… received`` (info).
+    """
+
+    def __init__(self, logger: logging.Logger | None = None) -> None:
+        self._log = logger or log
+        self._status: dict[str, Status] = {}
+        self._since: dict[str, float] = {}  # last good sample of each watchdog not OK
+
+    def on_tick(
+        self, now: float, _inputs: Any, result: StepResult, _frames: Sequence[can.Message]
+    ) -> None:
+        diagnostics = result.diagnostics
+        for tr in diagnostics.transitions:
+            self._log.log(
+                logging.ERROR if tr.target == GatewayState.FAULT else logging.INFO,
+                "state %s → %s: %s",
+                tr.source.name,
+                tr.target.name,
+                tr.reason,
+                extra={
+                    "priority": STATE_PRIORITY.get(tr.target, NOTICE),
+                    "fields": {"event": "transition", **tr.to_dict()},
+                },
+            )
+        for check in diagnostics.watchdogs:
+            previous = self._status.get(check.name)
+            if previous is check.status:
+                continue
+            self._status[check.name] = check.status
+            self._input_changed(now, check, previous)
+
+    def _input_changed(self, now: float, check: Check, previous: Status | None) -> None:
+        name, status, detail = check.name, check.status, check.detail
+        kind = "input" if name in INPUT_CHECKS else "watchdog"
+        fields = {"event": kind, kind: name, "status": status.value}
+        if status is Status.OK:
+            if previous in (None, Status.MISSING, Status.INVALID):
+                if kind == "input":
+                    self._log.info("input %s received", name, extra={"fields": fields})
+                return
+            away = now - self._since.pop(name, now)
+            self._log.info(
+                "%s %s back after %.2f s",
+                kind,
+                name,
+                away,
+                extra={"priority": NOTICE, "fields": {**fields, "away_s": away}},
+            )
+            return
+        if previous is None and status is Status.MISSING:
+            return  # nothing yet at start: not a loss
+        # from the last good sample: the watchdog notices only once its age passed the limit
+        self._since.setdefault(name, now - (check.age or 0.0))
+        verb = "lost" if kind == "input" and previous is Status.OK else status.value
+        self._log.warning(
+            "%s %s %s: %s", kind, name, verb, detail or status.value, extra={"fields": fields}
+        )
+
+
+class VehicleView:
+    """What ``leafgate status`` shows of the car: speed, road-wheel angle, progress on the plan.
+
+    Updated on the control thread at most every ``period`` s; read by the diagnostics
+    publisher (one dict replaced whole, so a reader never sees half of one).
+    """
+
+    def __init__(self, period: float = 0.1) -> None:
+        self.period = period
+        self.latest: dict[str, Any] = {}
+        self._next = -float("inf")
+
+    def on_tick(
+        self, now: float, inputs: Any, result: StepResult, _frames: Sequence[can.Message]
+    ) -> None:
+        if now < self._next:
+            return
+        self._next = now + self.period
+        long, steer, plan = inputs.long_report, inputs.steer_report, inputs.trajectory
+        figures = result.diagnostics.controller
+        waypoints = len(plan.value) if plan is not None else 0
+        index = figures.nearest_index if figures is not None else None
+        self.latest = {
+            "speed": None if long is None else long.value.speed,  # m/s
+            "steer_angle": None if steer is None else steer.value.angle,  # rad, road wheel
+            "plan_waypoints": waypoints,
+            "plan_index": index,
+            "plan_progress": index / (waypoints - 1)
+            if index is not None and waypoints > 1
+            else None,
+        }
+
+
+class SystemdWatchdog:
+    """Sends ``WATCHDOG=1`` from the control loop at half of systemd's ``WatchdogSec``.
+
+    Kicked after every tick: a loop that stops ticking stops the kicks, and systemd restarts
+    the daemon. Outside systemd (no ``WATCHDOG_USEC``, or for another process) it does nothing.
+    """
+
+    def __init__(self, interval: float | None) -> None:
+        self.interval = interval  # s between notifications; None: off
+        self._last = -float("inf")
+        self.sent = 0
+
+    @classmethod
+    def from_environment(cls) -> SystemdWatchdog:
+        usec = os.environ.get("WATCHDOG_USEC", "")
+        pid = os.environ.get("WATCHDOG_PID", "")
+        if not usec.isdigit() or int(usec) <= 0 or (pid and pid != str(os.getpid())):
+            return cls(None)
+        return cls(int(usec) * 1e-6 / 2.0)
+
+    def kick(self, now: float) -> None:
+        if self.interval is None or now - self._last < self.interval:
+            return
+        self._last = now
+        if sd_notify("WATCHDOG=1"):
+            self.sent += 1
+
+
+def set_rt_priority(priority: int) -> bool:
+    """Put the calling thread (only it: Linux schedules threads) under SCHED_FIFO ``priority``.
+
+    0 leaves scheduling alone. A refusal (no ``LimitRTPRIO``/CAP_SYS_NICE) is logged as a
+    warning and the loop runs at normal priority.
+
+    :returns: True when the thread now runs at ``priority``
+    """
+    if priority <= 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (OSError, AttributeError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) else "not supported here"
+        log.warning(
+            "control thread stays at normal priority: SCHED_FIFO %d refused (%s)",
+            priority,
+            reason,
+        )
+        return False
+    log.info("control thread runs under SCHED_FIFO priority %d", priority)
+    return True
+
+
 def run_daemon(
     cfg: LeafgateConfig,
     stop: threading.Event | None = None,
@@ -186,10 +354,6 @@ def run_daemon(
     from leafgate.transport.node import GatewayTransport  # zenoh loads only where it is used
 
     with ExitStack() as stack:
-        # Recording never stops the loop: a file problem becomes a fault in diagnostics.
-        recording = open_recording(cfg.recording, cfg, clock=clock)
-        stack.callback(recording.close)
-        gateway = build_gateway(cfg, wrap_controller=recording.wrap_controller)
         buses = stack.enter_context(
             open_buses(cfg.can, codec.receive_ids("reports"), codec.receive_ids("car"))
         )
@@ -210,6 +374,12 @@ def run_daemon(
         else:
             transport = GatewayTransport(session, cfg.zenoh, answer, clock=clock)
         stack.enter_context(transport)
+        # Opened only now that the bus and Zenoh are up: a start that fails on either leaves
+        # no empty recording behind (with Restart=on-failure they would pile up).
+        # Recording never stops the loop: a file problem becomes a fault in diagnostics.
+        recording = open_recording(cfg.recording, cfg, clock=clock)
+        stack.callback(recording.close)
+        gateway = build_gateway(cfg, wrap_controller=recording.wrap_controller)
         transport.on_raw = recording.on_zenoh_input
         receiver = CanReceiver(codec, clock)
         receiver.on_frame = lambda msg, _decoded: recording.on_can_frame(msg, "rx")
@@ -217,6 +387,18 @@ def run_daemon(
             [buses.dbw] if buses.shared else [buses.dbw, buses.car], [receiver], timeout=0.1
         )
         stack.callback(notifier.stop)
+        state_log = StateLog()
+        vehicle = VehicleView()
+        watchdog = SystemdWatchdog.from_environment()
+
+        def on_tick(
+            now: float, inputs: Any, result: StepResult, frames: Sequence[can.Message]
+        ) -> None:
+            recording.on_tick(now, inputs, result, frames)
+            state_log.on_tick(now, inputs, result, frames)
+            vehicle.on_tick(now, inputs, result, frames)
+            watchdog.kick(now)
+
         runtime = Runtime(
             gateway,
             codec,
@@ -227,7 +409,7 @@ def run_daemon(
             publisher=transport,
             requests=requests,
             clock=clock,
-            on_tick=recording.on_tick,
+            on_tick=on_tick,
             receive_buses=[buses.dbw] if buses.shared else [buses.dbw, buses.car],
             extra_diagnostics=lambda: {
                 "zenoh_decode_errors": transport.decode_errors,
@@ -235,6 +417,7 @@ def run_daemon(
                 "engage_refused_unheard": transport.request_refusals,
                 "zenoh_invalid_samples": transport.invalid_samples,
                 "recording": recording.diagnostics(),
+                "vehicle": vehicle.latest,
             },
         )
         if on_runtime is not None:
@@ -251,8 +434,10 @@ def run_daemon(
         for line in cfg.adjustments:  # what the profile changed in the configuration
             log.info("config adjusted: %s", line)
 
-        def ready() -> None:
+        def ready() -> None:  # on the control thread, after its first tick
+            set_rt_priority(cfg.gateway.rt_priority)
             sd_notify("READY=1")
+            watchdog.kick(clock())
             log.info("control loop running")
 
         prepare_for_real_time()

@@ -573,6 +573,7 @@ class Runtime:
             system_report=self.receiver.system.get(),
             good_report_frames=good,
             bad_report_frames=bad,
+            report_error_cause=self.codec.second_senders() if bad else "",
             request=request if request is not None else pending.request,
             overrun=overrun,
             lateness=lateness,

@@ -19,7 +19,7 @@ import numpy as np
 
 from leafgate.gateway.config import EngageConfig
 from leafgate.gateway.watchdog import Status, WatchdogReport, ecu_fault
-from leafgate.messages import EcuState, GatewayState, Gear, Pose, Trajectory
+from leafgate.messages import EcuState, GatewayState, Gear, OperatorRequest, Pose, Trajectory
 
 
 class Event(enum.Enum):
@@ -79,17 +79,51 @@ class Transition:
         }
 
 
+#: The state each operator request asks for: a reply is ``accepted`` only when the gateway is
+#: in it, or entering it (ENGAGED while the override is cleared), after the tick that handled it.
+REQUESTED_STATE: dict[OperatorRequest, GatewayState] = {
+    OperatorRequest.ENGAGE: GatewayState.ENGAGED,
+    OperatorRequest.DISENGAGE: GatewayState.STANDBY,
+    OperatorRequest.RESET: GatewayState.STANDBY,
+}
+
+
 @dataclass(frozen=True, slots=True)
 class EngageReply:
-    """The answer to an operator request (``gateway/engage`` queryable)."""
+    """The answer to an operator request (``gateway/engage`` queryable).
+
+    - ``accepted``: the request was carried out: the gateway is in the requested state or
+      entering it, because of this request;
+    - ``changed``: the request changed something (a state, or the ECU's faults cleared); a
+      request that finds the gateway already where it asks (disengage in STANDBY, engage while
+      ENGAGED) is ``accepted: false, changed: false`` with a reason that says so.
+    """
 
     accepted: bool
     state: GatewayState  # the state after the request was handled
     reason: str
+    changed: bool = True
+
+    @classmethod
+    def unchanged(cls, state: GatewayState, reason: str) -> EngageReply:
+        """A request that finds nothing to do."""
+        return cls(False, state, reason, changed=False)
+
+    def after_tick(self, request: OperatorRequest, state: GatewayState, reason: str) -> EngageReply:
+        """The reply as the tick ended: an accepted request whose state did not hold (an
+        engage at the trajectory's end, which the same tick ends) is not accepted."""
+        if self.accepted and state != REQUESTED_STATE[request]:
+            return EngageReply(False, state, f"not {REQUESTED_STATE[request].name}: {reason}")
+        return EngageReply(self.accepted, state, self.reason, self.changed)
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON reply ``{accepted, state, reason}``."""
-        return {"accepted": self.accepted, "state": self.state.name, "reason": self.reason}
+        """The JSON reply ``{accepted, state, reason, changed}``."""
+        return {
+            "accepted": self.accepted,
+            "state": self.state.name,
+            "reason": self.reason,
+            "changed": self.changed,
+        }
 
 
 def wrap_angle(angle: float) -> float:

@@ -423,8 +423,12 @@ class ErrorCounter:
         self.count = 0
         self._ok: Check | None = None  # the last OK verdict, reused while the count is unchanged
 
-    def update(self, good: int, bad: int) -> Check:
-        """Count this tick's good and bad report frames."""
+    def update(self, good: int, bad: int, cause: str = "") -> Check:
+        """Count this tick's good and bad report frames.
+
+        :param cause: what the receiver makes of the errors (e.g. a second sender), for the
+            reason
+        """
         peak, self.count = update_error_counter(self.count, good, bad)
         if peak >= self.threshold or self.count >= self.threshold:
             return Check(
@@ -433,7 +437,8 @@ class ErrorCounter:
                 None,
                 self.threshold,
                 Reaction.FAULT,
-                f"report frame errors reached {peak} (limit {self.threshold})",
+                f"report frame errors reached {peak} (limit {self.threshold})"
+                + (f": {cause}" if cause else ""),
                 peak,
             )
         # Checks are frozen, so an unchanged verdict can be shared between ticks (saves building
@@ -591,6 +596,7 @@ class Watchdogs:
         overrun: bool,
         lateness: float = 0.0,
         reports_as_of: float | None = None,
+        report_error_cause: str = "",
     ) -> WatchdogReport:
         """Feed one tick's inputs to every watchdog.
 
@@ -604,7 +610,7 @@ class Watchdogs:
             self.steer.update(as_of, steer),
             self.long.update(as_of, long),
             self.system.update(as_of, system),
-            self.errors.update(good_frames, bad_frames),
+            self.errors.update(good_frames, bad_frames, report_error_cause),
             self.overrun.update(overrun, lateness),
         )
         return WatchdogReport(

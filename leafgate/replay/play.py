@@ -1,4 +1,4 @@
-"""``leafgate replay play LOG --interface … --channel …``: timed playback onto a CAN bus.
+"""``leafgate replay play LOG… -i … -c …``: timed playback onto a CAN bus.
 
 ``--ids commands`` or ``--ids reports`` plays the vehicle profile's command or report frames
 (the profile from ``--profile``, ``--config`` or a session's recorded configuration).
@@ -7,16 +7,19 @@ Frames are sent at their recorded spacing (divided by ``speed``) on absolute dea
 monotonic clock, so the playback does not drift over a long log; ``start`` skips the first
 seconds of the log and ``ids`` plays only the listed IDs — e.g. only the gateway's commands
 (0x0A0–0x0A2) to drive the simulated ECU or a bench ECU, or only the ECU's reports to feed a
-gateway. A session's ``/can`` topic plays as well.
+gateway. Without ``ids`` the gateway's own command IDs are left out (``--all-ids`` plays them),
+so a playback onto a live bus never commands the car. A session's ``/can`` topic plays as
+well, and a rotated log plays as one when its parts are given in order.
 
 Playback is a tool, not the control path: a send error stops it with an error.
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
-from collections.abc import Callable, Collection, Iterable
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -28,7 +31,15 @@ from leafgate.can.config import BusConfig
 from leafgate.errors import BusError, ReplayError
 from leafgate.replay.logs import FrameSource, is_end_marker
 
-__all__ = ["PlayStats", "main_play", "parse_ids", "play_frames"]
+__all__ = [
+    "PlayStats",
+    "add_arguments",
+    "default_ids",
+    "main_play",
+    "parse_ids",
+    "play_frames",
+    "play_from_args",
+]
 
 
 @dataclass(frozen=True)
@@ -151,43 +162,155 @@ def _profile_ids(
     return codec.receive_ids("reports") | codec.receive_ids("car")
 
 
-def main_play(
-    log: str | Path,
+def default_ids(
+    config: str | Path | None,
     *,
-    interface: str,
-    channel: str,
+    ids: str | None,
+    all_ids: bool,
+    log: str | Path | None = None,
+    profile: str | None = None,
+) -> tuple[frozenset[int] | None, frozenset[int]]:
+    """Which IDs to play: (only these or None for any, never these).
+
+    By default the gateway's own command IDs (from the config's vehicle profile) are left out:
+    played onto a bus where a gateway runs, they are a second node commanding the car, and the
+    gateway faults ("command conflict"). ``ids`` (explicit) or ``all_ids`` plays them.
+    """
+    if ids in ("commands", "reports") and log is not None:  # the profile's frames of one side
+        return _profile_ids(log, ids, config, profile), frozenset()
+    if ids:
+        return parse_ids(ids), frozenset()
+    if all_ids:
+        return None, frozenset()
+    if log is not None and (config is not None or profile is not None):
+        return None, _profile_ids(log, "commands", config, profile)
+    from leafgate.can.codec import CanCodec
+    from leafgate.settings import load_config
+
+    return None, CanCodec.for_config(load_config(config)).receive_ids("commands")
+
+
+def chained(sources: Sequence[FrameSource]) -> Iterator[can.Message]:
+    """The frames of several files in the order given (a rotated log's parts)."""
+    for source in sources:
+        yield from source
+
+
+def main_play(
+    logs: str | Path | Sequence[str | Path],
+    *,
+    bus: BusConfig | None = None,
     speed: float = 1.0,
     start: float = 0.0,
     ids: str | None = None,
-    bitrate: int = 500_000,
-    bus_kwargs: dict[str, Any] | None = None,
+    all_ids: bool = False,
     out: TextIO | None = None,
     config: str | Path | None = None,
     profile: str | None = None,
 ) -> int:
-    """``leafgate replay play LOG --interface I --channel C [--speed F] [--start S] [--ids …]``.
+    """``leafgate replay play LOG… [-i I -c C [-b B] [--bus-kwargs K=V …] | --config F]``.
 
+    :param logs: one log, or the parts of a rotated log in order (a shell glob sorts them)
+    :param bus: the bus to play onto; None: the config's dbw bus (its bench's port)
+    :param config: the deployment config: its bus, and its profile's command IDs to leave out
+    :param ids: play only these IDs (hex, comma-separated), the gateway's commands included
+    :param all_ids: play every frame, the gateway's commands included
     :return: 0 when every selected frame was sent
     :raises LeafgateError: unreadable log, unknown interface or a send error (the CLI prints it)
     """
     out = out or sys.stdout
-    if ids in ("commands", "reports"):  # the profile's frames of one side
-        wanted: frozenset[int] | None = _profile_ids(log, ids, config, profile)
-    else:
-        wanted = parse_ids(ids)
-    source = FrameSource(log)
-    bus = open_bus(
-        BusConfig(
-            interface=interface, channel=channel, bitrate=bitrate, kwargs=dict(bus_kwargs or {})
-        )
-    )
+    paths = [logs] if isinstance(logs, (str, Path)) else list(logs)
+    wanted, excluded = default_ids(config, ids=ids, all_ids=all_ids, log=paths[0], profile=profile)
+    if bus is None:
+        if config is None:
+            raise ReplayError("replay play: give the bus (-i INTERFACE -c CHANNEL) or --config")
+        from leafgate.settings import load_config
+
+        bus = load_config(config).can.dbw
+    sources = [FrameSource(path) for path in paths]
+    frames: Iterable[can.Message] = chained(sources)
+    if excluded:
+        frames = (msg for msg in frames if msg.arbitration_id not in excluded)
+    opened = open_bus(bus)
     try:
-        stats = play_frames(source, bus, speed=speed, start=start, ids=wanted)
+        stats = play_frames(frames, opened, speed=speed, start=start, ids=wanted)
     finally:
-        bus.shutdown()
+        opened.shutdown()
+    left_out = sum(s.frames for s in sources) - stats.sent - stats.skipped
+    names = Path(paths[0]).name + (f" and {len(paths) - 1} more" if len(paths) > 1 else "")
     out.write(
-        f"{Path(log).name}: {stats.sent} frames sent ({stats.skipped} skipped), "
-        f"{stats.duration:.3f} s of log in {stats.wall_time:.3f} s, "
+        f"{names}: {stats.sent} frames sent ({stats.skipped} skipped"
+        + (
+            f", {left_out} of the gateway's command IDs "
+            f"{', '.join(f'{i:03X}' for i in sorted(excluded))} left out: --all-ids plays them"
+            if excluded
+            else ""
+        )
+        + f"), {stats.duration:.3f} s of log in {stats.wall_time:.3f} s, "
         f"worst lateness {stats.max_lateness * 1e3:.2f} ms\n"
     )
     return 0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``replay play`` options: the bus as python-can's tools take it (``-i/-c/-b``,
+    ``--bus-kwargs``), or a leafgate config."""
+    from can.cli import add_bus_arguments
+
+    parser.add_argument("log", nargs="+", help="log file(s); a rotated log's parts in order")
+    add_bus_arguments(parser, group_title="bus (as python-can's can.player)")
+    parser.add_argument(
+        "--config",
+        help="leafgate config: its dbw bus when -i is not given (config/sim.yaml: the bench's "
+        "port), and its vehicle profile's command IDs",
+    )
+    parser.add_argument(
+        "--profile",
+        metavar="NAME|FILE",
+        help="vehicle profile whose command IDs are left out (or played by --ids commands|reports)",
+    )
+    parser.add_argument(
+        "--speed", type=float, default=1.0, help="speed factor (0: as fast as possible)"
+    )
+    parser.add_argument("--start", type=float, default=0.0, help="s into the log to start at")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
+        "--ids",
+        help="only these IDs, hex, comma-separated (e.g. 0A0,0A1), or 'commands' / 'reports': "
+        "the profile's command or report frames; may include the gateway's commands",
+    )
+    which.add_argument(
+        "--all-ids",
+        action="store_true",
+        help="play the gateway's command IDs too (left out by default: onto a bus where a "
+        "gateway runs, they fault it with a command conflict)",
+    )
+
+
+def play_from_args(args: argparse.Namespace) -> int:
+    """Run ``replay play`` from the options of :func:`add_arguments`."""
+    bus = None
+    # python-can's options are absent from the namespace unless given (argparse.SUPPRESS)
+    interface, channel = getattr(args, "interface", None), getattr(args, "channel", None)
+    if interface is not None or channel is not None:
+        if interface is None or channel is None:
+            raise ReplayError("replay play: -i INTERFACE and -c CHANNEL go together")
+        try:
+            bus = BusConfig(
+                interface=interface,
+                channel=str(channel),
+                bitrate=getattr(args, "bitrate", None) or 500_000,
+                kwargs=dict(getattr(args, "bus_kwargs", None) or {}),
+            )
+        except ValueError as exc:
+            raise ReplayError(f"replay play: {exc}") from None
+    return main_play(
+        args.log,
+        bus=bus,
+        config=args.config,
+        speed=args.speed,
+        start=args.start,
+        ids=args.ids,
+        all_ids=args.all_ids,
+        profile=args.profile,
+    )

@@ -29,9 +29,10 @@ import dataclasses
 import json
 import math
 import os
+import signal
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,7 @@ import numpy as np
 
 from leafgate.errors import ConfigError
 from leafgate.jsonconv import to_json
+from leafgate.progress import Progress
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.plots import Trace, plot_drive
 from leafgate.sim.runner import SimResult, run, run_direct
@@ -105,6 +107,11 @@ def _drive(task: tuple[LeafgateConfig, str, str, str, bool]) -> tuple[str, str, 
     return scenario, plant, controller, result
 
 
+def _ignore_sigint() -> None:
+    """Workers leave Ctrl-C to the parent (which stops the comparison with one line)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _select(names: Sequence[str] | None, known: Sequence[str], what: str) -> list[str]:
     if not names:
         return list(known)
@@ -156,12 +163,30 @@ def run_compare(
     if workers is None:
         workers = max(1, min(os.cpu_count() or 1, 4))
     wall0 = time.perf_counter()
-    if workers <= 1 or len(tasks) <= 1:
-        done = [_drive(t) for t in tasks]
-    else:
-        with ProcessPoolExecutor(max_workers=min(workers, len(tasks))) as pool:
-            done = list(pool.map(_drive, tasks))
+    done: list[tuple[str, str, str, SimResult]] = []
+    with Progress("compare", len(tasks), "drives") as progress:
+        if workers <= 1 or len(tasks) <= 1:
+            for task in tasks:
+                done.append(_drive(task))
+                progress.update(len(done))
+        else:
+            pool = ProcessPoolExecutor(
+                max_workers=min(workers, len(tasks)), initializer=_ignore_sigint
+            )
+            try:
+                for future in as_completed([pool.submit(_drive, t) for t in tasks]):
+                    done.append(future.result())
+                    progress.update(len(done))
+            except BaseException:  # Ctrl-C: stop the workers mid-drive, not after every drive
+                # (the executor has no public way to; at exit it would wait for them)
+                for process in list((pool._processes or {}).values()):
+                    process.terminate()
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown()
     wall = time.perf_counter() - wall0
+    order = {(t[1], t[2], t[3]): i for i, t in enumerate(tasks)}  # the report in task order
+    done.sort(key=lambda d: order[(d[0], d[1], d[2])])
     results = {(s, p, c): r for s, p, c, r in done}
 
     records = []

@@ -44,6 +44,7 @@ from leafgate.sim.config import LocalizationConfig
 from leafgate.sim.ecu import INJECTION_KINDS as ECU_INJECTION_KINDS
 from leafgate.sim.ecu import SimulatedEcu, run_ecu_realtime
 from leafgate.sim.metrics import path_errors, tracking_metrics
+from leafgate.sim.names import TO_SIM_ECU
 from leafgate.sim.plots import Trace
 from leafgate.sim.scenarios import Scenario
 
@@ -93,7 +94,7 @@ class EngagedInjection:
                 f"--inject {text!r}: expected KIND@TIME[s][+DURATION[s]][:NAME=VALUE,...], "
                 "e.g. localization-stop@3s"
             )
-        kind = m.group("kind")
+        kind = TO_SIM_ECU.get(m.group("kind"), m.group("kind"))  # sim's name for the same fault
         defaults = SIM_ECU_INJECTIONS.get(kind)
         if defaults is None:
             raise ConfigError(
@@ -399,7 +400,11 @@ class _PlantTrace:
                 f.write("# " + json.dumps(record) + "\n")
 
 
-def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
+def run_realtime(
+    cfg: LeafgateConfig,
+    scenario: Scenario,
+    progress: Callable[[float, str], None] | None = None,
+) -> dict[str, Any]:
     """Drive ``scenario`` in real time through the daemon's runtime; return metrics and trace.
 
     Everything runs in this process: the ECU loop and the gateway runtime on their own threads,
@@ -471,37 +476,41 @@ def run_realtime(cfg: LeafgateConfig, scenario: Scenario) -> dict[str, Any]:
             )
             ecu_thread.start()
             gw_thread.start()
-            deadline = time.perf_counter() + scenario.duration + 5.0
-            engaged = drove = False
-            next_plan = 0.0
-            last_state: GatewayState | None = None
-            engage_after = time.perf_counter() + 0.5
-            while time.perf_counter() < deadline and not errors:
-                t = time.perf_counter()
-                if t >= next_plan:
-                    plan.publish(scenario.trajectory)
-                    next_plan = t + TRAJECTORY_REPUBLISH
-                runtime = runtime_box[0] if runtime_box else None
-                state = runtime.gateway.state if runtime is not None else None
-                if state is not None and state != last_state:
-                    timeline.append((t - wall0, f"gateway {state.name}"))
-                    last_state = state
-                if runtime is not None and not engaged and t >= engage_after:
-                    reply = request(cfg.zenoh, "engage", timeout=2.0, session=session)
-                    timeline.append((t - wall0, f"operator engage: {reply}"))
-                    if reply.get("accepted"):
-                        engaged = True
-                    else:
-                        engage_after = t + 0.5
-                drove |= state in (GatewayState.ENGAGED, GatewayState.STOPPING)
-                idle = state in (GatewayState.STANDBY, GatewayState.FAULT)
-                if drove and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
-                    break
-                time.sleep(0.02)
-            stop_gw.set()
-            gw_thread.join(timeout=5.0)
-            stop_ecu.set()
-            ecu_thread.join(timeout=5.0)
+            try:
+                deadline = time.perf_counter() + scenario.duration + 5.0
+                engaged = drove = False
+                next_plan = 0.0
+                last_state: GatewayState | None = None
+                engage_after = time.perf_counter() + 0.5
+                while time.perf_counter() < deadline and not errors:
+                    t = time.perf_counter()
+                    if t >= next_plan:
+                        plan.publish(scenario.trajectory)
+                        next_plan = t + TRAJECTORY_REPUBLISH
+                    runtime = runtime_box[0] if runtime_box else None
+                    state = runtime.gateway.state if runtime is not None else None
+                    if state is not None and state != last_state:
+                        timeline.append((t - wall0, f"gateway {state.name}"))
+                        last_state = state
+                    if runtime is not None and not engaged and t >= engage_after:
+                        reply = request(cfg.zenoh, "engage", timeout=2.0, session=session)
+                        timeline.append((t - wall0, f"operator engage: {reply}"))
+                        if reply.get("accepted"):
+                            engaged = True
+                        else:
+                            engage_after = t + 0.5
+                    if progress is not None:  # wall s since start, and the gateway's state
+                        progress(t - wall0, "" if state is None else state.name)
+                    drove |= state in (GatewayState.ENGAGED, GatewayState.STOPPING)
+                    idle = state in (GatewayState.STANDBY, GatewayState.FAULT)
+                    if drove and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
+                        break
+                    time.sleep(0.02)
+            finally:  # also on Ctrl-C: the threads stop before the session closes
+                stop_gw.set()
+                gw_thread.join(timeout=5.0)
+                stop_ecu.set()
+                ecu_thread.join(timeout=5.0)
     finally:
         session.close()
     if errors:

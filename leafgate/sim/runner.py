@@ -41,6 +41,7 @@ from leafgate.messages import (
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.ecu import SimulatedEcu
 from leafgate.sim.metrics import Projector, path_errors, tracking_metrics
+from leafgate.sim.names import TO_SIM
 from leafgate.sim.plant import STANDSTILL_SPEED, SpeedController, gear_direction, make_plant
 from leafgate.sim.plots import Trace
 from leafgate.sim.scenarios import Scenario
@@ -99,7 +100,7 @@ class Injection:
             raise ConfigError(
                 f"--inject {text!r}: expected KIND@TIME[s][+DURATION[s]], e.g. override@10s"
             )
-        kind = m.group(1)
+        kind = TO_SIM.get(m.group(1), m.group(1))  # sim-ecu's name for the same fault
         if kind not in INJECTION_KINDS:
             raise ConfigError(
                 f"--inject {text!r}: unknown kind {kind!r} (known: {', '.join(INJECTION_KINDS)})"
@@ -491,6 +492,7 @@ def run(
                 system_report=slots.system,
                 good_report_frames=good,
                 bad_report_frames=bad,
+                report_error_cause=gw_codec.second_senders() if bad else "",
                 request=request,
             )
             result = gateway.step(now, inputs)

@@ -6,7 +6,7 @@ These are tooling, not control path: failures raise
 Example, with a gateway running on the configured endpoints::
 
     request(cfg, "engage", timeout=2.0)
-    # {'accepted': True, 'state': 'ENGAGED', 'reason': ''}
+    # {'accepted': True, 'state': 'ENGAGED', 'reason': 'engaged', 'changed': True}
 """
 
 from __future__ import annotations
@@ -97,7 +97,8 @@ def request(
         comes back as a reply with ``accepted`` false
     :param timeout: s to wait for the gateway (``cfg.query_timeout`` if None)
     :param session: an open session to use (else one is opened and closed)
-    :returns: ``{"accepted": bool, "state": str | None, "reason": str}`` and the keys above
+    :returns: ``{"accepted": bool, "state": str | None, "reason": str, "changed": bool}`` and
+        the keys above (``changed`` false: the request found nothing to do)
     :raises TransportError: if no gateway answers in time, or it answers with an error
     """
     text = what.value if isinstance(what, OperatorRequest) else str(what)
@@ -153,6 +154,42 @@ def request(
     if rest:
         result["conflicting_replies"] = [{"replier": z, "reply": answers[z]} for z in rest]
     return result
+
+
+def engage(
+    cfg: ZenohConfig,
+    wait: float,
+    *,
+    on_waiting: Callable[[str], None] | None = None,
+    session: zenoh.Session | None = None,
+    poll: float = 0.2,
+) -> dict[str, Any]:
+    """Ask the gateway to engage, asking again while it refuses for a reason that may pass.
+
+    A gateway that has just started lacks inputs for a moment (localization, trajectory, the
+    ECU's reports): its refusal names what is missing, and this asks again every ``poll`` s
+    until ``wait`` s have passed. A refusal that waiting cannot cure ends at once: a latched
+    fault (reset first) or a request that changes nothing (already engaged).
+
+    :param wait: s to wait for the gateway and for its inputs, in all
+    :param on_waiting: called with the refusal's reason each time it changes
+    :returns: the last reply
+    :raises TransportError: if no gateway answers within ``wait``
+    """
+    deadline = time.monotonic() + wait
+    last = ""
+    with _session_for(cfg, session) as s:
+        while True:
+            left = max(deadline - time.monotonic(), 0.1)
+            reply = request(cfg, "engage", timeout=left, session=s)
+            final = reply.get("state") == "FAULT" or reply.get("changed") is False
+            if reply.get("accepted") or final or time.monotonic() + poll >= deadline:
+                return reply
+            reason = str(reply.get("reason", ""))
+            if reason != last and on_waiting is not None:
+                on_waiting(reason)
+            last = reason
+            time.sleep(poll)
 
 
 def watch_diagnostics(

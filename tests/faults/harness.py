@@ -454,7 +454,8 @@ class FaultRun:
         while time.monotonic() < deadline:
             self.check_alive()
             reply = self.request("engage")
-            if reply.get("accepted"):
+            # "already engaged" (accepted: false since issue 19) after a reply that was lost
+            if reply.get("accepted") or reply.get("state") == "ENGAGED":
                 return reply
             if reply.get("state") == "FAULT":
                 self.startup_resets.append(str(reply.get("reason")))

@@ -1,0 +1,7 @@
+"""``python -m leafgate``: the ``leafgate`` command."""
+
+import sys
+
+from leafgate.cli import main
+
+sys.exit(main())
