@@ -44,7 +44,7 @@ def test_file_ports_win_and_the_car_config_is_untouched(
     monkeypatch.setenv(BENCH_ENV, "7")
     path = tmp_path / "sim.yaml"
     cfg = load_config(ROOT / "config" / "leafgate.yaml")  # no bench: key
-    assert cfg.zenoh.listen == ("tcp/127.0.0.1:7447",)
+    assert cfg.zenoh.listen == ("tcp/127.0.0.1:7450",)
     path.write_text(
         "bench: 3\ncan: {dbw: {interface: udp_multicast, channel: 239.74.163.1,"
         " kwargs: {port: 50000}}}\nzenoh: {listen: ['tcp/127.0.0.1:50001']}\n"

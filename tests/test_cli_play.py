@@ -95,7 +95,7 @@ def test_replay_check_takes_a_rotated_logs_parts(
     _write(tmp_path / "can-1_001.log", 100.04, (REPORT,), n=3)
     parts = sorted(str(p) for p in tmp_path.glob("can-*.log"))
     # old code: "unrecognized arguments" (one log only), exit 2
-    status = main(["replay", "check", *parts])
+    status = main(["replay", "check", *parts, "--profile", "leafgate-dbw"])
     out = capsys.readouterr().out
     assert status in (0, 1) and "can-1_000.log" in out and "can-1_001.log" in out
     assert main(["replay", "check", parts[0], str(tmp_path / "missing.log")]) == 1
