@@ -98,5 +98,6 @@ def test_replay_check_takes_a_rotated_logs_parts(
     status = main(["replay", "check", *parts, "--profile", "leafgate-dbw"])
     out = capsys.readouterr().out
     assert status in (0, 1) and "can-1_000.log" in out and "can-1_001.log" in out
-    assert main(["replay", "check", parts[0], str(tmp_path / "missing.log")]) == 1
+    missing = str(tmp_path / "missing.log")
+    assert main(["replay", "check", parts[0], missing, "--profile", "leafgate-dbw"]) == 1
     assert "missing.log" in capsys.readouterr().err
