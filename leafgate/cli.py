@@ -44,6 +44,16 @@ def _with_overrides(cfg: LeafgateConfig, overrides: dict[str, Any]) -> LeafgateC
     return apply_profile(cfg, "command line")  # the vehicle still decides (e.g. speed-only)
 
 
+def _with_settings(cfg: LeafgateConfig, items: Sequence[str], source: str) -> LeafgateConfig:
+    """``cfg`` with ``KEY=VALUE`` dotted-key settings, checked as a config file's keys are."""
+    if not items:
+        return cfg
+    from leafgate.replay.rerun import parse_overrides
+    from leafgate.replay.session import config_from_yaml, config_to_yaml
+
+    return config_from_yaml(config_to_yaml(cfg), source, parse_overrides(items))
+
+
 # --- sim ----------------------------------------------------------------------------------------
 
 METRIC_ORDER = (
@@ -112,6 +122,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     )
     if args.profile:
         cfg = with_profile(cfg, args.profile)
+    cfg = _with_settings(cfg, args.set, "--set")
+    if args.seed is not None:  # the seeded disturbances' random processes (batch cases)
+        cfg = _with_settings(cfg, [f"sim.localization.seed={args.seed}"], "--seed")
     scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)
     if (injections or args.record) and (args.direct or args.realtime):
@@ -391,6 +404,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", default="leafgate-sim", help="output directory (default: ./leafgate-sim/)"
     )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. sim.plant.steer_tau=0.4 (repeatable)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        help="seed of the simulated disturbances (localization noise): `leafgate batch sim` "
+        "prints each case's --seed and --set so it can be run alone",
+    )
     p.add_argument(
         "--inject",
         action="append",
