@@ -44,7 +44,7 @@ def _with_overrides(cfg: LeafgateConfig, overrides: dict[str, Any]) -> LeafgateC
     return apply_profile(cfg, "command line")  # the vehicle still decides (e.g. speed-only)
 
 
-def _with_settings(cfg: LeafgateConfig, items: Sequence[str], source: str) -> LeafgateConfig:
+def with_settings(cfg: LeafgateConfig, items: Sequence[str], source: str) -> LeafgateConfig:
     """``cfg`` with ``KEY=VALUE`` dotted-key settings, checked as a config file's keys are."""
     if not items:
         return cfg
@@ -122,9 +122,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     )
     if args.profile:
         cfg = with_profile(cfg, args.profile)
-    cfg = _with_settings(cfg, args.set, "--set")
+    cfg = with_settings(cfg, args.set, "--set")
     if args.seed is not None:  # the seeded disturbances' random processes (batch cases)
-        cfg = _with_settings(cfg, [f"sim.localization.seed={args.seed}"], "--seed")
+        cfg = with_settings(cfg, [f"sim.localization.seed={args.seed}"], "--seed")
     scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)
     if (injections or args.record) and (args.direct or args.realtime):
@@ -487,6 +487,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_arguments(p)
     p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser(
+        "batch", help="simulation sweeps, log checks and session re-runs on Dask (many inputs)"
+    )
+    from leafgate.batch.cli import add_arguments as add_batch_arguments
+    from leafgate.batch.cli import cmd_batch
+
+    add_batch_arguments(p)
+    p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("replay", help="check, play back, re-run and plot recorded drives")
     rsub = p.add_subparsers(dest="replay_command", metavar="ACTION", required=True)
