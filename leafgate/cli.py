@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from leafgate import __version__
+from leafgate.config import parse_overrides
 from leafgate.errors import ConfigError, LeafgateError
-from leafgate.settings import LeafgateConfig, apply_profile, load_config, with_profile
+from leafgate.settings import LeafgateConfig, load_config, with_profile
 from leafgate.sim.scenarios import Scenario
 
 log = logging.getLogger("leafgate")
@@ -26,32 +27,11 @@ EXIT_ERROR = 1
 EXIT_USAGE = 2
 
 
-def _replace_path(cfg: Any, dotted: str, value: Any) -> Any:
-    """Return a copy of a nested frozen dataclass with one dotted field replaced."""
-    head, _, rest = dotted.partition(".")
-    if not rest:
-        return dataclasses.replace(cfg, **{head: value})
-    return dataclasses.replace(cfg, **{head: _replace_path(getattr(cfg, head), rest, value)})
-
-
-def _with_overrides(cfg: LeafgateConfig, overrides: dict[str, Any]) -> LeafgateConfig:
-    for dotted, value in overrides.items():
-        if value is not None:
-            try:
-                cfg = _replace_path(cfg, dotted, value)
-            except (ValueError, TypeError) as exc:
-                raise ConfigError(f"command line: {dotted}: {exc}") from None
-    return apply_profile(cfg, "command line")  # the vehicle still decides (e.g. speed-only)
-
-
-def with_settings(cfg: LeafgateConfig, items: Sequence[str], source: str) -> LeafgateConfig:
-    """``cfg`` with ``KEY=VALUE`` dotted-key settings, checked as a config file's keys are."""
-    if not items:
-        return cfg
-    from leafgate.replay.rerun import parse_overrides
-    from leafgate.replay.session import config_from_yaml, config_to_yaml
-
-    return config_from_yaml(config_to_yaml(cfg), source, parse_overrides(items))
+def _load(path: str | None, flags: dict[str, Any], sets: Sequence[str] = ()) -> LeafgateConfig:
+    """The config file with ``--set KEY=VALUE`` overrides, then the explicit flags on top."""
+    overrides = parse_overrides(sets)
+    overrides.update({k: v for k, v in flags.items() if v is not None})
+    return load_config(path, overrides)
 
 
 # --- sim ----------------------------------------------------------------------------------------
@@ -68,6 +48,8 @@ METRIC_ORDER = (
     ("solve_time_p99_s", "solve time p99 [µs]", "µs"),
     ("solver_not_converged", "solver not converged", "{}"),
     ("input_clips", "input clips", "{}"),
+    ("progress_m", "progress along the route [m]", "{:.2f}"),
+    ("route_length_m", "route length [m]", "{:.2f}"),
     ("duration_s", "simulated duration [s]", "{:.2f}"),
     ("wall_time_s", "wall time [s]", "{:.3f}"),
 )
@@ -87,7 +69,9 @@ def format_metrics(metrics: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _run_recorded(cfg: LeafgateConfig, scenario: Scenario, injections: Any, directory: Path) -> Any:
+def _run_recorded(
+    cfg: LeafgateConfig, scenario: Scenario, injections: Any, directory: Path, window: Any
+) -> Any:
     """Run the simulated loop while recording it as the daemon would (CAN log + session)."""
     from leafgate.replay.recorder import open_recording
     from leafgate.sim.runner import run
@@ -96,7 +80,7 @@ def _run_recorded(cfg: LeafgateConfig, scenario: Scenario, injections: Any, dire
     # Simulated time everywhere: frames keep the simulator's timestamps (no wall clock).
     recording = open_recording(rec_cfg, cfg, clock=None, wall_clock=None)
     try:
-        result = run(cfg, scenario, injections=injections, recorder=recording)
+        result = run(cfg, scenario, injections=injections, recorder=recording, window=window)
     finally:
         recording.close()
     if recording.fault:
@@ -106,30 +90,60 @@ def _run_recorded(cfg: LeafgateConfig, scenario: Scenario, injections: Any, dire
     return result
 
 
+TRAJECTORY_FORMAT = """\
+trajectory files (--trajectory, publish-trajectory):
+  CSV with the header x,y,heading,speed, one waypoint per line; or YAML, either a list of
+  {x, y, heading, speed} mappings or a mapping of those four keys to lists of equal length.
+  x, y: m, rear-axle centre; heading: rad, the vehicle's heading (also when reversing);
+  speed: m/s, signed (negative = reverse; where the sign changes is a cusp, speed 0 there).
+  At least 4 waypoints, 0.5-1.0 m apart as a planner sends them, no point repeated; the last
+  waypoint is the goal (speed 0). Example CSV:
+    x,y,heading,speed
+    0.0,0.0,0.0,0.3
+    0.5,0.0,0.0,0.6
+    1.0,0.0,0.0,0.6
+    1.5,0.0,0.0,0.0
+"""
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from leafgate.sim.plots import plot_drive
     from leafgate.sim.runner import Injection, run, run_direct
 
-    cfg = load_config(args.config)
-    cfg = _with_overrides(
-        cfg,
+    cfg = _load(
+        args.config,
         {
             "controller.kind": args.controller,
             "controller.mpc.solver": args.solver,
             "controller.mpc.mode": args.mode,
             "sim.plant.kind": args.plant,
+            # the seeded disturbances' random processes (a batch case's --seed)
+            "sim.localization.seed": args.seed,
         },
+        args.set,
     )
     if args.profile:
         cfg = with_profile(cfg, args.profile)
-    cfg = with_settings(cfg, args.set, "--set")
-    if args.seed is not None:  # the seeded disturbances' random processes (batch cases)
-        cfg = with_settings(cfg, [f"sim.localization.seed={args.seed}"], "--seed")
-    scenario = _scenario(args.scenario or cfg.sim.scenario)
+    if args.trajectory and args.scenario:
+        raise ConfigError("sim: give --scenario NAME or --trajectory FILE, not both")
+    if args.start and not args.trajectory:
+        raise ConfigError("sim: --start goes with --trajectory (a scenario has its own start)")
+    if args.trajectory:
+        from leafgate.sim.scenarios import file_scenario
+
+        scenario = file_scenario(args.trajectory, _start_pose(args.start))
+    else:
+        scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)
-    if (injections or args.record) and (args.direct or args.realtime):
+    window = None
+    if args.rolling_window is not None:
+        from leafgate.sim.runner import RollingWindow
+
+        window = RollingWindow(args.rolling_window, args.window_period)
+    if (injections or args.record or window) and (args.direct or args.realtime):
         raise ConfigError(
-            "--inject and --record need the full simulated loop (not --direct or --realtime)"
+            "--inject, --record and --rolling-window need the full simulated loop "
+            "(not --direct or --realtime)"
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -143,9 +157,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
         if args.direct:
             result = run_direct(cfg, scenario)
         elif args.record:
-            result = _run_recorded(cfg, scenario, injections, Path(args.record))
+            result = _run_recorded(cfg, scenario, injections, Path(args.record), window)
         else:
-            result = run(cfg, scenario, injections=injections)
+            result = run(cfg, scenario, injections=injections, window=window)
+        result.write_trace_csv(out / "trace.csv")
         metrics, trace, timeline = dict(result.metrics), result.trace, list(result.timeline)
         loop = (
             "direct (controller → plant)"
@@ -182,9 +197,40 @@ def cmd_sim(args: argparse.Namespace) -> int:
         )
     print(
         f"wrote {out / 'metrics.json'}"
+        + ("" if args.realtime else ", trace.csv")
         + ("" if args.no_plots else ", path.png, steering.png, speed.png")
     )
+    if not metrics.get("finished"):
+        reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
+        print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
+        return EXIT_ERROR
     return 0
+
+
+def _start_pose(text: str | None) -> Any:
+    """``X,Y,HEADING_DEG`` → a pose at rest (SI), or None."""
+    if not text:
+        return None
+    from math import radians
+
+    from leafgate.messages import Pose
+
+    parts = text.split(",")
+    try:
+        x, y, heading_deg = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError(
+            f"--start {text!r}: expected X,Y,HEADING_DEG (m, m, degrees), e.g. 0,0,90"
+        ) from None
+    if not all(map(_finite, (x, y, heading_deg))):
+        raise ConfigError(f"--start {text!r}: values must be finite")
+    return Pose(x=x, y=y, heading=radians(heading_deg), speed=0.0)
+
+
+def _finite(value: float) -> bool:
+    from math import isfinite
+
+    return isfinite(value)
 
 
 # --- the daemon and its tools ------------------------------------------------------------------
@@ -211,8 +257,7 @@ def cmd_sim_ecu(args: argparse.Namespace) -> int:
     from leafgate.sim.realtime import EngagedInjection, run_sim_ecu
 
     injections = [EngagedInjection.parse(text) for text in args.inject]
-    cfg = load_config(args.config)
-    cfg = _with_overrides(cfg, {"sim.plant.kind": args.plant})
+    cfg = _load(args.config, {"sim.plant.kind": args.plant})
     return run_sim_ecu(
         cfg,
         _scenario(args.scenario or cfg.sim.scenario),
@@ -387,11 +432,54 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    from leafgate.sim.scenarios import SCENARIOS
+
     p = sub.add_parser(
-        "sim", help="closed-loop simulation on a simulated clock (the embedded default)"
+        "sim",
+        help="closed-loop simulation on a simulated clock (the embedded default)",
+        description="Drive a built-in scenario or your own trajectory file through the whole "
+        "gateway on a simulated clock. Writes metrics.json, trace.csv (one row per control "
+        "tick) and plots to --out; exits 1 with the reason on stderr when the maneuver did "
+        "not finish.",
+        epilog=TRAJECTORY_FORMAT,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--config", help="YAML config (default: the embedded simulation defaults)")
-    p.add_argument("--scenario", help="maneuver to drive (default: s-curve)")
+    p.add_argument(
+        "--scenario",
+        metavar="NAME",
+        help=f"maneuver to drive (default: s-curve): {', '.join(SCENARIOS)}",
+    )
+    p.add_argument(
+        "--trajectory",
+        metavar="FILE",
+        help="drive your own path from a .csv or .yaml trajectory file (format below)",
+    )
+    p.add_argument(
+        "--start",
+        metavar="X,Y,HEADING_DEG",
+        help="start pose for --trajectory, at rest (default: the first waypoint)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. controller.mpc.weight_lateral=10 (repeatable)",
+    )
+    p.add_argument(
+        "--rolling-window",
+        type=float,
+        metavar="M",
+        help="send the route as a planner does: the next M metres (e.g. 30), re-sent",
+    )
+    p.add_argument(
+        "--window-period",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="s between rolling-window plans (default 0.5)",
+    )
     p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
     p.add_argument("--controller", choices=("mpc", "pure-pursuit", "stanley"))
     p.add_argument("--solver", choices=("hildreth", "osqp"))
@@ -404,13 +492,6 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", default="leafgate-sim", help="output directory (default: ./leafgate-sim/)"
     )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override, e.g. sim.plant.steer_tau=0.4 (repeatable)",
-    )
     p.add_argument(
         "--seed",
         type=int,

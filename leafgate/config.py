@@ -22,6 +22,7 @@ import math
 import re
 import types
 import typing
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin, get_type_hints
 
@@ -233,6 +234,52 @@ def load_yaml(path: str | Path) -> Any:
         raise ConfigError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: {yaml_error_text(exc, text)}") from None
+
+
+# --- dotted-key overrides (`leafgate sim --set`, `leafgate replay rerun --set`) ---------------
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings (values in YAML: ``10``, ``true``, ``[1, 2]``) → a mapping.
+
+    :raises ConfigError: an item without ``=``
+    """
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(
+                f"--set {item!r}: expected KEY=VALUE, e.g. controller.mpc.weight_lateral=10"
+            )
+        try:
+            out[key.strip()] = safe_load_yaml(text)
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
+    return out
+
+
+def apply_overrides(data: dict[str, Any], overrides: Mapping[str, Any], source: str) -> None:
+    """Set dotted keys (``controller.mpc.weight_lateral``) in a config mapping, in place.
+
+    A key with a unit suffix (``gateway.safety.max_steer_angle_deg``) replaces its SI twin.
+
+    :raises ConfigError: when a dotted key runs through a value that is not a mapping
+    """
+    for dotted, value in overrides.items():
+        parts = dotted.split(".")
+        node = data
+        for i, part in enumerate(parts[:-1]):
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                where = ".".join(parts[: i + 1])
+                raise ConfigError(f"{source}: {dotted}: {where} is not a section")
+            node = child
+        key = parts[-1]
+        for suffix in ("_degps", "_deg", "_kmh"):
+            if key.endswith(suffix):
+                node.pop(key[: -len(suffix)], None)
+                break
+        node[key] = value
 
 
 # --- reading YAML and text files safely (shared with the trajectory loader) ---------------------

@@ -244,6 +244,9 @@ class ControlOutput:
     nearest_index: int = 0
     predicted_xy: FloatArray | None = None  # (Np, 2) predicted positions, m
     status: str = "ok"
+    progress: float = 0.0  # m, arc length along the plan from its first point, over all
+    # segments, monotone (never decreases while the same plan is followed)
+    route_length: float = 0.0  # m, total arc length of the plan
 
 
 T = TypeVar("T")

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from leafgate.can.config import CanConfig
 from leafgate.can.profile import Profile, SteerRateTable, load_profile
-from leafgate.config import VehicleConfig, from_mapping, load_yaml
+from leafgate.config import VehicleConfig, apply_overrides, from_mapping, load_yaml
 from leafgate.control.config import ControllerConfig
 from leafgate.errors import ConfigError
 from leafgate.gateway.config import GatewayConfig, SafetyConfig
@@ -42,16 +44,29 @@ class LeafgateConfig:
         return LongMode.SPEED if self.controller.mpc.mode == "velocity" else LongMode.ACCELERATION
 
 
-def load_config(path: str | Path | None) -> LeafgateConfig:
+def load_config(
+    path: str | Path | None, overrides: Mapping[str, Any] | None = None
+) -> LeafgateConfig:
     """Load a deployment config; ``None`` gives the embedded defaults.
+
+    :param overrides: dotted keys set on top of the file (``leafgate sim --set KEY=VALUE``,
+        :func:`~leafgate.config.parse_overrides`), checked like the file's own keys
 
     The vehicle profile is applied (:func:`apply_profile`).
 
     :raises ConfigError: naming the file and the key of the first problem
     """
-    if path is None:
+    if path is None and not overrides:
         return apply_profile(LeafgateConfig())
-    return apply_profile(from_mapping(LeafgateConfig, load_yaml(path), str(path)), str(path))
+    data = {} if path is None else load_yaml(path)
+    source = "defaults" if path is None else str(path)
+    if overrides:
+        data = {} if data is None else data
+        if not isinstance(data, dict):
+            raise ConfigError(f"{source}: the configuration is not a mapping")
+        source += " with command-line overrides"
+        apply_overrides(data, overrides, source)
+    return apply_profile(from_mapping(LeafgateConfig, data, source), source)
 
 
 def with_profile(cfg: LeafgateConfig, profile: str) -> LeafgateConfig:

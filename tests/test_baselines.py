@@ -134,7 +134,8 @@ def test_bad_inputs_are_a_status_not_an_exception(kind: type) -> None:
     assert not out.converged and out.status == "non-finite"
     bad = Trajectory(x=[0.0, 0.0, 1.0, 2.0], y=[0.0] * 4, heading=[0.0] * 4, speed=[1.0] * 4)
     out = kind(cfg, VehicleConfig(), PERIOD).step(Pose(0.0, 0.0, 0.0, 0.0), 0.0, bad)
-    assert not out.converged and out.status == "bad-trajectory"
+    assert not out.converged
+    assert out.status.startswith("bad-trajectory: trajectory: 3 waypoint")
 
 
 @pytest.mark.parametrize("kind", [PurePursuit, Stanley])
@@ -144,6 +145,8 @@ def test_reverse_segment_asks_for_reverse_and_brakes_at_the_end(kind: type) -> N
     traj = _line(-1)
     out = ctrl.step(Pose(-5.0, 0.0, 0.0, -1.0), 0.0, traj)
     assert out.gear == Gear.R and out.speed < 0.0
+    for x in np.arange(-5.0, float(traj.x[-1]), -0.25):  # drive on: progress, not a jump
+        ctrl.step(Pose(float(x), 0.0, 0.0, -1.0), 0.0, traj)
     out = ctrl.step(Pose(float(traj.x[-1]) - 0.05, 0.0, 0.0, -0.3), 0.0, traj)  # past the end
     assert out.status == "stopping" and out.accel > 0.0  # d(v)/dt > 0 brakes a reversing car
     out = ctrl.step(Pose(float(traj.x[-1]), 0.0, 0.0, 0.0), 0.0, traj)

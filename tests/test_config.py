@@ -41,7 +41,7 @@ def test_wrong_type_names_the_key(tmp_path: Path) -> None:
 
 def test_literal_choices_listed(tmp_path: Path) -> None:
     path = write(tmp_path, "controller:\n  mpc:\n    solver: gurobi\n")
-    with pytest.raises(ConfigError, match=r"'gurobi' is not one of 'hildreth', 'osqp'"):
+    with pytest.raises(ConfigError, match=r"'gurobi' is not one of 'daqp', 'hildreth', 'osqp'"):
         load_config(path)
 
 

@@ -381,6 +381,7 @@ def test_diagnostics_to_dict_is_json() -> None:
         "system_report",
         "report_errors",
         "overrun",
+        "progress",
     }
     assert back["watchdogs"]["localization"]["status"] == "ok"
     assert set(back["clamps"]) >= {"angle", "angle_rate", "lateral_accel", "accel", "jerk"}

@@ -36,7 +36,7 @@ def _controller(**kw: object) -> MpcController:
 def test_unconstrained_step_is_the_closed_form_optimum() -> None:
     """Eq. 29 with Q: ΔU = (SᵀQS + R̄)⁻¹ SᵀQ (Rs − F x) — through both backends."""
     rng = np.random.default_rng(0)
-    for solver in ("hildreth", "osqp"):
+    for solver in ("daqp", "hildreth", "osqp"):
         ctrl = _controller(solver=solver)
         n = ctrl.Nc * 2
         G = rng.normal(size=(ctrl.Np * 4, n))
@@ -120,7 +120,7 @@ def test_applied_input_never_leaves_the_limits(
 
 def test_iteration_cap_is_reported_and_clipped() -> None:
     traj = _curve()
-    ctrl = _controller(max_iterations=1)
+    ctrl = _controller(solver="hildreth", max_iterations=1)
     pose = Pose(traj.x[5], traj.y[5] - 1.0, traj.heading[5] + 0.4, 2.0)
     out = ctrl.step(pose, 0.0, traj)
     assert not out.converged and out.status == "not-converged"
@@ -144,7 +144,11 @@ def test_non_finite_input_is_a_status_not_an_exception(pose: Pose, steer: float)
 def test_bad_trajectory_is_a_status_not_an_exception() -> None:
     bad = Trajectory(x=[0.0, 0.5, 0.5, 1.0], y=[0.0] * 4, heading=[0.0] * 4, speed=[1.0] * 4)
     out = _controller().step(Pose(0.0, 0.0, 0.0, 0.0), 0.0, bad)
-    assert not out.converged and out.status == "bad-trajectory"
+    # the reason the controller found is shown, not only stored (issue 13)
+    assert not out.converged
+    assert out.status == (
+        "bad-trajectory: trajectory: 3 waypoint(s) (1 overlapping removed), at least 4 are needed"
+    )
 
 
 def test_reverse_segment_asks_for_reverse_gear_and_brakes_positive() -> None:

@@ -84,7 +84,6 @@ def test_csv_header_problems_are_named(
         (7, (3.0, 0.0, "nan", 1.0), "row 7: heading is not finite"),
         (3, (1.0, "inf", 0.0, 1.0), "row 3: y is not finite"),
         (5, (2.0, 0.0, 0.0, "fast"), "row 5: speed is not a number"),
-        (4, (1.0, 0.0, 0.0, 1.0), "row 4: repeats row 3"),
         (2, (0.5, 0.0, 0.0), "row 2: 3 values"),
     ],
 )

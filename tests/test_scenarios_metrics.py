@@ -15,7 +15,7 @@ def test_scenario_waypoints_equidistant_and_stop_at_end(name: str) -> None:
     sc = get_scenario(name)
     traj = sc.trajectory
     spacing = np.hypot(np.diff(traj.x), np.diff(traj.y))
-    assert np.all(spacing > 0.25) and np.all(spacing <= 0.75)
+    assert np.all(spacing > 0.25) and np.all(spacing <= 1.0)  # paper: 0.5–1.0 m apart
     assert traj.speed[-1] == 0.0
     assert sc.start.speed == 0.0
     assert (sc.start.x, sc.start.y) == (traj.x[0], traj.y[0])

@@ -5,6 +5,7 @@ threshold."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import pytest
 from hypothesis import given
@@ -18,6 +19,7 @@ from leafgate.gateway.watchdog import (
     ErrorCounter,
     OverrunWatchdog,
     PoseWatchdog,
+    ProgressWatchdog,
     Reaction,
     ReportWatchdog,
     Status,
@@ -336,3 +338,127 @@ def test_diagnostics_list_every_watchdog_in_check_order() -> None:
     names = [c.name for c in rig.step().diagnostics.watchdogs]
     assert names == list(CHECK_ORDER)
     assert rig.step().diagnostics.watchdogs[CHECK_ORDER.index("long_report")].ok
+
+
+# --- no progress along the plan (issue 13) ------------------------------------------------------
+
+
+def _feed(
+    wd: ProgressWatchdog,
+    seconds: float,
+    t0: float = 0.0,
+    speed: float = 0.0,
+    plan: object = "plan",
+    steer_rate: float = 0.0,
+    gear_change: bool = False,
+    progress0: float = 0.0,
+) -> tuple[float | None, float]:
+    """Feed ticks at 50 Hz; return when the first STOP came (or None) and the end time."""
+    t = t0
+    for k in range(round(seconds / PERIOD)):
+        t = t0 + k * PERIOD
+        check = wd.update(
+            t,
+            plan,
+            progress0 + speed * (t - t0),
+            50.0,
+            steer_rate * (t - t0),
+            standstill=abs(speed) < 0.05,
+            gear_change=gear_change,
+        )
+        if check.reaction is Reaction.STOP:
+            assert check.detail.startswith("no progress")
+            return t, t
+    return None, t
+
+
+def test_progress_watchdog_stalled_car_stops_after_the_configured_time() -> None:
+    stop_at, _ = _feed(ProgressWatchdog(CFG), 10.0)
+    assert stop_at is not None and stop_at == pytest.approx(CFG.no_progress_time, abs=PERIOD)
+    cfg = WatchdogConfig(no_progress_time=1.0)
+    stop_at, _ = _feed(ProgressWatchdog(cfg), 10.0)
+    assert stop_at == pytest.approx(1.0, abs=PERIOD)
+
+
+def test_progress_watchdog_slow_but_true_progress_is_no_stop() -> None:
+    # 0.05 m/s: 0.15 m in every 3 s, above the 0.1 m asked for
+    assert _feed(ProgressWatchdog(CFG), 30.0, speed=0.05)[0] is None
+
+
+def test_progress_watchdog_creeping_below_the_threshold_stops() -> None:
+    # 0.02 m/s: 0.06 m in 3 s; the car moves, yet it gets nowhere
+    assert _feed(ProgressWatchdog(CFG), 30.0, speed=0.02)[0] is not None
+
+
+def test_progress_watchdog_waiting_at_rest_for_a_gear_change_is_no_stop() -> None:
+    wd = ProgressWatchdog(CFG)
+    assert _feed(wd, 10.0, gear_change=True)[0] is None
+    # the gear is in: now the car must move within the time
+    stop_at, _ = _feed(wd, 10.0, t0=10.0)
+    assert stop_at == pytest.approx(10.0 + CFG.no_progress_time, abs=PERIOD)
+
+
+def test_progress_watchdog_turning_the_wheel_at_rest_is_no_stop_but_a_stuck_wheel_is() -> None:
+    wd = ProgressWatchdog(CFG)
+    # at a cusp: the wheel swings 60° at 0.5 rad/s (2.1 s) before the car drives off, which
+    # together with the stop before and the pull away takes longer than 3 s
+    assert _feed(wd, 2.0, speed=0.02)[0] is None
+    assert _feed(wd, 2.1, t0=2.0, steer_rate=0.5, progress0=0.04)[0] is None
+    assert _feed(wd, 10.0, t0=4.1, speed=0.3, progress0=0.04)[0] is None
+    # an actuator that does not move is no reason to wait
+    assert _feed(ProgressWatchdog(CFG), 10.0, steer_rate=0.0)[0] is not None
+
+
+def test_progress_watchdog_counts_progress_across_re_sent_plans() -> None:
+    # A planner's rolling window: a new plan object every 0.5 s, progress counted from its start.
+    def rolling(speed: float) -> float | None:
+        wd = ProgressWatchdog(CFG)
+        for i in range(40):
+            stop_at, _ = _feed(wd, 0.5, t0=0.5 * i, speed=speed, plan=object(), progress0=0.3)
+            if stop_at is not None:
+                return stop_at
+        return None
+
+    assert rolling(speed=0.0) == pytest.approx(CFG.no_progress_time, abs=PERIOD)
+    assert rolling(speed=0.1) is None
+
+
+def test_progress_watchdog_ignores_controllers_without_a_route() -> None:
+    wd = ProgressWatchdog(CFG)
+    for k in range(500):
+        check = wd.update(k * PERIOD, "plan", 0.0, 0.0, 0.0, True, False)
+        assert check.ok
+
+
+def _progress_rig(progress: Callable[[FakeController, Pose], float], accel: float) -> Rig:
+    def script(ctl: FakeController, pose: Pose, steer: float) -> ControlOutput:
+        return ControlOutput(
+            steer_angle=0.0,
+            accel=accel,
+            speed=1.0,
+            progress=progress(ctl, pose),
+            route_length=17.5,
+        )
+
+    return Rig(FakeController(script))
+
+
+def test_gateway_stops_a_car_that_makes_no_progress() -> None:
+    # The cusp deadlock of issue 13: status ok, the car at rest, the gateway ENGAGED for good.
+    rig = _progress_rig(lambda ctl, pose: 3.0, accel=0.0)
+    rig.engage()
+    t0 = rig.now
+    t_stop = _first_state(rig, GatewayState.STOPPING, 10.0)
+    assert t_stop - t0 == pytest.approx(CFG.no_progress_time, abs=0.2)
+    reason = rig.results[-1].diagnostics.reason
+    assert "no progress" in reason and "3.0 of 17.5 m" in reason
+    assert _first_state(rig, GatewayState.STANDBY, 5.0) > 0.0
+    check = rig.results[-1].diagnostics.watchdogs[CHECK_ORDER.index("progress")]
+    assert check.ok  # forgotten once the gateway no longer drives
+
+
+def test_gateway_keeps_driving_a_car_that_progresses() -> None:
+    rig = _progress_rig(lambda ctl, pose: 2.0 + pose.x, accel=0.05)  # 0.225 m in the first 3 s
+    rig.engage()
+    rig.run(10.0)
+    assert rig.gw.state == GatewayState.ENGAGED

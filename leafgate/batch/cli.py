@@ -44,6 +44,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common(p, "leafgate-batch")
     p = sub.add_parser("check", help="`replay check` of every CAN log and session under DIR")
     p.add_argument("dir", help="folder searched recursively")
+    p.add_argument(
+        "--glob",
+        metavar="PATTERN",
+        help="only files whose name matches, e.g. '*.mcap' (default: every file with a "
+        "readable suffix: .log .asc .blf .trc .csv .mf4 .mcap)",
+    )
     p.add_argument("--config", help="the deployment config whose limits apply")
     p.add_argument("--gap-periods", type=float, default=3.0)
     p.add_argument("--timeout", type=float, help="s per log")
@@ -65,13 +71,15 @@ def _engine_text(run: EngineRun) -> str:
     return f"{run.scheduler}, {run.workers} workers, {run.wall_s:.1f} s wall time"
 
 
-def _files(directory: str, suffixes: tuple[str, ...]) -> list[Path]:
+def _files(directory: str, suffixes: tuple[str, ...], pattern: str | None = None) -> list[Path]:
     root = Path(directory)
     if not root.is_dir():
         raise BatchError(f"{root}: no such folder")
-    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in suffixes)
+    files = sorted(
+        p for p in root.rglob(pattern or "*") if p.is_file() and p.suffix.lower() in suffixes
+    )
     if not files:
-        raise BatchError(f"{root}: no {', '.join(suffixes)} files in it")
+        raise BatchError(f"{root}: no {pattern or ', '.join(suffixes)} files in it")
     return files
 
 
@@ -154,7 +162,7 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
     from leafgate.batch.tasks import check_case
     from leafgate.replay.logs import READABLE_SUFFIXES
 
-    files = _files(args.dir, READABLE_SUFFIXES)
+    files = _files(args.dir, READABLE_SUFFIXES, args.glob)
     out = make_out_dir(args.out)
     config = str(Path(args.config).resolve()) if args.config else None
     if config is not None:
@@ -190,7 +198,7 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
 
 def cmd_batch_rerun(args: argparse.Namespace) -> int:
     from leafgate.batch.tasks import rerun_case
-    from leafgate.replay.rerun import parse_overrides
+    from leafgate.config import parse_overrides
 
     overrides = parse_overrides(args.set)
     files = _files(args.dir, (".mcap",))

@@ -13,6 +13,7 @@ A sweep file is YAML (``config/sweep.yaml`` is the example)::
       controller.mpc.prediction_horizon: 30
     disturbances:            # dotted key: [low, high], drawn uniformly per case from its seed
       sim.localization.position_noise: [0.0, 0.05]   # m; the noise itself follows --seed
+      sim.plant.steer_bias_deg: [-0.5, 0.5]          # deg, actuator bias
       sim.start_lateral_offset: [-0.3, 0.3]          # m, within gateway.engage.max_distance
     thresholds:              # metric: upper bound, or the required true/false
       lateral_error_max_m: 0.5
@@ -35,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from leafgate.config import load_yaml
+from leafgate.config import load_yaml, parse_overrides
 from leafgate.errors import ConfigError
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.compare import CONTROLLERS, PLANTS
@@ -239,9 +240,8 @@ def load_sweep(path: str | Path) -> Sweep:
 
 
 def _check_keys(sweep: Sweep) -> None:
-    """Every setting and disturbance key is a config key taking the values given."""
-    from leafgate.cli import with_settings  # the same checks as `leafgate sim --set`
-
+    """Every setting and disturbance key is a config key taking the values given, checked as
+    ``leafgate sim --set`` checks them."""
     base = load_config(sweep.config)
     sections: list[tuple[str, dict[str, Any]]] = [("set", sweep.settings)]
     for end in (0, 1):
@@ -250,8 +250,10 @@ def _check_keys(sweep: Sweep) -> None:
         )
     for section, values in sections:
         for key, value in values.items():
-            source = f"{sweep.path}: {section}"
-            with_settings(base, [f"{key}={_value_text(value)}"], source)
+            try:
+                load_config(sweep.config, parse_overrides([f"{key}={_value_text(value)}"]))
+            except ConfigError as exc:
+                raise ConfigError(f"{sweep.path}: {section}: {exc}") from None
     _check_envelope(sweep, base)
 
 

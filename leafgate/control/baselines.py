@@ -33,13 +33,18 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from leafgate.config import VehicleConfig, positive
-from leafgate.control.reference import ReferencePath, Segment, nearest_index, validate
-from leafgate.errors import TrajectoryError
+from leafgate.control.reference import (
+    Progress,
+    ReferencePath,
+    Segment,
+    prepare_plan,
+)
 from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
 
 __all__ = [
@@ -70,7 +75,9 @@ class _TrackerConfig:
     hold_decel: float = 1.0  # m/s², braking request at rest (aligning, finished)
     steer_max: float = math.radians(30.0)  # rad, road-wheel
     steer_rate_max: float = 0.5  # rad/s, road-wheel
-    goal_tolerance: float = 0.15  # m, a segment's end counts as reached within this distance
+    goal_tolerance: float = 0.25  # m, a segment's end counts as reached within this distance
+    # (wider than the MPC's 0.15 m: both laws end parking moves up to ≈ 0.22 m off the goal, and
+    # a segment ends only by progress *and* within this distance — farther is "off-goal")
     stop_speed: float = 0.02  # m/s, "at rest" below this
     align_tolerance: float = 0.03  # rad, wheel within this of the law's angle before driving off
     search_window: int = 20  # waypoints examined by the forward nearest-point search
@@ -187,8 +194,8 @@ class _Tracker:
         """Forget the trajectory, the segment, the last command and the speed integral."""
         self._traj: Trajectory | None = None
         self._path: ReferencePath | None = None
-        self._seg = 0
-        self._index = -1
+        self._progress: Progress | None = None
+        self._bad_trajectory = ""
         self._steer = math.nan  # rad, last commanded angle (NaN: none yet)
         self._accel = 0.0  # m/s², last signed acceleration command
         self._aligned = False
@@ -200,10 +207,10 @@ class _Tracker:
         t0 = time.perf_counter()
         if trajectory is not self._traj:
             self._set_trajectory(trajectory)
-        path = self._path
-        if path is None:
-            return self._fault("bad-trajectory", 1, t0)
-        seg = path.segments[self._seg]
+        path, prog = self._path, self._progress
+        if path is None or prog is None:
+            return self._fault(f"bad-trajectory: {self._bad_trajectory}", 1, t0)
+        seg = prog.segment
         if not all(
             math.isfinite(v) for v in (pose.x, pose.y, pose.heading, pose.speed, steer_angle)
         ):
@@ -212,23 +219,15 @@ class _Tracker:
             self._steer = _clip(steer_angle, self.cfg.steer_max)
 
         cfg = self.cfg
-        traj = path.traj
-        window = seg.end - seg.start + 2 if self._index < 0 else cfg.search_window
-        self._index = nearest_index(
-            traj, pose.x, pose.y, max(self._index, seg.start), window=window, stop=seg.end
-        )
+        s0 = prog.s if self._finished else prog.update(pose.x, pose.y, pose.heading)
         at_rest = abs(pose.speed) <= cfg.stop_speed
-        s0 = path.project(seg, self._index, pose.x, pose.y)
-        passed = self._along_end(seg, pose) >= 0.0
-        to_end = math.hypot(traj.x[seg.end] - pose.x, traj.y[seg.end] - pose.y)
-        if at_rest and (to_end <= cfg.goal_tolerance or passed):
-            if self._seg + 1 < len(path.segments):
-                self._seg += 1  # a cusp: the next segment, in the other direction
-                seg = path.segments[self._seg]
-                self._index = seg.start
+        passed = prog.passed  # progress has reached the end (not a half-plane test)
+        if at_rest and not self._finished and prog.ended(pose.x, pose.y, cfg.goal_tolerance):
+            if prog.next_segment():  # a cusp: the next segment, in the other direction
+                seg = prog.segment
                 self._aligned = False
                 self._speed.reset()
-                s0 = path.project(seg, self._index, pose.x, pose.y)
+                s0 = prog.update(pose.x, pose.y, pose.heading)
                 passed = False
             else:
                 self._finished = True
@@ -270,6 +269,17 @@ class _Tracker:
         elif not at_rest:
             self._aligned = True
         if passed:  # beyond the end: brake to rest, the next segment corrects
+            if at_rest:  # the last segment, farther from its end than the goal tolerance
+                out = self._output(
+                    steer, self._ramp(-direction * cfg.hold_decel), 0.0, direction, t0
+                )
+                distance = prog.to_end(pose.x, pose.y)
+                return replace(
+                    out,
+                    converged=False,
+                    status=f"off-goal: stopped {distance:.2f} m from the end "
+                    f"(tolerance {cfg.goal_tolerance:g} m)",
+                )
             return self._output(
                 steer,
                 self._ramp(-direction * cfg.hold_decel),
@@ -304,24 +314,15 @@ class _Tracker:
 
     def _set_trajectory(self, trajectory: Trajectory) -> None:
         self._traj = trajectory
-        self._seg = 0
-        self._index = -1
         self._aligned = False
         self._finished = False
-        try:
-            validate(trajectory, "trajectory")
-            self._path = ReferencePath(trajectory, self.cfg.creep_speed)
-        except (TrajectoryError, ValueError):
-            self._path = None
+        self._path, self._progress, self._bad_trajectory = prepare_plan(
+            trajectory, self.cfg.creep_speed, self.cfg.search_window
+        )
 
-    def _along_end(self, seg: Segment, pose: Pose) -> float:
-        """Signed distance of the car beyond the segment's end, in the driving direction, m."""
-        traj = self._traj
-        assert traj is not None
-        e = seg.end
-        h = traj.heading[e]
-        along = (pose.x - traj.x[e]) * math.cos(h) + (pose.y - traj.y[e]) * math.sin(h)
-        return float(seg.direction * along)
+    def _where(self) -> dict[str, Any]:
+        """The progress fields of an output (none before a usable plan)."""
+        return {} if self._progress is None else self._progress.fields(self._finished)
 
     def _ramp(self, accel: float) -> float:
         """Limit the change of the signed acceleration to the jerk limit."""
@@ -345,9 +346,9 @@ class _Tracker:
             speed=speed,
             gear=Gear.D if direction > 0 else Gear.R,
             finished=finished,
-            nearest_index=max(self._index, 0),
             status=status,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _fault(self, status: str, direction: int, t0: float) -> ControlOutput:
@@ -360,6 +361,7 @@ class _Tracker:
             converged=False,
             status=status,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
 

@@ -14,7 +14,7 @@ MAX_HORIZON = 500  # model steps (50 s at 0.1 s); beyond, memory and set-up time
 
 @dataclass(frozen=True)
 class MpcConfig:
-    """The paper's MPC (kinematic bicycle, augmented model, Hildreth's QP).
+    """The paper's MPC (kinematic bicycle, augmented model, a QP solved by DAQP by default).
 
     Weights are per output / per input change and dimensionless once multiplied by the squared
     unit (a lateral weight of 20 costs 20 per m² of lateral error at each horizon step). Limits
@@ -25,7 +25,8 @@ class MpcConfig:
     sample_time: float = 0.1  # s, discretisation step of the prediction model
     prediction_horizon: int = 30  # Np: 3 s preview at 0.1 s, ≈ 6 m at parking speed
     control_horizon: int = 10  # Nc
-    solver: Literal["hildreth", "osqp"] = "hildreth"
+    solver: Literal["daqp", "hildreth", "osqp"] = "daqp"  # DAQP: exact dual active set, the
+    # default; Hildreth: the paper's solver (capped at max_iterations); OSQP: ADMM
     max_iterations: int = 100  # Hildreth sweeps. The paper caps at 38; with the steering
     # saturated (the last arc of a parking move) warm-started sweeps need up to ≈ 75, and the
     # gateway stops the car on any unconverged solve

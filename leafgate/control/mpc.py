@@ -11,8 +11,9 @@ Each control tick:
    why the frame is path-aligned and why ``x`` is an output);
 3. prediction ``Y = F x + S ΔU`` (eq. 22–26) and the QP ``½ΔUᵀEΔU + ΔUᵀf, MΔU ≤ γ``
    (eq. 28–31) with output weights ``Q`` and input-change weights ``R̄``;
-4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else Hildreth or
-   OSQP — and apply the first move, clipped to the hard limits whatever the solver returned.
+4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else DAQP (the
+   default), Hildreth or OSQP — and apply the first move, clipped to the hard limits whatever
+   the solver returned.
 
 **Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: the
 kinematic model's ``S`` and free response come in closed form (:class:`~leafgate.control.
@@ -68,6 +69,8 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from scipy.linalg import lapack
@@ -88,9 +91,13 @@ from leafgate.control.model import (
     steer_lag_factor,
     steer_lag_increment,
 )
-from leafgate.control.qp import OsqpBackend, QpResult, hildreth
-from leafgate.control.reference import ReferencePath, Segment, validate
-from leafgate.errors import TrajectoryError
+from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
+from leafgate.control.reference import (
+    Progress,
+    ReferencePath,
+    Segment,
+    prepare_plan,
+)
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
 _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a clip (solver
@@ -166,6 +173,7 @@ class MpcController:
         self._no_multipliers = np.zeros(self.M.shape[0])
         self._no_multipliers.setflags(write=False)
         self._osqp: OsqpBackend | None = None
+        self._daqp = DaqpBackend(self.M) if cfg.solver == "daqp" else None
         if cfg.solver == "osqp":
             E0 = np.eye(Nc * m)
             self._osqp = OsqpBackend(E0, self.M, eps=cfg.osqp_tolerance)
@@ -177,9 +185,8 @@ class MpcController:
         """Forget the trajectory, the segment, the last inputs and the warm starts."""
         self._traj: Trajectory | None = None
         self._path: ReferencePath | None = None
-        self._bad_trajectory = ""
-        self._seg = 0
-        self._index = 0
+        self._progress: Progress | None = None
+        self._bad_trajectory = ""  # why the plan cannot be driven (shown in the status)
         self._u_prev: FloatArray | None = None  # [a, tan δ] applied last tick
         self._lam: FloatArray | None = None
         self._finished = False
@@ -211,33 +218,21 @@ class MpcController:
             gear=Gear.D if direction > 0 else Gear.R,
             converged=False,
             status=status,
-            nearest_index=self._index,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _set_trajectory(self, trajectory: Trajectory) -> None:
         self._traj = trajectory
-        self._seg = 0
         self._finished = False
         self._lam = None
-        try:
-            validate(trajectory, "trajectory")
-            self._path = ReferencePath(trajectory, self.cfg.creep_speed)
-            self._bad_trajectory = ""
-            # each segment's end point and heading, as floats for the per-tick checks
-            self._seg_ends = [
-                (
-                    float(trajectory.x[seg.end]),
-                    float(trajectory.y[seg.end]),
-                    math.cos(float(trajectory.heading[seg.end])),
-                    math.sin(float(trajectory.heading[seg.end])),
-                )
-                for seg in self._path.segments
-            ]
-        except (TrajectoryError, ValueError) as exc:
-            self._path = None
-            self._bad_trajectory = str(exc)
-        self._index = -1  # a new plan: search the first segment in full
+        self._path, self._progress, self._bad_trajectory = prepare_plan(
+            trajectory, self.cfg.creep_speed, self.cfg.search_window
+        )
+
+    def _where(self) -> dict[str, Any]:
+        """The progress fields of an output (none before a usable plan)."""
+        return {} if self._progress is None else self._progress.fields(self._finished)
 
     def _step(
         self, pose: Pose, steer_angle: float, trajectory: Trajectory, t0: float
@@ -245,10 +240,10 @@ class MpcController:
         cfg = self.cfg
         if trajectory is not self._traj:
             self._set_trajectory(trajectory)
-        path = self._path
-        if path is None:
-            return self._hold("bad-trajectory", 1, t0)
-        seg = path.segments[self._seg]
+        path, prog = self._path, self._progress
+        if path is None or prog is None:
+            return self._hold(f"bad-trajectory: {self._bad_trajectory}", 1, t0)
+        seg = prog.segment
         isfinite = math.isfinite  # a chain of calls: no generator on the hot path
         if not (
             isfinite(pose.x)
@@ -261,22 +256,15 @@ class MpcController:
         if self._u_prev is None:
             self._u_prev = np.array([0.0, math.tan(_clip(steer_angle, cfg.steer_max))])
 
-        # 1. reference: nearest waypoint and segment bookkeeping
-        if self._index < 0:
-            self._index = path.nearest_index(
-                pose.x, pose.y, seg.start, window=seg.end - seg.start + 2, stop=seg.end
-            )
-        else:
-            self._index = path.nearest_index(
-                pose.x, pose.y, self._index, window=cfg.search_window, stop=seg.end
-            )
+        # 1. reference: progress along the segment, and segment bookkeeping
+        if not self._finished:
+            prog.update(pose.x, pose.y, pose.heading)
         at_rest = abs(pose.speed) <= cfg.stop_speed
-        passed = self._passed_end(seg, pose)
-        if at_rest and (self._to_end(pose) <= cfg.goal_tolerance or passed):
-            if self._seg + 1 < len(path.segments):
-                self._seg += 1  # a cusp: drive the next segment, in the other direction
-                seg = path.segments[self._seg]
-                self._index = seg.start
+        passed = prog.passed  # progress has reached the end (not a half-plane test)
+        if at_rest and not self._finished and prog.ended(pose.x, pose.y, cfg.goal_tolerance):
+            if prog.next_segment():  # a cusp: drive the next segment, in the other direction
+                seg = prog.segment
+                prog.update(pose.x, pose.y, pose.heading)
                 # The brake holds the car through the gear change: in the new direction that
                 # hold has the other sign of d(v)/dt. Starting from it keeps every later move
                 # (and the drive-off) inside the jerk bound.
@@ -288,6 +276,14 @@ class MpcController:
                 self._finished = True
         if self._finished:
             return self._finish(seg, t0)
+        if at_rest and passed:  # stopped past the end, farther than the goal tolerance
+            distance = prog.to_end(pose.x, pose.y)
+            return replace(
+                self._brake_to_rest(seg.direction, t0),
+                converged=False,
+                status=f"off-goal: stopped {distance:.2f} m from the end "
+                f"(tolerance {cfg.goal_tolerance:g} m)",
+            )
 
         direction = seg.direction
         _, _, gamma0, (a_min, a_max) = self._limits[direction]
@@ -306,7 +302,7 @@ class MpcController:
             gx, gy, gv, gth, gt = pose.x, pose.y, pose.speed, pose.heading, math.nan
 
         # path-aligned frame at the (predicted) vehicle's projection
-        s0 = path.project(seg, self._index, gx, gy)
+        s0 = path.project(seg, prog.index, gx, gy)
         if at_rest and not self._aligned:
             if s0 - path.s[seg.start] <= cfg.goal_tolerance:
                 out = self._align(seg, s0, steer_angle, direction, t0)
@@ -423,10 +419,10 @@ class MpcController:
             clips=clips,
             cost=cost,
             finished=False,
-            nearest_index=self._index,
             predicted_xy=predicted_xy,
             status=status,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _predict_steer_lag(
@@ -463,17 +459,6 @@ class MpcController:
             u[1] = tan_delta
         if self._dead_ticks:
             self._in_flight.append(tan_delta)
-
-    def _to_end(self, pose: Pose) -> float:
-        """Distance to the current segment's end point, m (only needed at rest)."""
-        x, y = self._seg_ends[self._seg][:2]
-        return math.hypot(x - pose.x, y - pose.y)
-
-    def _passed_end(self, seg: Segment, pose: Pose) -> bool:
-        """True when the car is level with or beyond the segment's end in its driving direction."""
-        x, y, cos_h, sin_h = self._seg_ends[self._seg]
-        along = (pose.x - x) * cos_h + (pose.y - y) * sin_h
-        return seg.direction * along >= 0.0
 
     def _predict_dead_time(
         self, pose: Pose, steer_angle: float, direction: int
@@ -540,9 +525,9 @@ class MpcController:
             accel=accel,
             speed=0.0,
             gear=Gear.D if direction > 0 else Gear.R,
-            nearest_index=self._index,
             status=status,
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _brake_to_rest(self, direction: int, t0: float) -> ControlOutput:
@@ -555,13 +540,14 @@ class MpcController:
             accel=accel,
             speed=0.0,
             gear=Gear.D if direction > 0 else Gear.R,
-            nearest_index=self._index,
             status="stopping",
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
     def _solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
-        """Eq. 29 when it satisfies every constraint, else the configured QP backend.
+        """Eq. 29 when it satisfies every constraint, else the configured QP backend (DAQP,
+        OSQP or Hildreth).
 
         ``E`` is factored once (Cholesky); the factor gives the unconstrained optimum and is
         reused by Hildreth for ``E⁻¹Mᵀ`` on its working set.
@@ -573,6 +559,8 @@ class MpcController:
         if (self.M @ x_unc <= gamma).all():
             self._lam = None
             return QpResult(x_unc, True, 0, self._no_multipliers)
+        if self._daqp is not None:
+            return self._daqp.solve(E, f, gamma)
         if self._osqp is not None:
             return self._osqp.solve(E, f, gamma)
         result = hildreth(
@@ -613,9 +601,9 @@ class MpcController:
             speed=0.0,
             gear=Gear.D if seg.direction > 0 else Gear.R,
             finished=True,
-            nearest_index=self._index,
             status="finished",
             solve_time=time.perf_counter() - t0,
+            **self._where(),
         )
 
 

@@ -1,6 +1,11 @@
 """Quadratic programme solvers for the MPC: ``min ½ xᵀE x + xᵀf  s.t.  M x ≤ γ`` (eq. 30–31).
 
-Two backends return the same :class:`QpResult`:
+Three backends return the same :class:`QpResult`:
+
+- :class:`DaqpBackend` — DAQP (Arnström, Bemporad, Axehill), an exact dual active-set solver
+  written for the small dense QPs of MPC: the default. A ``M`` of the MPC's shape
+  ``[C; −C; I; −I]`` is passed as two-sided constraints ``lo ≤ C x ≤ hi`` with simple bounds
+  ``lo ≤ x ≤ hi`` (a quarter of the rows); any other ``M`` as ``M x ≤ γ``.
 
 - :func:`hildreth` — Hildreth's dual coordinate-ascent procedure as in Wang's ``QPhild``: the
   unconstrained optimum is returned when it is feasible; otherwise the dual
@@ -10,7 +15,8 @@ Two backends return the same :class:`QpResult`:
 - :class:`OsqpBackend` — OSQP set up once with a fixed sparsity pattern, then updated in place
   and warm-started every cycle.
 
-Neither raises on a hard problem: non-convergence is reported in :attr:`QpResult.converged`.
+None raises on a hard problem: non-convergence (and infeasibility) is reported in
+:attr:`QpResult.converged`, never as converged.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import daqp
 import numpy as np
 import numpy.typing as npt
 import osqp
@@ -319,3 +326,57 @@ class OsqpBackend:
     def reset(self) -> None:
         """Drop the warm start (next solve starts from zero)."""
         self._solver.warm_start(x=np.zeros(self.n), y=np.zeros(self.m))
+
+
+class DaqpBackend:
+    """DAQP for ``min ½ xᵀE x + xᵀf  s.t.  M x ≤ γ`` with a fixed ``M``.
+
+    When ``M`` is ``[C; −C; I; −I]`` (the MPC's cumulative input limits and rate limits) the
+    QP goes to DAQP as ``γ₃ ≥ x ≥ −γ₄`` (simple bounds) and ``γ₁ ≥ C x ≥ −γ₂``; otherwise as
+    the one-sided ``M x ≤ γ``. Multipliers are mapped back to the rows of ``M``.
+
+    :param M: the constraint matrix
+    :param max_iter: active-set iteration cap (DAQP's ``iter_limit``)
+    :param primal_tol: DAQP's primal feasibility tolerance
+    """
+
+    OPTIMAL = 1  # DAQP exit flag of an optimal solution; soft-optimal, infeasible, cycling,
+    # unbounded and the iteration cap are all reported as not converged
+
+    def __init__(self, M: FloatArray, max_iter: int = 1000, primal_tol: float = 1e-9) -> None:
+        M = np.asarray(M, dtype=np.float64)
+        self.m, self.n = M.shape
+        n = self.n
+        self._structured = False
+        if self.m == 4 * n:
+            C = M[:n]
+            eye = np.eye(n)
+            self._structured = bool(
+                np.array_equal(M[n : 2 * n], -C)
+                and np.array_equal(M[2 * n : 3 * n], eye)
+                and np.array_equal(M[3 * n :], -eye)
+            )
+        self._A = np.ascontiguousarray(M[:n] if self._structured else M)
+        self._lower = np.full(self.m, -1e30)
+        self._settings: dict[str, Any] = {"iter_limit": max_iter, "primal_tol": primal_tol}
+
+    def solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
+        """Solve one QP (DAQP sets up its workspace per call: no state between ticks)."""
+        n = self.n
+        if self._structured:
+            upper = np.concatenate((gamma[2 * n : 3 * n], gamma[:n]))
+            lower = np.concatenate((-gamma[3 * n :], -gamma[n : 2 * n]))
+        else:
+            upper, lower = np.asarray(gamma, dtype=np.float64), self._lower
+        x, _, flag, info = daqp.solve(E, f, self._A, upper, lower, **self._settings)
+        x = np.asarray(x, dtype=np.float64)
+        lam_d = np.asarray(info["lam"], dtype=np.float64)
+        lam = np.zeros(self.m)
+        if self._structured:  # DAQP: λ > 0 on an active upper bound, λ < 0 on a lower one
+            up, down = np.maximum(lam_d, 0.0), np.maximum(-lam_d, 0.0)
+            lam[2 * n : 3 * n], lam[3 * n :] = up[:n], down[:n]
+            lam[:n], lam[n : 2 * n] = up[n:], down[n:]
+        else:
+            lam[:] = np.maximum(lam_d, 0.0)
+        converged = int(flag) == self.OPTIMAL and bool(np.all(np.isfinite(x)))
+        return QpResult(x, converged, int(info["iterations"]), lam)

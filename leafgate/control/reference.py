@@ -26,8 +26,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import yaml
 
 from leafgate.config import safe_load_yaml, utf8_text, yaml_error_text
@@ -41,7 +43,8 @@ except ImportError:  # numpy < 2 keeps it elsewhere; the public function gives t
 
 FIELDS = ("x", "y", "heading", "speed")
 MIN_POINTS = 4  # the cubic resampling needs four waypoints
-REPEAT_DISTANCE = 1e-3  # m: consecutive waypoints closer than this are the same point
+OVERLAP_DISTANCE = 0.01  # m: a waypoint closer than this to the previous one overlaps it and
+# is removed (Autoware's removeOverlapPoints uses the same 1 cm)
 
 
 @dataclass(frozen=True, slots=True)
@@ -208,38 +211,84 @@ def _parse_yaml(text: str, source: str) -> dict[str, list[float]]:
 
 
 def validate(traj: Trajectory, source: str, rows: Sequence[int] | None = None) -> Spacing:
-    """Check a trajectory and report its waypoint spacing.
+    """Check a trajectory and report its waypoint spacing: **the** rule for a usable plan.
 
-    Checks: at least four waypoints, every value finite, no waypoint repeating the previous
-    one (closer than 1 mm).
+    Checks: every value finite, and at least four waypoints once overlapping points (closer
+    than :data:`OVERLAP_DISTANCE` to the previous kept one) are removed — those are dropped by
+    :func:`remove_overlap_points`, not refused (Autoware's planners emit them). The transport,
+    the gateway's engage check and every controller use this same rule, through
+    :func:`trajectory_problem`.
 
     :param source: the file or topic the trajectory came from, for messages
     :param rows: the row of the file each waypoint came from (a CSV file's blank lines keep
         their numbers); None when waypoint ``i`` is row ``i + 1``
-    :returns: min / median / max spacing, m
-    :raises TrajectoryError: ``"<source>: row <n>: <problem>"``
+    :returns: min / median / max spacing of the kept waypoints, m
+    :raises TrajectoryError: ``"<source>: row <n>: <problem>"`` or ``"<source>: <problem>"``
     """
     n = len(traj)
 
     def row_of(index: int) -> int:
         return int(rows[index]) if rows is not None else index + 1
 
-    if n < MIN_POINTS:
-        raise TrajectoryError(f"{source}: {n} waypoint(s), at least {MIN_POINTS} are needed")
     for name in FIELDS:
         bad = np.flatnonzero(~np.isfinite(getattr(traj, name)))
         if bad.size:
             raise TrajectoryError(f"{source}: row {row_of(int(bad[0]))}: {name} is not finite")
-    with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: inf gaps are fine
-        gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
-    repeats = np.flatnonzero(gaps < REPEAT_DISTANCE)
-    if repeats.size:
-        i = int(repeats[0])
+    kept = _kept_points(traj)
+    if kept.size < MIN_POINTS:
+        dropped = f" ({n - kept.size} overlapping removed)" if kept.size < n else ""
         raise TrajectoryError(
-            f"{source}: row {row_of(i + 1)}: repeats row {row_of(i)} "
-            f"(waypoints {gaps[i]:.4f} m apart)"
+            f"{source}: {kept.size} waypoint(s){dropped}, at least {MIN_POINTS} are needed"
         )
+    with np.errstate(over="ignore", invalid="ignore"):  # huge finite values: inf gaps are fine
+        gaps = np.hypot(np.diff(traj.x[kept]), np.diff(traj.y[kept]))
     return Spacing(float(gaps.min()), float(np.median(gaps)), float(gaps.max()))
+
+
+def trajectory_problem(traj: Trajectory, source: str = "trajectory") -> str | None:
+    """Why ``traj`` cannot be driven, in one line, or None when it is usable (:func:`validate`).
+
+    The one rule for a usable trajectory (transport, engage check, controllers). Returns a
+    reason rather than raising so that more checks can be added without changing callers.
+    """
+    try:
+        validate(traj, source)
+    except TrajectoryError as exc:
+        return str(exc)
+    return None
+
+
+def _kept_points(traj: Trajectory) -> npt.NDArray[np.intp]:
+    """Indices of the waypoints kept by :func:`remove_overlap_points` (finite input)."""
+    x, y = traj.x.tolist(), traj.y.tolist()
+    if not x:
+        return np.zeros(0, dtype=np.intp)
+    kept = [0]
+    lx, ly = x[0], y[0]
+    limit = OVERLAP_DISTANCE
+    for i in range(1, len(x)):
+        if math.hypot(x[i] - lx, y[i] - ly) >= limit:
+            kept.append(i)
+            lx, ly = x[i], y[i]
+    return np.asarray(kept, dtype=np.intp)
+
+
+def remove_overlap_points(traj: Trajectory) -> Trajectory:
+    """The trajectory without waypoints closer than :data:`OVERLAP_DISTANCE` to the previous
+    kept one (as Autoware's ``removeOverlapPoints``: the first of a group stays).
+
+    Returns ``traj`` itself when nothing overlaps.
+    """
+    kept = _kept_points(traj)
+    if kept.size == len(traj):
+        return traj
+    return Trajectory(
+        x=traj.x[kept],
+        y=traj.y[kept],
+        heading=traj.heading[kept],
+        speed=traj.speed[kept],
+        stamp=traj.stamp,
+    )
 
 
 # --- direction segments and the path ----------------------------------------------------------
@@ -351,7 +400,16 @@ class ReferencePath:
 
     def project(self, seg: Segment, index: int, x: float, y: float) -> float:
         """Arc length of the point's projection on the chords around waypoint ``index``."""
-        s, tx, ty = self._s, self._x, self._y
+        s = self._s
+        i, t = self.chord(seg, index, x, y)
+        t = min(max(t, 0.0), 1.0)
+        return s[i] + t * (s[i + 1] - s[i])
+
+    def chord(self, seg: Segment, index: int, x: float, y: float) -> tuple[int, float]:
+        """The chord ``i → i + 1`` around waypoint ``index`` the point projects on, and the
+        (unclamped) fraction ``t`` along it: the chord after ``index``, or the one before
+        when the point lies behind it."""
+        tx, ty = self._x, self._y
         i = min(max(index, seg.start), seg.end - 1)
         dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
         t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
@@ -359,8 +417,7 @@ class ReferencePath:
             i -= 1
             dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
             t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
-        t = min(max(t, 0.0), 1.0)
-        return s[i] + t * (s[i + 1] - s[i])
+        return i, t
 
     def nearest_index(
         self, x: float, y: float, start: int, window: int = 20, stop: int | None = None
@@ -514,6 +571,164 @@ def _interp_scalar(x: float, xp: list[float], fp: list[float]) -> float:
     if xp[j] == x:
         return fp[j]
     return (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]) * (x - xp[j]) + fp[j]
+
+
+# --- progress along the plan ------------------------------------------------------------------
+
+
+class Progress:
+    """Where the car is along a plan: the current direction segment and how far along it.
+
+    One implementation for every controller (MPC, Pure Pursuit, Stanley). *Progress* is the arc
+    length reached on the current segment: monotone (it never goes back), bounded to the
+    segment, and found by a nearest-waypoint search windowed around it — the search starts at
+    the waypoint just behind the progress, never in an earlier segment, and stops once the path
+    has led more than :attr:`BASIN` metres farther from the car than the best waypoint found.
+    So a path that comes back to the same place later (a figure-eight's crossing, a closed
+    loop's end on its start, a U-turn's return leg, the reverse leg of a cusp retracing the
+    forward one) is not taken for where the car is now: to get there, the path must first lead
+    away from the car.
+
+    A segment *ends* only by progress: the car has reached the segment's last chord and is level
+    with or beyond its end point (:attr:`beyond` ≥ 0), or has come within ``goal_tolerance`` of
+    the end with the progress there (:meth:`at_end`).
+
+    On a new plan the first segment is searched in full for the nearest waypoint whose heading
+    is within 90° of the car's; the earliest waypoint within :attr:`TIE` m of that distance, moved
+    on to the nearest of its neighbourhood, is taken: a closed loop starts at its start, not at
+    its end.
+
+    :param path: the plan
+    :param window: waypoints examined ahead of the progress per update
+    """
+
+    BASIN = 2.0  # m, the search stops once the path is this much farther than the best point
+    TIE = 0.5  # m, on a new plan the earliest waypoint this close to the nearest distance wins
+
+    def __init__(self, path: ReferencePath, window: int) -> None:
+        self.path = path
+        self.window = window
+        self.seg_index = 0
+        self.index = path.segments[0].start  # the waypoint nearest the car (diagnostic)
+        self.s = float(path.s[path.segments[0].start])  # m, progress on the current segment
+        self.beyond = -math.inf  # m, along-track distance past the segment's end (< 0: before)
+        self._started = False
+
+    @property
+    def segment(self) -> Segment:
+        return self.path.segments[self.seg_index]
+
+    @property
+    def route_length(self) -> float:
+        """Total arc length of the plan, m."""
+        return float(self.path.s[-1])
+
+    def next_segment(self) -> bool:
+        """Move on to the next segment (after a cusp); False when this was the last one."""
+        if self.seg_index + 1 >= len(self.path.segments):
+            return False
+        self.seg_index += 1
+        seg = self.segment
+        self.index = seg.start
+        self.s = float(self.path.s[seg.start])
+        self.beyond = -math.inf
+        return True
+
+    def to_end(self, x: float, y: float) -> float:
+        """Distance from ``(x, y)`` to the current segment's end point, m."""
+        end = self.segment.end
+        return math.hypot(self.path._x[end] - x, self.path._y[end] - y)
+
+    def at_end(self, x: float, y: float, tolerance: float) -> bool:
+        """The progress has reached the segment's end and the car is within ``tolerance`` of it."""
+        seg_end = float(self.path.s[self.segment.end])
+        return self.s >= seg_end - tolerance and self.to_end(x, y) <= tolerance
+
+    @property
+    def passed(self) -> bool:
+        """The progress has reached the segment's end: level with or beyond its end point."""
+        return self.beyond >= 0.0
+
+    def ended(self, x: float, y: float, tolerance: float) -> bool:
+        """Whether a car at rest at ``(x, y)`` has finished the current segment.
+
+        By progress and within ``tolerance`` of the end (:meth:`at_end`); a segment before a
+        cusp also ends with a stop past its end (the next segment corrects what is left).
+        """
+        last = self.seg_index + 1 == len(self.path.segments)
+        return self.at_end(x, y, tolerance) or (self.passed and not last)
+
+    def update(self, x: float, y: float, heading: float) -> float:
+        """Advance the progress to the car at ``(x, y)``; the arc length of its projection, m.
+
+        The projection (on the chords around the nearest waypoint, clamped to the segment) may
+        lie slightly behind the progress — it is the reference for this tick — while the
+        progress itself only grows.
+        """
+        path, seg = self.path, self.segment
+        tx, ty, s = path._x, path._y, path._s
+        if not self._started:
+            self._started = True
+            i = self._first_nearest(seg, x, y, heading)
+        else:
+            # the waypoint at or just behind the progress, never before the segment's start
+            lo = max(bisect.bisect_right(s, self.s, seg.start, seg.end + 1) - 1, seg.start)
+            hi = min(lo + self.window, seg.end + 1)
+            i, best = lo, math.inf
+            for k in range(lo, hi):
+                dx, dy = tx[k] - x, ty[k] - y
+                d = math.sqrt(dx * dx + dy * dy)
+                if d < best:
+                    i, best = k, d
+                elif d > best + self.BASIN:
+                    break  # the path leads away: a later pass is not where the car is
+        self.index = i
+        j, t = path.chord(seg, i, x, y)  # the chord before or after the nearest waypoint
+        chord = s[j + 1] - s[j]
+        if j == seg.end - 1:
+            self.beyond = (t - 1.0) * chord  # on the last chord: past the end when ≥ 0
+        t = min(max(t, 0.0), 1.0)
+        s0 = s[j] + t * chord
+        if s0 > self.s:
+            self.s = s0
+        return s0
+
+    def fields(self, finished: bool) -> dict[str, Any]:
+        """The :class:`~leafgate.messages.ControlOutput` fields of the progress:
+        ``nearest_index``, ``progress`` (the route length once finished) and ``route_length``."""
+        length = self.route_length
+        return {
+            "nearest_index": self.index,
+            "progress": length if finished else self.s,
+            "route_length": length,
+        }
+
+    def _first_nearest(self, seg: Segment, x: float, y: float, heading: float) -> int:
+        """The waypoint of ``seg`` the car starts from on a new plan (see the class notes)."""
+        sl = slice(seg.start, seg.end + 1)
+        p = self.path
+        d = np.hypot(p.traj.x[sl] - x, p.traj.y[sl] - y)
+        aligned = np.cos(p.values[sl, 2] - heading) > 0.0
+        if aligned.any():
+            d = np.where(aligned, d, np.inf)
+        best = float(d.min())
+        k = int(np.argmax(d <= best + self.TIE))
+        while k + 1 < d.shape[0] and d[k + 1] < d[k]:
+            k += 1  # down to the bottom of that waypoint's basin
+        return seg.start + k
+
+
+def prepare_plan(
+    trajectory: Trajectory, creep_speed: float, window: int
+) -> tuple[ReferencePath | None, Progress | None, str]:
+    """A controller's view of a new plan: the path without overlapping points, its progress
+    tracker and ``""``; or ``None, None`` and why the plan cannot be driven
+    (:func:`trajectory_problem`)."""
+    problem = trajectory_problem(trajectory)
+    if problem is not None:
+        return None, None, problem
+    path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
+    return path, Progress(path, window), ""
 
 
 def wrap_angle(angle: float) -> float:

@@ -30,6 +30,10 @@ class WatchdogConfig:
     report_timeout_periods: float = 3.0  # report periods; an older report → FAULT
     max_report_errors: int = 5  # bad-frame counter (+1 bad, −1 good, floor 0) at which → FAULT
     max_overruns: int = 3  # consecutive late control ticks → FAULT
+    # Engaged and commanded to move, the car must gain no_progress_distance along the plan within
+    # every no_progress_time (waiting at rest for a gear change or the steering excepted) → STOP
+    no_progress_time: float = 3.0  # s
+    no_progress_distance: float = 0.1  # m
 
     def __post_init__(self) -> None:
         positive(
@@ -42,6 +46,8 @@ class WatchdogConfig:
             "report_timeout_periods",
             "max_report_errors",
             "max_overruns",
+            "no_progress_time",
+            "no_progress_distance",
         )
         if self.trajectory_max_age is not None:
             positive(self, "trajectory_max_age")

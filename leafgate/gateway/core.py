@@ -32,6 +32,11 @@ Decisions that go beyond DESIGN's tables (documented here so the tests can hold 
 - Frames on the gateway's own command IDs that it did not send (another node commanding the
   ECU) latch FAULT in any state, as a command conflict; the cause is gone once no such frame
   was seen for ``FOREIGN_QUIET`` seconds.
+- No progress: ENGAGED with the ECU following and the controller driving (not finished), the
+  car must gain ``watchdog.no_progress_distance`` along the plan within every
+  ``watchdog.no_progress_time``, or the gateway makes a controlled stop naming it
+  (:class:`~leafgate.gateway.watchdog.ProgressWatchdog`; waiting at rest for a gear change or
+  for the wheel to turn does not count).
 - A plan replaced while ENGAGED is judged like an engage: when the vehicle is outside the engage
   envelope of the new plan (``engage.max_distance``, ``engage.max_heading_error``) the gateway
   makes a controlled stop instead of chasing it; a plan within the envelope is followed.
@@ -58,6 +63,7 @@ from leafgate.gateway.state import (
 )
 from leafgate.gateway.watchdog import (
     Check,
+    ProgressWatchdog,
     Reaction,
     Status,
     WatchdogReport,
@@ -85,6 +91,7 @@ from leafgate.messages import (
 )
 
 _EPS = 1e-9  # s, slack when comparing times built from sums of periods
+END_REACHED = "trajectory end reached"  # the reason of an engagement that drove its plan
 FOREIGN_QUIET = 1.0  # s without foreign command frames before a command conflict may be reset
 
 #: The last valid ECU reports (steer, long, system), read from a tick's WatchdogReport.
@@ -258,6 +265,7 @@ class Gateway:
         self.limits = SafetyLimits.from_config(config.safety, vehicle, config.period)
         self.gate = SafetyGate(self.limits)
         self.watchdogs = Watchdogs(config.watchdog)
+        self.progress = ProgressWatchdog(config.watchdog)
         self.machine = EngagementMachine()
         self._phase = EngagePhase.IDLE
         self._phase_since = 0.0  # s, when the current engage phase began
@@ -311,6 +319,7 @@ class Gateway:
         self._advance_engagement(now, reports)
 
         output: ControlOutput | None = None
+        progress: Check | None = None
         steer: SteerCommand
         long: LongCommand
         gear_change = False
@@ -325,9 +334,17 @@ class Gateway:
                 self._stop(now, f"controller: {output.status} (converged={output.converged})")
             elif output.finished:
                 if standstill:
-                    m.fire(Event.AT_REST, now, "trajectory end reached")
+                    m.fire(Event.AT_REST, now, END_REACHED)
                 else:
-                    self._stop(now, "trajectory end reached")
+                    self._stop(now, END_REACHED)
+            elif self._phase is EngagePhase.ACTIVE:
+                progress = self._judge_progress(now, wd, output, measured, standstill)
+                if progress.reaction >= Reaction.STOP:
+                    self._stop(now, progress.detail)
+        if progress is None or (m.state != GatewayState.ENGAGED and progress.ok):
+            progress = self.progress.idle()
+        elif m.state != GatewayState.ENGAGED:
+            self.progress.reset()  # the stop it asked for: shown this tick, forgotten after
         if m.state == GatewayState.FAULT and self._fault_braking:
             long_fresh = wd.get("long_report").ok
             if at_rest or not long_fresh:
@@ -368,7 +385,7 @@ class Gateway:
             fault=m.fault_reason,
             fault_causes=self._causes_sorted,
             engage_phase=self._phase,
-            watchdogs=wd.checks,
+            watchdogs=(*wd.checks, progress),  # in CHECK_ORDER: progress comes last
             error_counter=self.watchdogs.errors.count,
             overruns_in_row=self.watchdogs.overrun.in_row,
             ecu_state=None if reports[2] is None else reports[2].state,
@@ -534,6 +551,27 @@ class Gateway:
         m.fire(Event.RESET, now, f"reset after: {m.fault_reason}")
         self._fault_braking = False
         return EngageReply(True, m.state, "fault cleared"), True
+
+    def _judge_progress(
+        self,
+        now: float,
+        wd: WatchdogReport,
+        out: ControlOutput,
+        measured: Measured,
+        standstill: bool,
+    ) -> Check:
+        """The no-progress watchdog for a tick in which the controller drives the car."""
+        assert wd.trajectory is not None and wd.steer is not None  # the controller ran
+        want = measured.gear if out.gear == Gear.NONE else out.gear
+        return self.progress.update(
+            now,
+            wd.trajectory.value,
+            out.progress,
+            out.route_length,
+            wd.steer.value.angle,
+            standstill,
+            gear_change=want != measured.gear,
+        )
 
     def _remaining_causes(self, now: float, wd: WatchdogReport, bus_errors: int) -> list[str]:
         out = []

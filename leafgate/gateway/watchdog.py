@@ -14,6 +14,9 @@ ECU report age (each report)   > 3 periods (10, 20, 100 ms)            FAULT
 report CRC/counter errors      counter ≥ 5 (+1 bad, −1 good, floor 0)  FAULT
 control loop overrun           3 ticks in a row                        FAULT
 ECU reports OVERRIDE           —                                       STANDBY
+no progress along the plan     < ``no_progress_distance`` (0.1 m) in   STOP
+                               ``no_progress_time`` (3 s) while
+                               engaged and commanded to move
 =============================  ======================================  ===========
 
 The engagement logic decides *when* a reaction applies (staleness of inputs matters only while
@@ -27,6 +30,7 @@ import math
 from dataclasses import dataclass
 from typing import Generic, NamedTuple, TypeVar
 
+from leafgate.control.reference import trajectory_problem
 from leafgate.gateway.config import WatchdogConfig
 from leafgate.messages import (
     EcuState,
@@ -108,13 +112,9 @@ def pose_is_valid(pose: Pose) -> bool:
 
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
-    """A trajectory is usable when it has two or more points and only finite values."""
-    if len(trajectory) < 2:
-        return False
-    return all(
-        bool(math.isfinite(float(arr.sum())))  # the sum is non-finite iff an element is
-        for arr in (trajectory.x, trajectory.y, trajectory.heading, trajectory.speed)
-    )
+    """A trajectory is usable by the controller's one rule (:func:`~leafgate.control.reference.
+    trajectory_problem`): finite, and four or more waypoints once overlapping ones are removed."""
+    return trajectory_problem(trajectory) is None
 
 
 def position_jump(previous: Stamped[Pose], current: Stamped[Pose]) -> float:
@@ -228,11 +228,15 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
     def __init__(self, config: WatchdogConfig) -> None:
         super().__init__()
         self.config = config
+        self.problem = ""  # why the last unusable plan was refused (the controller's reason)
 
     def _is_valid(self, sample: Stamped[Trajectory]) -> bool:
         if self.last is not None and sample.value is self.last.value:
             return True  # the same plan re-received: its (read-only) arrays were checked
-        return trajectory_is_valid(sample.value)
+        problem = trajectory_problem(sample.value)
+        if problem is not None:
+            self.problem = problem  # shown while no usable plan has been received
+        return problem is None
 
     def update(self, now: float, sample: Stamped[Trajectory] | None) -> Check:
         """Feed this tick's slot content and judge it."""
@@ -241,9 +245,10 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
         limit = math.inf if max_age is None else max_age
         if self.last is None:
             status = self._missing_status()
-            return Check(
-                self.name, status, None, limit, Reaction.NONE, f"trajectory {status.value}"
-            )
+            detail = f"trajectory {status.value}"
+            if status is Status.INVALID and self.problem:
+                detail += f": {self.problem}"
+            return Check(self.name, status, None, limit, Reaction.NONE, detail)
         age = now - self.last.received
         if age > limit + TIME_EPS:
             return Check(
@@ -406,6 +411,7 @@ CHECK_ORDER: tuple[str, ...] = (
     "system_report",
     "report_errors",
     "overrun",
+    "progress",  # judged after the controller ran (ProgressWatchdog), not by Watchdogs.update
 )
 _CHECK_INDEX = {name: i for i, name in enumerate(CHECK_ORDER)}
 
@@ -492,3 +498,100 @@ class Watchdogs:
             long=self.long.last,
             system=self.system.last,
         )
+
+
+STEER_SETTLE_BAND = math.radians(0.5)  # rad, the measured angle moving beyond this is turning
+STEER_SETTLE_TIME = 0.5  # s, steering still within the band this long has stopped turning
+
+
+class ProgressWatchdog:
+    """No progress along the plan: ENGAGED, commanded to move, yet stuck → STOP.
+
+    Fed once per tick the controller ran (``now`` from the gateway, no clock) with the
+    controller's arc-length ``progress`` along the plan (:class:`~leafgate.messages.ControlOutput`).
+    The car must gain at least ``no_progress_distance`` along the plan within every
+    ``no_progress_time``; otherwise the check asks for a controlled stop, naming it.
+
+    The timer does not run while the car legitimately waits at rest: while a gear change is
+    pending (cusp) and while the steering is still turning at standstill (the MPC sets the
+    wheel before it drives off). "Turning" means the measured angle left a ±0.5° band within
+    the last 0.5 s, so a steering actuator that does not move is no excuse. A new plan object
+    (a planner's rolling window) changes where progress is counted from: the progress gained on
+    the old plan within the window is carried over, so a re-sent plan neither resets the timer
+    nor counts as progress. A controller that reports no route (``route_length`` 0, unknown) is
+    not judged.
+    """
+
+    name = "progress"
+
+    def __init__(self, config: WatchdogConfig) -> None:
+        self.time_limit = config.no_progress_time
+        self.distance = config.no_progress_distance
+        self._ok = Check(self.name, Status.OK, None, self.time_limit, Reaction.NONE, "", None)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the engagement (called whenever the gateway does not drive)."""
+        self._plan: object | None = None
+        self._since: float | None = None  # s, start of the current window
+        self._base = 0.0  # m, progress on the current plan at the start of the window
+        self._carried = 0.0  # m, progress gained on earlier plans within the window
+        self._last_progress = 0.0  # m, on the current plan, last tick
+        self._steer_anchor: float | None = None  # rad, the measured angle when it last moved
+        self._steer_moved = -math.inf  # s, when the measured angle last left the band
+
+    def idle(self) -> Check:
+        """Not driving: reset and report OK."""
+        if self._since is not None or self._plan is not None:
+            self.reset()
+        return self._ok
+
+    def update(
+        self,
+        now: float,
+        plan: object,
+        progress: float,
+        route_length: float,
+        steer_angle: float,
+        standstill: bool,
+        gear_change: bool,
+    ) -> Check:
+        """Judge one tick of an engagement in which the controller drives.
+
+        :param plan: the trajectory object followed (identity tells a new plan)
+        :param progress: m along ``plan`` (the controller's, monotone on one plan)
+        :param route_length: m, the plan's length; 0 when the controller does not report it
+        :param steer_angle: rad, the measured road-wheel angle
+        :param standstill: the car stands still
+        :param gear_change: a gear change is pending (the gateway holds the brake for it)
+        """
+        if not (route_length > 0.0 and math.isfinite(progress)):
+            return self.idle()
+        if self._steer_anchor is None:
+            self._steer_anchor = steer_angle
+        elif abs(steer_angle - self._steer_anchor) > STEER_SETTLE_BAND:
+            self._steer_anchor, self._steer_moved = steer_angle, now
+        if plan is not self._plan:
+            if self._plan is not None:
+                self._carried += max(self._last_progress - self._base, 0.0)
+            self._plan, self._base = plan, progress
+        self._last_progress = progress
+        turning_at_rest = standstill and now - self._steer_moved < STEER_SETTLE_TIME - TIME_EPS
+        gained = self._carried + max(progress - self._base, 0.0)
+        if self._since is None or gained >= self.distance or gear_change or turning_at_rest:
+            self._since, self._base, self._carried = now, progress, 0.0  # a new window
+            return self._ok
+        waited = now - self._since
+        if waited >= self.time_limit - TIME_EPS:
+            return Check(
+                self.name,
+                Status.STALE,
+                waited,
+                self.time_limit,
+                Reaction.STOP,
+                f"no progress: {gained:.2f} m along the plan in {waited:.1f} s "
+                f"(needs {self.distance:g} m in {self.time_limit:g} s; at {progress:.1f} of "
+                f"{route_length:.1f} m)",
+                gained,
+            )
+        return Check(self.name, Status.OK, waited, self.time_limit, Reaction.NONE, "", gained)

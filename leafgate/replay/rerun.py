@@ -18,15 +18,14 @@ from __future__ import annotations
 import json
 import math
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, TextIO
 
-import yaml
-
+from leafgate.config import parse_overrides
 from leafgate.control import make_controller
-from leafgate.errors import ConfigError, ReplayError
+from leafgate.errors import ReplayError
 from leafgate.gateway.core import Gateway
 from leafgate.messages import Commands, GatewayState, Trajectory
 from leafgate.replay.session import (
@@ -171,25 +170,6 @@ class RerunReport:
         else:
             lines.append(f"DIVERGED: first at {self.first_divergence:.3f} s")
         return lines
-
-
-def parse_overrides(items: Iterable[str]) -> dict[str, Any]:
-    """``KEY=VALUE`` strings (values in YAML: ``10``, ``true``, ``[1, 2]``) → a mapping.
-
-    :raises ConfigError: an item without ``=``
-    """
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError(
-                f"--set {item!r}: expected KEY=VALUE, e.g. controller.mpc.weight_lateral=10"
-            )
-        try:
-            out[key.strip()] = yaml.safe_load(text)
-        except yaml.YAMLError:
-            raise ConfigError(f"--set {item!r}: the value is not valid YAML") from None
-    return out
 
 
 def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) -> RerunReport:

@@ -51,7 +51,7 @@ from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from leafgate.config import from_mapping, safe_load_yaml, yaml_error_text
+from leafgate.config import apply_overrides, from_mapping, safe_load_yaml, yaml_error_text
 from leafgate.errors import ConfigError, ReplayError
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.messages import (
@@ -134,30 +134,6 @@ def _plain(value: Any) -> Any:
 def config_to_yaml(config: LeafgateConfig) -> str:
     """The whole configuration as YAML, SI keys, loadable by :func:`config_from_yaml`."""
     return yaml.safe_dump(_plain(config), sort_keys=False)
-
-
-def apply_overrides(data: dict[str, Any], overrides: Mapping[str, Any], source: str) -> None:
-    """Set dotted keys (``controller.mpc.weight_lateral``) in a config mapping, in place.
-
-    A key with a unit suffix (``gateway.safety.max_steer_angle_deg``) replaces its SI twin.
-
-    :raises ConfigError: when a dotted key runs through a value that is not a mapping
-    """
-    for dotted, value in overrides.items():
-        parts = dotted.split(".")
-        node = data
-        for i, part in enumerate(parts[:-1]):
-            child = node.setdefault(part, {})
-            if not isinstance(child, dict):
-                where = ".".join(parts[: i + 1])
-                raise ConfigError(f"{source}: {dotted}: {where} is not a section")
-            node = child
-        key = parts[-1]
-        for suffix in ("_degps", "_deg", "_kmh"):
-            if key.endswith(suffix):
-                node.pop(key[: -len(suffix)], None)
-                break
-        node[key] = value
 
 
 def config_from_yaml(

@@ -23,9 +23,28 @@ class PlantConfig:
     # above blend_speed_high the linear-tyre model's, linearly blended between (well-posed at rest).
     blend_speed_low: float = 0.5  # m/s
     blend_speed_high: float = 1.0  # m/s
+    # Disturbances (all plants), for offset-free tracking tests
+    steer_bias_deg: float = 0.0  # deg, road-wheel misalignment: the wheels point this much
+    # further left than the reported (and commanded) angle
+    drag_accel: float = 0.0  # m/s², ≤ 0: a constant deceleration opposing the motion (−0.3 is
+    # a car rolling on a slight incline or soft ground); it also resists drive-off at rest
+
+    @property
+    def steer_bias(self) -> float:
+        """Road-wheel misalignment, rad (SI inside; degrees only in the config)."""
+        return math.radians(self.steer_bias_deg)
 
     def __post_init__(self) -> None:
         positive(self, "steer_tau", "steer_rate_max", "accel_tau", "blend_speed_high")
+        if not (math.isfinite(self.steer_bias_deg) and abs(self.steer_bias_deg) <= 10.0):
+            raise ValueError(
+                f"steer_bias_deg must lie in [-10, 10] degrees, got {self.steer_bias_deg!r}"
+            )
+        if not (math.isfinite(self.drag_accel) and -5.0 <= self.drag_accel <= 0.0):
+            raise ValueError(
+                "drag_accel opposes the motion: give it as a number in [-5, 0] m/s² "
+                f"(e.g. -0.3), got {self.drag_accel!r}"
+            )
         for name in ("input_delay", "steer_dead_time", "blend_speed_low"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"{name} must be zero or positive, got {getattr(self, name)!r}")

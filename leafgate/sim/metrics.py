@@ -21,6 +21,7 @@ class PathErrors:
     lateral: FloatArray  # m, signed cross-track error (left of the path positive)
     heading: FloatArray  # rad, wrapped to (−π, π]
     speed_ref: FloatArray  # m/s, reference speed at the projection
+    progress: FloatArray  # m, arc length of the projection along the route
 
 
 def wrap_angle(angle: FloatArray | float) -> FloatArray:
@@ -45,6 +46,52 @@ def _segment_distances(
     return ex * ex + ey * ey, t, ex, ey
 
 
+class Projector:
+    """Follows a vehicle along a reference polyline in time order: its projection, arc length.
+
+    The projection starts at the trajectory's first segment (a drive starts there) and then only
+    moves along the path (a little back for noise, up to a window ahead): routes double back on
+    themselves at cusps, cross themselves and close on their start, and a plain nearest-segment
+    search would jump to another part of the route. With a speed given, only segments planned
+    in the vehicle's direction of travel are candidates (the two legs of a cusp have opposite
+    speed signs).
+    """
+
+    def __init__(self, traj: Trajectory) -> None:
+        self.traj = traj
+        self.n_seg = len(traj) - 1
+        self.seg_dir = np.sign(traj.speed[:-1] + traj.speed[1:])  # planned direction of each
+        gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
+        self.s = np.concatenate(([0.0], np.cumsum(gaps)))  # m, arc length at each waypoint
+        self.k = 0  # the segment of the last projection
+        self.moving_dir = 0.0
+
+    @property
+    def length(self) -> float:
+        """The route's length, m."""
+        return float(self.s[-1])
+
+    def project(
+        self, x: float, y: float, speed: float | None = None
+    ) -> tuple[int, float, float, float, float]:
+        """The next sample: segment ``k``, parameter ``t`` on it, squared distance, error."""
+        lo, hi = max(0, self.k - PROJECTION_SLACK), min(self.n_seg, self.k + PROJECTION_WINDOW)
+        dist2, t, ex, ey = _segment_distances(self.traj, x, y, lo, hi)
+        if speed is not None:
+            if abs(speed) > DIRECTION_SPEED:
+                self.moving_dir = math.copysign(1.0, speed)
+            other_way = self.seg_dir[lo:hi] == -self.moving_dir
+            if self.moving_dir != 0.0 and not np.all(other_way):
+                dist2 = np.where(other_way, np.inf, dist2)
+        j = int(np.argmin(dist2))
+        self.k = lo + j
+        return self.k, float(t[j]), float(dist2[j]), float(ex[j]), float(ey[j])
+
+    def arc_length(self, k: int, t: float) -> float:
+        """Arc length of the point ``t`` along segment ``k``, m."""
+        return float(self.s[k] + t * (self.s[k + 1] - self.s[k]))
+
+
 def path_errors(
     traj: Trajectory,
     x: FloatArray,
@@ -52,45 +99,31 @@ def path_errors(
     heading: FloatArray,
     speed: FloatArray | None = None,
 ) -> PathErrors:
-    """Project each sample onto the reference polyline, following the path in time order.
+    """Project each sample onto the reference polyline, following the path in time order
+    (:class:`Projector`).
 
-    The projection starts at the trajectory's first segment (a drive starts there) and then only
-    moves along the path (a little back for noise, up to a window ahead): parking paths double back on
-    themselves at cusps, and a plain nearest-segment search would jump to a segment of the other
-    direction. With ``speed`` given, only segments planned in the vehicle's direction of travel
-    are candidates (the two legs of a cusp have opposite speed signs). For reversing segments
-    the heading reference is the vehicle heading stored in the trajectory, so the same formula
-    holds in both directions.
+    For reversing segments the heading reference is the vehicle heading stored in the
+    trajectory, so the same formula holds in both directions.
     """
-    n_seg = len(traj) - 1
-    seg_dir = np.sign(traj.speed[:-1] + traj.speed[1:])  # planned direction of each segment
-    moving_dir = 0.0
+    proj = Projector(traj)
     lateral = np.empty(x.shape[0])
     heading_err = np.empty(x.shape[0])
     speed_ref = np.empty(x.shape[0])
-    k_prev = 0  # a drive starts at the start of its trajectory
+    progress = np.empty(x.shape[0])
     for i in range(x.shape[0]):
-        lo, hi = max(0, k_prev - PROJECTION_SLACK), min(n_seg, k_prev + PROJECTION_WINDOW)
-        dist2, t, ex, ey = _segment_distances(traj, float(x[i]), float(y[i]), lo, hi)
-        if speed is not None:
-            if abs(speed[i]) > DIRECTION_SPEED:
-                moving_dir = math.copysign(1.0, speed[i])
-            other_way = seg_dir[lo:hi] == -moving_dir
-            if moving_dir != 0.0 and not np.all(other_way):
-                dist2 = np.where(other_way, np.inf, dist2)
-        j = int(np.argmin(dist2))
-        k = lo + j
-        k_prev = k
+        k, tk, dist2, ex, ey = proj.project(
+            float(x[i]), float(y[i]), None if speed is None else float(speed[i])
+        )
         dx, dy = traj.x[k + 1] - traj.x[k], traj.y[k + 1] - traj.y[k]
-        cross = dx * ey[j] - dy * ex[j]
-        lateral[i] = math.copysign(math.sqrt(dist2[j]), cross) if cross != 0 else 0.0
-        tk = t[j]
+        cross = dx * ey - dy * ex
+        lateral[i] = math.copysign(math.sqrt(dist2), cross) if cross != 0 else 0.0
         ref_heading = traj.heading[k] + tk * float(
             wrap_angle(traj.heading[k + 1] - traj.heading[k])
         )
         heading_err[i] = float(wrap_angle(heading[i] - ref_heading))
         speed_ref[i] = traj.speed[k] + tk * (traj.speed[k + 1] - traj.speed[k])
-    return PathErrors(lateral=lateral, heading=heading_err, speed_ref=speed_ref)
+        progress[i] = proj.arc_length(k, tk)
+    return PathErrors(lateral=lateral, heading=heading_err, speed_ref=speed_ref, progress=progress)
 
 
 def sign_changes(rate: FloatArray, deadband: float = STEER_RATE_DEADBAND) -> int:
@@ -113,6 +146,7 @@ def tracking_metrics(
     steer_rate = np.gradient(steer_angle, t) if t.shape[0] > 1 else np.zeros_like(t)
     final_pos = math.hypot(x[-1] - traj.x[-1], y[-1] - traj.y[-1])
     final_heading = float(abs(wrap_angle(heading[-1] - traj.heading[-1])))
+    route_length = float(np.sum(np.hypot(np.diff(traj.x), np.diff(traj.y))))
     return {
         "lateral_error_max_m": float(np.max(np.abs(errors.lateral))),
         "lateral_error_rms_m": float(np.sqrt(np.mean(errors.lateral**2))),
@@ -123,4 +157,6 @@ def tracking_metrics(
         "steer_rate_max_radps": float(np.max(np.abs(steer_rate))),
         "steer_rate_rms_radps": float(np.sqrt(np.mean(steer_rate**2))),
         "steer_rate_sign_changes": sign_changes(steer_rate),
+        "progress_m": float(np.max(errors.progress)) if errors.progress.size else 0.0,
+        "route_length_m": route_length,
     }

@@ -127,8 +127,19 @@ class KinematicPlant:
     Steering follows the (delayed) command instantly, within the road-wheel angle limit.
     """
 
-    def __init__(self, vehicle: VehicleConfig, start: Pose, input_delay: float = 0.0) -> None:
+    def __init__(
+        self,
+        vehicle: VehicleConfig,
+        start: Pose,
+        input_delay: float = 0.0,
+        steer_bias: float = 0.0,
+        drag_accel: float = 0.0,
+    ) -> None:
+        """:param steer_bias: rad, the wheels point this much further left than reported
+        :param drag_accel: m/s², ≤ 0, a constant deceleration opposing the motion"""
         self.vehicle = vehicle
+        self.steer_bias = steer_bias
+        self.drag_accel = drag_accel
         self.t = 0.0  # s, plant time
         self.x, self.y, self.heading, self.speed = start.x, start.y, start.heading, start.speed
         self.steer_angle = 0.0  # rad, actual road-wheel angle
@@ -186,10 +197,18 @@ class KinematicPlant:
             self._advance(h, a_rel)
             self.t += h
 
+    def _with_drag(self, a_rel: float) -> float:
+        """The gear-relative acceleration with the drag added: against the motion, and against
+        the drive-off at rest (a drive request weaker than the drag does not move the car)."""
+        direction = gear_direction(self.gear)
+        if self.drag_accel == 0.0 or direction == 0:
+            return a_rel
+        return a_rel + (self.drag_accel if direction * self.speed >= 0.0 else -self.drag_accel)
+
     def _advance(self, h: float, a_rel: float) -> None:
         v0 = self.speed
-        a, v1, h_move = speed_step(self.gear, a_rel, v0, h)
-        tan_delta = math.tan(self.steer_angle)
+        a, v1, h_move = speed_step(self.gear, self._with_drag(a_rel), v0, h)
+        tan_delta = math.tan(self.steer_angle + self.steer_bias)
         if h_move > 0.0:
             self.x, self.y, self.heading = rk4_pose(
                 self.x, self.y, self.heading, v0, a, tan_delta, self.vehicle.wheelbase, h_move
@@ -208,7 +227,7 @@ class SteerLagPlant(KinematicPlant):
     acceleration lag: the steering dynamics the paper blames for its LGSVL oscillation."""
 
     def __init__(self, vehicle: VehicleConfig, start: Pose, cfg: PlantConfig) -> None:
-        super().__init__(vehicle, start, input_delay=0.0)
+        super().__init__(vehicle, start, 0.0, steer_bias=cfg.steer_bias, drag_accel=cfg.drag_accel)
         self.cfg = cfg
         self._steer_delay = _Delay(cfg.input_delay + cfg.steer_dead_time, 0.0)
         self._accel_delay = _Delay(cfg.input_delay, 0.0)
@@ -289,7 +308,13 @@ def make_plant(cfg: PlantConfig, vehicle: VehicleConfig, start: Pose) -> Kinemat
     if cfg.wheelbase_error:
         vehicle = dataclasses.replace(vehicle, wheelbase=vehicle.wheelbase + cfg.wheelbase_error)
     if cfg.kind == "kinematic":
-        return KinematicPlant(vehicle, start, input_delay=cfg.input_delay)
+        return KinematicPlant(
+            vehicle,
+            start,
+            input_delay=cfg.input_delay,
+            steer_bias=cfg.steer_bias,
+            drag_accel=cfg.drag_accel,
+        )
     if cfg.kind == "steer-lag":
         return SteerLagPlant(vehicle, start, cfg)
     if cfg.kind == "dynamic":
@@ -380,9 +405,9 @@ class DynamicPlant(SteerLagPlant):
 
     def _advance(self, h: float, a_rel: float) -> None:
         v0 = self.speed
-        a, v1, h_move = speed_step(self.gear, a_rel, v0, h)
-        tan_d = math.tan(self.steer_angle)
-        cos_d = math.cos(self.steer_angle)
+        a, v1, h_move = speed_step(self.gear, self._with_drag(a_rel), v0, h)
+        tan_d = math.tan(self.steer_angle + self.steer_bias)
+        cos_d = math.cos(self.steer_angle + self.steer_bias)
         r, vy = self.yaw_rate, self._vy
         if h_move > 0.0:
             state = (self.x, self.y, self.heading, v0, vy, r)

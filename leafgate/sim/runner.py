@@ -12,12 +12,14 @@ paper's Simulink check: the controller drives the plant with nothing in between.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import itertools
 import math
 import re
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import can
@@ -25,8 +27,9 @@ import numpy as np
 
 from leafgate.can.codec import CanCodec, EncodeError
 from leafgate.control import make_controller
+from leafgate.control.reference import MIN_POINTS, split_segments
 from leafgate.errors import ConfigError
-from leafgate.gateway.core import Gateway, GatewayInputs
+from leafgate.gateway.core import END_REACHED, Gateway, GatewayInputs
 from leafgate.messages import (
     GatewayState,
     LongReport,
@@ -35,11 +38,12 @@ from leafgate.messages import (
     Stamped,
     SteerReport,
     SystemReport,
+    Trajectory,
 )
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.config import SimConfig
 from leafgate.sim.ecu import SimulatedEcu
-from leafgate.sim.metrics import path_errors, tracking_metrics
+from leafgate.sim.metrics import Projector, path_errors, tracking_metrics
 from leafgate.sim.plant import STANDSTILL_SPEED, SpeedController, gear_direction, make_plant
 from leafgate.sim.plots import Trace
 from leafgate.sim.realtime import LocalizationFeed
@@ -129,8 +133,18 @@ class _Recorder:
     speed: list[float] = field(default_factory=list)
     steer_actual: list[float] = field(default_factory=list)
     steer_target: list[float] = field(default_factory=list)
+    accel_target: list[float] = field(default_factory=list)
+    state: list[str] = field(default_factory=list)
 
-    def add(self, t: float, pose: Pose, steer_actual: float, steer_target: float) -> None:
+    def add(
+        self,
+        t: float,
+        pose: Pose,
+        steer_actual: float,
+        steer_target: float,
+        accel_target: float,
+        state: str,
+    ) -> None:
         self.t.append(t)
         self.x.append(pose.x)
         self.y.append(pose.y)
@@ -138,9 +152,77 @@ class _Recorder:
         self.speed.append(pose.speed)
         self.steer_actual.append(steer_actual)
         self.steer_target.append(steer_target)
+        self.accel_target.append(accel_target)
+        self.state.append(state)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {k: np.asarray(v, dtype=np.float64) for k, v in self.__dict__.items()}
+        return {
+            k: np.asarray(v, dtype=np.float64) for k, v in self.__dict__.items() if k != "state"
+        }
+
+
+#: ``trace.csv`` columns: name, unit, the recorder's series (SI inside; degrees at this edge).
+TRACE_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("t_s", "t"),
+    ("x_m", "x"),
+    ("y_m", "y"),
+    ("heading_deg", "heading"),
+    ("speed_mps", "speed"),
+    ("steer_cmd_deg", "steer_target"),
+    ("steer_deg", "steer_actual"),
+    ("accel_cmd_mps2", "accel_target"),
+)
+
+
+@dataclass(frozen=True)
+class RollingWindow:
+    """A planner's rolling plan: the next ``length`` of the route, re-sent every ``period``.
+
+    Each plan starts at the waypoint the car last passed (never before the start of the
+    direction segment it drives on) and is a new object with a new receive time, as from a
+    planner over Zenoh.
+    """
+
+    length: float = 30.0  # m
+    period: float = 0.5  # s
+
+    def __post_init__(self) -> None:
+        if not (self.length > 0.0 and self.period > 0.0):
+            raise ConfigError(
+                f"rolling window: length and period must be positive, got {self.length!r} m "
+                f"every {self.period!r} s"
+            )
+
+
+class _Planner:
+    """Cuts the rolling windows out of the whole route, following the car along it."""
+
+    def __init__(self, route: Trajectory, window: RollingWindow) -> None:
+        self.route = route
+        self.window = window
+        self.projector = Projector(route)
+        self.segments = split_segments(route.speed)
+        self.last_sent: float | None = None
+        self.plan: Stamped[Trajectory] | None = None
+
+    def plan_at(self, now: float, pose: Pose) -> Stamped[Trajectory]:
+        """The plan the gateway holds at ``now`` (a new one every period)."""
+        k, _, _, _, _ = self.projector.project(pose.x, pose.y, pose.speed)  # every tick: in order
+        due = self.last_sent is None or now - self.last_sent >= self.window.period - 1e-9
+        if self.plan is not None and not due:
+            return self.plan
+        route, proj = self.route, self.projector
+        seg_start = max(seg.start for seg in self.segments if seg.start <= k)
+        n = len(route)
+        first = min(max(k, seg_start), n - MIN_POINTS)
+        end_s = proj.s[first] + self.window.length
+        last = max(int(np.searchsorted(proj.s, end_s, side="right")), first + MIN_POINTS)
+        cut = slice(first, min(last, n))
+        plan = Trajectory(
+            x=route.x[cut], y=route.y[cut], heading=route.heading[cut], speed=route.speed[cut]
+        )
+        self.plan, self.last_sent = Stamped(plan, now), now
+        return self.plan
 
 
 @dataclass(frozen=True)
@@ -149,6 +231,39 @@ class SimResult:
     metrics: dict[str, Any]
     trace: Trace
     timeline: tuple[tuple[float, str], ...]
+    series: dict[str, np.ndarray] = field(default_factory=dict)  # per control tick, SI
+    states: tuple[str, ...] = ()  # the gateway state at each control tick
+
+    def write_trace_csv(self, path: Path) -> None:
+        """``trace.csv``: one row per control tick (:data:`TRACE_COLUMNS` and the state)."""
+        degrees = {"heading_deg", "steer_cmd_deg", "steer_deg"}
+        with path.open("w", encoding="utf-8", newline="") as f:
+            out = csv.writer(f)
+            out.writerow([name for name, _ in TRACE_COLUMNS] + ["state"])
+            columns = [
+                np.degrees(self.series[key]) if name in degrees else self.series[key]
+                for name, key in TRACE_COLUMNS
+            ]
+            for i, state in enumerate(self.states):
+                out.writerow([f"{col[i]:.6g}" for col in columns] + [state])
+
+
+FINISH_TOLERANCE = 0.5  # m: a run finished only when it ended this close to the route's end
+
+
+def _verdict(metrics: dict[str, Any], claimed: bool, why_not: str) -> tuple[bool, str]:
+    """Did the run finish the maneuver? Checked against the route, not only taken from the
+    gateway: the car must have got along the whole route and stopped on its end."""
+    length, progress = metrics["route_length_m"], metrics["progress_m"]
+    final = metrics["final_position_error_m"]
+    if not claimed:
+        return False, why_not
+    if progress < length - FINISH_TOLERANCE or final > FINISH_TOLERANCE:
+        return False, (
+            f"the gateway reported the end reached, but the car got {progress:.1f} of "
+            f"{length:.1f} m along the route and stopped {final:.2f} m from its end"
+        )
+    return True, ""
 
 
 def _finish(
@@ -159,6 +274,7 @@ def _finish(
     extra: dict[str, Any],
     timeline: list[tuple[float, str]],
     label: str,
+    why_not: str,
 ) -> SimResult:
     arr = rec.arrays()
     traj = scenario.trajectory
@@ -169,6 +285,9 @@ def _finish(
     metrics["solve_time_median_s"] = float(np.median(solve))
     metrics["solve_time_p99_s"] = float(np.percentile(solve, 99))
     metrics.update(extra)
+    metrics["finished"], reason = _verdict(metrics, bool(extra["finished"]), why_not)
+    if reason:
+        metrics["not_finished_reason"] = reason
     speed_ref = path_errors(traj, arr["x"], arr["y"], arr["heading"], arr["speed"]).speed_ref
     trace = Trace(
         label=label or f"{config.controller.kind}, {config.sim.plant.kind} plant",
@@ -180,7 +299,14 @@ def _finish(
         steer_target=arr["steer_target"],
         speed_ref=speed_ref,
     )
-    return SimResult(scenario=scenario, metrics=metrics, trace=trace, timeline=tuple(timeline))
+    return SimResult(
+        scenario=scenario,
+        metrics=metrics,
+        trace=trace,
+        timeline=tuple(timeline),
+        series=arr,
+        states=tuple(rec.state),
+    )
 
 
 def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> SimResult:
@@ -220,7 +346,7 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
             accel_rel = speed_ctl.step(period, abs(out.speed), direction * plant.speed)
         else:
             accel_rel = direction * out.accel
-        rec.add(t, pose, plant.steer_angle, out.steer_angle)
+        rec.add(t, pose, plant.steer_angle, out.steer_angle, accel_rel, "DIRECT")
         if out.finished:
             timeline.append((t, "trajectory end reached, at rest"))
             finished = True
@@ -233,7 +359,10 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
         "wall_time_s": time.perf_counter() - wall0,
         "finished": finished,
     }
-    return _finish(config, scenario, rec, solve_times, extra, timeline, label)
+    why_not = (
+        "" if finished else f"the controller did not reach the end within {scenario.duration:.0f} s"
+    )
+    return _finish(config, scenario, rec, solve_times, extra, timeline, label, why_not)
 
 
 class _Slots:
@@ -259,11 +388,13 @@ def run(
     injections: tuple[Injection, ...] = (),
     engage_at: float = ENGAGE_AT,
     recorder: Recorder | None = None,
+    window: RollingWindow | None = None,
 ) -> SimResult:
     """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate.
 
     :param recorder: records the drive (``leafgate.replay.recorder``): every frame the gateway
         receives and sends, stamped with the simulated time, and every tick's inputs and result
+    :param window: send the route as a planner's rolling window instead of whole, once
     """
     period = config.gateway.period
     ticks_per_control = max(1, round(period / ECU_TICK))
@@ -299,6 +430,8 @@ def run(
     feed = None
     if loc.position_noise > 0 or loc.heading_noise > 0 or loc.latency > 0:
         feed = LocalizationFeed(localized.append, loc, wall_clock=False)
+    planner = None if window is None else _Planner(traj, window)
+    whole_plan = Stamped(traj, 0.0)
 
     slots = _Slots()
     rec = _Recorder()
@@ -377,9 +510,10 @@ def run(
                 last_pose = Stamped(pose, now)
             request = OperatorRequest.ENGAGE if abs(now - engage_at) < ecu_dt / 2 else None
             good, bad = slots.take_counts()
+            plan = whole_plan if planner is None else planner.plan_at(now, plant.pose())
             inputs = GatewayInputs(
                 pose=last_pose,
-                trajectory=Stamped(traj, 0.0),
+                trajectory=plan,
                 steer_report=slots.steer,
                 long_report=slots.long,
                 system_report=slots.system,
@@ -399,20 +533,19 @@ def run(
                 solve_times.append(ctl.solve_time)
                 not_converged += 0 if ctl.converged else 1
                 clips += ctl.clips
-            if gateway.state != last_state:
+            # Every transition of the tick: an engagement may begin and end within one.
+            for tr in diag.transitions:
                 transitions.append(
                     {
                         "t": round(now, 6),
-                        "from": last_state.name,
-                        "to": gateway.state.name,
-                        "reason": diag.reason,
+                        "from": tr.source.name,
+                        "to": tr.target.name,
+                        "reason": tr.reason,
                     }
                 )
-                timeline.append(
-                    (now, f"gateway {last_state.name} → {gateway.state.name}: {diag.reason}")
-                )
-                last_state = gateway.state
-            engaged_once |= gateway.state == GatewayState.ENGAGED
+                timeline.append((now, f"gateway {tr.source.name} → {tr.target.name}: {tr.reason}"))
+                engaged_once |= tr.target == GatewayState.ENGAGED
+            last_state = gateway.state
             # 4. Command frames out, through the codec, to the ECU.
             cmds = result.commands
             steer_target = cmds.steer.angle
@@ -429,7 +562,10 @@ def run(
                 recorder.on_tick(now, inputs, result, sent)
             while (cmd_frame := ecu_bus.recv(timeout=0.0)) is not None:
                 ecu.receive_frame(now, cmd_frame)
-            rec.add(now, plant.pose(), plant.steer_angle, steer_target)
+            accel_target = cmds.long.accel if cmds.long.enable else 0.0
+            rec.add(
+                now, plant.pose(), plant.steer_angle, steer_target, accel_target, gateway.state.name
+            )
             # 5. Done once the gateway has let go and the car has been at rest for a while.
             at_rest = abs(plant.speed) <= STANDSTILL_SPEED
             idle = gateway.state in (GatewayState.STANDBY, GatewayState.FAULT)
@@ -449,9 +585,10 @@ def run(
         "input_clips": clips,
         "duration_s": float(now),
         "wall_time_s": time.perf_counter() - wall0,
-        "finished": engaged_once
-        and gateway.state == GatewayState.STANDBY
-        and not any(tr["to"] in ("FAULT", "STOPPING") for tr in transitions),
+        "finished": False,  # decided below
+        "rolling_window": None
+        if window is None
+        else {"length_m": window.length, "period_s": window.period},
         "final_state": gateway.state.name,
         "transitions": transitions,
         "safety_clamps": clamps,
@@ -460,4 +597,19 @@ def run(
         "can_frames_rejected": frames_rejected,
         "ecu_frames_rejected": ecu.rejected_frames,
     }
-    return _finish(config, scenario, rec, solve_times, extra, timeline, label)
+    why_not = ""
+    ended = [tr for tr in transitions if tr["to"] in ("FAULT", "STOPPING", "STANDBY")]
+    if not engaged_once:
+        why_not = "the gateway never engaged" + (f": {r}" if (r := _refusal(timeline)) else "")
+    elif gateway.state != GatewayState.STANDBY:
+        why_not = f"time limit {scenario.duration:.0f} s reached in {gateway.state.name}"
+    elif ended and (ended[0]["to"] != "STANDBY" or ended[0]["reason"] != END_REACHED):
+        first = ended[0]
+        why_not = f"{first['to']} at t = {first['t']:.2f} s: {first['reason']}"
+    extra["finished"] = not why_not
+    return _finish(config, scenario, rec, solve_times, extra, timeline, label, why_not)
+
+
+def _refusal(timeline: list[tuple[float, str]]) -> str:
+    """The operator engage refusal of a run, if any."""
+    return next((event for _, event in timeline if "engage: refused" in event), "")

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from leafgate.control.reference import split_segments
 from leafgate.messages import FloatArray, Pose, Trajectory
 
 SPACING = 0.5  # m, waypoint spacing (paper: 0.5–1.0 m)
@@ -26,6 +27,18 @@ class Scenario:
     trajectory: Trajectory
     start: Pose
     duration: float  # s, simulated time limit
+    # False: geometry the car cannot follow (a hairpin tighter than its turning circle); it is
+    # driven slowly as well as it can be, or stopped with a reason, never reported as followed
+    feasible: bool = True
+
+
+def time_budget(traj: Trajectory) -> float:
+    """Simulated time limit for driving ``traj``: its planned travel time (at least 0.2 m/s on
+    every interval), ``CUSP_PAUSE`` per cusp and 10 s to spare, s."""
+    gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
+    mean = np.maximum(0.5 * np.abs(traj.speed[1:] + traj.speed[:-1]), 0.2)
+    cusps = len(split_segments(traj.speed)) - 1
+    return float(np.sum(gaps / mean)) + CUSP_PAUSE * max(cusps, 0) + 10.0
 
 
 def _resample_path(
@@ -61,15 +74,15 @@ def _forward(
     path: Callable[[FloatArray], tuple[FloatArray, FloatArray]],
     length: float,
     v_max: float,
+    spacing: float = SPACING,
 ) -> Scenario:
     u = np.linspace(0.0, length, int(length / 0.01) + 1)
     xs, ys = path(u)
-    x, y, heading, s = _resample_path(xs, ys, SPACING)
+    x, y, heading, s = _resample_path(xs, ys, spacing)
     speed = _speed_profile(s, v_max, accel=0.5, decel=0.5)
     traj = Trajectory(x=x, y=y, heading=heading, speed=speed)
     start = Pose(x=float(x[0]), y=float(y[0]), heading=float(heading[0]), speed=0.0)
-    travel_time = float(np.sum(np.diff(s) / np.maximum(0.5 * (speed[1:] + speed[:-1]), 0.2)))
-    return Scenario(name, description, traj, start, duration=travel_time + 10.0)
+    return Scenario(name, description, traj, start, duration=time_budget(traj))
 
 
 def s_curve() -> Scenario:
@@ -184,9 +197,13 @@ def _drive_backward(
 
 
 def _maneuver(
-    name: str, description: str, goal: tuple[float, float, float], moves: tuple[_Move, ...]
+    name: str,
+    description: str,
+    goal: tuple[float, float, float],
+    moves: tuple[_Move, ...],
+    spacing: float = SPACING,
 ) -> Scenario:
-    """Waypoints ≤ SPACING apart on each move (equal spacing within a move), cusps shared.
+    """Waypoints ≤ ``spacing`` apart on each move (equal spacing within a move), cusps shared.
 
     Headings are the vehicle's (also in reverse); speeds are signed, exactly 0 at each cusp and
     at the end; the first waypoint carries the START_SPEED pull in the first move's direction.
@@ -195,18 +212,15 @@ def _maneuver(
     ys: list[FloatArray] = []
     hs: list[FloatArray] = []
     vs: list[FloatArray] = []
-    travel_time = 0.0
     for m, (move, pts) in enumerate(zip(moves, _drive_backward(goal, moves), strict=True)):
         s_dense = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(pts[:, :2], axis=0).T))))
         length = float(s_dense[-1])
-        n = max(1, math.ceil(length / SPACING - 1e-9))
+        n = max(1, math.ceil(length / spacing - 1e-9))
         s = np.linspace(0.0, length, n + 1)
         up = np.sqrt(START_SPEED**2 + 2.0 * PARK_ACCEL * s)
         down = np.sqrt(np.maximum(0.0, 2.0 * PARK_ACCEL * (length - s)))
         speed = np.minimum(np.minimum(up, down), move.v_max)
         speed[-1] = 0.0  # a cusp or the goal: exactly at rest
-        mean = np.maximum(0.5 * (speed[1:] + speed[:-1]), 0.2)
-        travel_time += float(np.sum(np.diff(s) / mean))
         first = 0 if m == 0 else 1  # the cusp waypoint already ends the previous move
         xs.append(np.interp(s, s_dense, pts[:, 0])[first:])
         ys.append(np.interp(s, s_dense, pts[:, 1])[first:])
@@ -219,8 +233,7 @@ def _maneuver(
         speed=np.concatenate(vs),
     )
     start = Pose(x=float(traj.x[0]), y=float(traj.y[0]), heading=float(traj.heading[0]), speed=0.0)
-    duration = travel_time + CUSP_PAUSE * (len(moves) - 1) + 10.0
-    return Scenario(name, description, traj, start, duration=duration)
+    return Scenario(name, description, traj, start, duration=time_budget(traj))
 
 
 #: Obstacles of the parking scenarios (for plots and the clearance test), m.
@@ -324,12 +337,178 @@ def perpendicular_park() -> Scenario:
     )
 
 
+# --- the route library: routes a planner sends that the maneuvers above do not contain -----------
+
+ROUTE_CURVATURE = 1.0 / 6.0  # 1/m, R = 6 m: a tight hairpin the car can still drive (δ ≈ 24°)
+ROUTE_RAMP = 4.0  # m, curvature ramp (clothoid) into and out of a turn
+
+
+def _turn(angle: float, k: float = ROUTE_CURVATURE, ramp: float = ROUTE_RAMP) -> tuple[_Piece, ...]:
+    """A turn by ``angle`` (rad, left positive) at curvature ``k``, entered and left on ramps."""
+    k = math.copysign(k, angle)
+    arc = abs(angle) / abs(k) - ramp  # the two ramps turn by k·ramp/2 each
+    if arc < 0.0:
+        raise ValueError(f"a turn of {math.degrees(angle):.0f}° is too short for its ramps")
+    return (_Piece(ramp, 0.0, k), _Piece(arc, k, k), _Piece(ramp, k, 0.0))
+
+
+def _line(length: float) -> _Piece:
+    return _Piece(length, 0.0, 0.0)
+
+
+def _at_origin(sc: Scenario) -> Scenario:
+    """The scenario moved so that its first waypoint lies at (0, 0) heading along +x."""
+    t = sc.trajectory
+    x0, y0, h0 = float(t.x[0]), float(t.y[0]), float(t.heading[0])
+    c, s_ = math.cos(-h0), math.sin(-h0)
+    dx, dy = t.x - x0, t.y - y0
+    traj = Trajectory(
+        x=c * dx - s_ * dy + 0.0, y=s_ * dx + c * dy + 0.0, heading=t.heading - h0, speed=t.speed
+    )
+    start = Pose(x=0.0, y=0.0, heading=0.0, speed=0.0)
+    return Scenario(sc.name, sc.description, traj, start, sc.duration, sc.feasible)
+
+
+def switch_back() -> Scenario:
+    """About 110 m forward through a tight hairpin and a corner, a cusp, then 60 m in reverse.
+
+    Forward: 25 m straight, a 180° hairpin (R = 6 m between 4 m clothoids), 25 m back, a 90°
+    left corner (R = 8 m), 20 m straight: 109 m. Reverse: a 90° arc (R = 10 m) and 40 m
+    straight: 60 m. Issue 13: this reported ``finished`` on the second tick.
+    """
+    moves = (
+        _Move(
+            +1,
+            (_line(25.0), *_turn(math.pi), _line(25.0), *_turn(0.5 * math.pi, 1 / 8), _line(20.0)),
+            2.0,
+        ),
+        _Move(-1, (*_turn(0.5 * math.pi, 1 / 10), _line(40.0)), 1.5),
+    )
+    sc = _maneuver(
+        "switch-back",
+        "109 m forward through a hairpin, a cusp, 60 m in reverse",
+        (0.0, 0.0, 0.0),
+        moves,
+    )
+    return _at_origin(sc)
+
+
+def figure_eight() -> Scenario:
+    """A lemniscate of Bernoulli (a = 20 m, 105 m, R ≥ 6.7 m) that crosses itself and ends on
+    its start, waypoints 1.0 m apart (issue 13: stopped after 21 of 199 m)."""
+    a = 20.0
+
+    def path(u: FloatArray) -> tuple[FloatArray, FloatArray]:
+        t = 0.5 * math.pi - 2.0 * math.pi * u / u[-1]  # from the crossing, first lobe to the left
+        d = 1.0 + np.sin(t) ** 2
+        return a * np.cos(t) / d, a * np.sin(t) * np.cos(t) / d
+
+    sc = _forward(
+        "figure-eight",
+        "a figure-eight crossing itself, ending on its start",
+        path,
+        110.0,
+        2.0,
+        spacing=1.0,
+    )
+    return _at_origin(sc)
+
+
+def closed_loop() -> Scenario:
+    """A stadium: 20 m straights and two 180° turns (R = 7 m), 92 m; the end is the start."""
+    turn = _turn(math.pi, 1 / 7)
+    moves = (_Move(+1, (_line(10.0), *turn, _line(20.0), *turn, _line(10.0)), 2.0),)
+    sc = _maneuver(
+        "closed-loop", "a closed loop (stadium, 92 m), ending on its start", (0.0, 0.0, 0.0), moves
+    )
+    return _at_origin(sc)
+
+
+def u_turn() -> Scenario:
+    """20 m out, a 180° turn (R = 6 m), 15 m back: the end lies 5 m short of the start, in the
+    other lane (issue 13: reported ``finished`` on the first tick)."""
+    moves = (_Move(+1, (_line(20.0), *_turn(math.pi), _line(15.0)), 2.0),)
+    sc = _maneuver("u-turn", "a U-turn ending 5 m short of its start", (0.0, 0.0, 0.0), moves)
+    return _at_origin(sc)
+
+
+def corner() -> Scenario:
+    """10 m straight, a 90° left corner of 5 m radius (no clothoid: δ steps to 28.4°), 10 m
+    straight, at 1 m/s."""
+    moves = (_Move(+1, (_line(10.0), _Piece(0.5 * math.pi * 5.0, 0.2, 0.2), _line(10.0)), 1.0),)
+    sc = _maneuver("corner", "a 90° corner of 5 m radius at 1 m/s", (0.0, 0.0, 0.0), moves)
+    return _at_origin(sc)
+
+
+def cusp_retrace() -> Scenario:
+    """15 m forward with a 30° bend, a cusp, and the same waypoints back in reverse, exactly
+    (issue 13: the car stalled 3 m into the reverse leg and stayed ENGAGED)."""
+    moves = (_Move(+1, (_line(6.0), *_turn(math.radians(30.0), 1 / 8), _line(3.0)), 1.0),)
+    fwd = _maneuver("cusp-retrace", "", (0.0, 0.0, 0.0), moves).trajectory
+    back = slice(-2, None, -1)  # the cusp waypoint is shared
+    speed = np.concatenate((fwd.speed, -fwd.speed[back] + 0.0))
+    speed[-1] = 0.0  # at rest on the goal (the forward leg's start carries its pull-away speed)
+    traj = Trajectory(
+        x=np.concatenate((fwd.x, fwd.x[back])),
+        y=np.concatenate((fwd.y, fwd.y[back])),
+        heading=np.concatenate((fwd.heading, fwd.heading[back])),
+        speed=speed,
+    )
+    start = Pose(x=float(traj.x[0]), y=float(traj.y[0]), heading=float(traj.heading[0]), speed=0.0)
+    sc = Scenario(
+        "cusp-retrace",
+        "a cusp whose reverse leg retraces the forward leg exactly",
+        traj,
+        start,
+        time_budget(traj),
+    )
+    return _at_origin(sc)
+
+
+def tight_hairpin() -> Scenario:
+    """The infeasible case: a 180° hairpin of R = 3 m (δ ≈ 42°, beyond the Leaf's 31°) at
+    1 m/s. The car must not sprint through it nor report it finished before its end."""
+    moves = (_Move(+1, (_line(10.0), _Piece(math.pi * 3.0, 1 / 3, 1 / 3), _line(10.0)), 1.0),)
+    sc = _maneuver(
+        "tight-hairpin",
+        "a hairpin tighter than the car can turn (infeasible)",
+        (0.0, 0.0, 0.0),
+        moves,
+    )
+    sc = _at_origin(sc)
+    return Scenario(sc.name, sc.description, sc.trajectory, sc.start, sc.duration, feasible=False)
+
+
+def file_scenario(path: str, start: Pose | None = None) -> Scenario:
+    """A user's route from a trajectory file (:func:`~leafgate.control.reference.load_trajectory`).
+
+    :param start: the start pose; None starts at rest on the first waypoint
+    :raises TrajectoryError: naming the file, the row and the problem
+    """
+    from leafgate.control.reference import load_trajectory
+
+    traj = load_trajectory(path)
+    if start is None:
+        start = Pose(
+            x=float(traj.x[0]), y=float(traj.y[0]), heading=float(traj.heading[0]), speed=0.0
+        )
+    return Scenario(str(path), f"trajectory file {path}", traj, start, time_budget(traj))
+
+
 SCENARIOS: dict[str, Callable[[], Scenario]] = {
     "s-curve": s_curve,
     "straight": straight,
     "slalom": slalom,
     "parallel-park": parallel_park,
     "perpendicular-park": perpendicular_park,
+    # the route library (issue 13)
+    "switch-back": switch_back,
+    "figure-eight": figure_eight,
+    "closed-loop": closed_loop,
+    "u-turn": u_turn,
+    "corner": corner,
+    "cusp-retrace": cusp_retrace,
+    "tight-hairpin": tight_hairpin,
 }
 
 

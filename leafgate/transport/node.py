@@ -25,6 +25,7 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 import zenoh
 
+from leafgate.control.reference import trajectory_problem
 from leafgate.errors import TransportError
 from leafgate.messages import (
     Gear,
@@ -125,18 +126,9 @@ def pose_is_valid(pose: Pose) -> bool:
 
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
-    """A decoded trajectory is usable when it has points and all of them are finite.
-
-    Spacing and shape are checked by the controller's reference code, not here.
-    """
-    if len(trajectory) == 0:
-        return False
-    return bool(
-        np.isfinite(trajectory.x).all()
-        and np.isfinite(trajectory.y).all()
-        and np.isfinite(trajectory.heading).all()
-        and np.isfinite(trajectory.speed).all()
-    )
+    """A decoded trajectory is usable by the controller's one rule (:func:`~leafgate.control.
+    reference.trajectory_problem`): finite, four or more waypoints once overlaps are removed."""
+    return trajectory_problem(trajectory) is None
 
 
 def to_jsonable(value: Any) -> Any:
