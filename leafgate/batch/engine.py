@@ -25,7 +25,7 @@ from leafgate.errors import LeafgateError
 __all__ = ["BatchError", "EngineRun", "run_plain", "run_tasks"]
 
 POLL_S = 0.5  # s between looks at the futures (progress, timeouts)
-CONNECT_TIMEOUT_S = 20.0  # s to reach an existing scheduler
+CONNECT_TIMEOUT_S = 10.0  # s to reach an existing scheduler
 
 
 class BatchError(LeafgateError):
