@@ -158,6 +158,25 @@ def _ordered(row: dict[str, Any]) -> dict[str, Any]:
     return {**first, **{k: v for k, v in row.items() if k not in first}}
 
 
+def _per_file(
+    args: argparse.Namespace,
+    fn: Any,
+    files: list[Path],
+    extra: tuple[Any, ...],
+    what: str,
+) -> tuple[EngineRun, list[dict[str, Any]]]:
+    """``fn(path, *extra)`` for every file, one task each; rows in file order."""
+    run = run_tasks(
+        fn,
+        {str(f): (str(f), *extra) for f in files},
+        scheduler=args.scheduler,
+        workers=args.workers,
+        timeout=args.timeout,
+        what=what,
+    )
+    return run, [{"path": str(f), **run.rows[str(f)]} for f in files]
+
+
 def cmd_batch_check(args: argparse.Namespace) -> int:
     from leafgate.batch.tasks import check_case
     from leafgate.replay.logs import READABLE_SUFFIXES
@@ -169,15 +188,7 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
         from leafgate.settings import load_config
 
         load_config(config)  # a bad config is one error, not one per log
-    run = run_tasks(
-        check_case,
-        {str(f): (str(f), config, args.gap_periods) for f in files},
-        scheduler=args.scheduler,
-        workers=args.workers,
-        timeout=args.timeout,
-        what="logs",
-    )
-    rows = [{"path": str(f), **run.rows[str(f)]} for f in files]
+    run, rows = _per_file(args, check_case, files, (config, args.gap_periods), "logs")
     bad = 0
     for r in rows:
         if r["status"] != "ok":
@@ -203,15 +214,7 @@ def cmd_batch_rerun(args: argparse.Namespace) -> int:
     overrides = parse_overrides(args.set)
     files = _files(args.dir, (".mcap",))
     out = make_out_dir(args.out)
-    run = run_tasks(
-        rerun_case,
-        {str(f): (str(f), overrides) for f in files},
-        scheduler=args.scheduler,
-        workers=args.workers,
-        timeout=args.timeout,
-        what="sessions",
-    )
-    rows = [{"path": str(f), **run.rows[str(f)]} for f in files]
+    run, rows = _per_file(args, rerun_case, files, (overrides,), "sessions")
     differing = 0
     for r in rows:
         if r["status"] != "ok":
