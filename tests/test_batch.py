@@ -363,3 +363,40 @@ def test_batch_rerun_reproduces_and_shows_where_a_change_diverges(
     assert curved["first_divergence_s"] > 0.0
     assert "steer.angle" in curved["diverging_signals"]
     assert "DIVERGED at" in out
+
+
+# --- results ------------------------------------------------------------------------------------
+
+
+def test_results_are_csv_without_pyarrow(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from leafgate.batch.results import write_table
+
+    rows = [
+        {"case_id": "0000", "status": "ok", "lateral_error_max_m": 0.25, "transitions": [{"t": 1}]},
+        {"case_id": "0001", "status": "failed", "error": "boom"},
+    ]
+    monkeypatch.setitem(__import__("sys").modules, "pyarrow", None)  # import pyarrow fails
+    path = write_table(rows, tmp_path)
+    assert path.name == "results.csv"
+    back = read_table(path)
+    assert [r["case_id"] for r in back] == ["0000", "0001"]
+    assert back[0]["lateral_error_max_m"] == "0.25" and back[1]["error"] == "boom"
+    assert json.loads(back[0]["transitions"]) == [{"t": 1}]
+
+
+def test_thresholds_bound_numbers_require_flags_and_count_failures() -> None:
+    from leafgate.batch.engine import BatchError
+    from leafgate.batch.results import crossings
+
+    rows = [
+        {"case_id": "a", "status": "ok", "lateral_error_max_m": 0.2, "finished": True},
+        {"case_id": "b", "status": "ok", "lateral_error_max_m": 0.7, "finished": True},
+        {"case_id": "c", "status": "ok", "lateral_error_max_m": 0.1, "finished": False},
+        {"case_id": "d", "status": "failed", "error": "timed out after 3 s"},
+        {"case_id": "e", "status": "ok", "lateral_error_max_m": float("nan"), "finished": True},
+    ]
+    lines = crossings(rows, {"lateral_error_max_m": 0.5, "finished": True}, "s.yaml")
+    assert [line.split(":")[0] for line in lines] == ["case b", "case c", "case d", "case e"]
+    assert "timed out" in lines[2]
+    with pytest.raises(BatchError, match=r"s.yaml: thresholds.lateral_eror: no such metric"):
+        crossings(rows, {"lateral_eror": 0.5}, "s.yaml")
