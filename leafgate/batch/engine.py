@@ -10,7 +10,6 @@ The local cluster runs worker *processes* with one thread each: the controllers 
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import sys
@@ -159,21 +158,28 @@ def _submit_and_wait(
     what: str,
     run: EngineRun,
 ) -> None:
-    from distributed import wait
+    from distributed import as_completed
 
+    if not tasks:
+        return
     token = uuid.uuid4().hex[:8]  # keys stay unique when batches share a cluster
-    pending = {
-        client.submit(fn, *args, key=f"leafgate-{token}-{key}", pure=False): key
-        for key, args in tasks.items()
-    }
+    names = list(tasks)
+    columns = list(zip(*tasks.values(), strict=True)) if tasks else []
+    futures = client.map(
+        fn, *columns, key=[f"leafgate-{token}-{name}" for name in names], pure=False
+    )
+    pending = dict(zip(futures, names, strict=True))
     bar = Progress(progress if progress is not None else sys.stderr, len(pending), what)
     started: dict[str, float] = {}  # dask key → when first seen on a worker
+    done = as_completed(futures)
+    next_look = time.monotonic() + POLL_S
     try:
         while pending:
-            with contextlib.suppress(TimeoutError):  # a look at progress and timeouts
-                wait(list(pending), timeout=POLL_S, return_when="FIRST_COMPLETED")
-            for future in [f for f in pending if f.done()]:
-                key = pending.pop(future)
+            batch = done.next_batch(block=False) if done.has_ready() else []
+            for future in batch:
+                key = pending.pop(future, None)
+                if key is None:  # timed out before, cancelled since
+                    continue
                 if future.status == "finished":
                     row = future.result()
                 else:
@@ -183,9 +189,13 @@ def _submit_and_wait(
                     )
                 run.rows[key] = row
                 bar.add(row)
-            if timeout is not None and pending:
-                _time_out(client, pending, started, timeout, run, bar)
-            bar.draw()
+            if not batch:
+                time.sleep(0.05)
+            if time.monotonic() >= next_look:  # a look at timeouts, and the bar's clock
+                if timeout is not None and pending:
+                    _time_out(client, pending, started, timeout, run, bar)
+                bar.draw()
+                next_look = time.monotonic() + POLL_S
     finally:
         bar.close()
 

@@ -242,7 +242,6 @@ def load_sweep(path: str | Path) -> Sweep:
 def _check_keys(sweep: Sweep) -> None:
     """Every setting and disturbance key is a config key taking the values given, checked as
     ``leafgate sim --set`` checks them."""
-    base = load_config(sweep.config)
     sections: list[tuple[str, dict[str, Any]]] = [("set", sweep.settings)]
     for end in (0, 1):
         sections.append(
@@ -254,7 +253,8 @@ def _check_keys(sweep: Sweep) -> None:
                 load_config(sweep.config, parse_overrides([f"{key}={_value_text(value)}"]))
             except ConfigError as exc:
                 raise ConfigError(f"{sweep.path}: {section}: {exc}") from None
-    _check_envelope(sweep, base)
+    settings = parse_overrides(f"{k}={_value_text(v)}" for k, v in sweep.settings.items())
+    _check_envelope(sweep, load_config(sweep.config, settings))
 
 
 def _check_envelope(sweep: Sweep, base: LeafgateConfig) -> None:
