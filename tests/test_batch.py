@@ -400,3 +400,22 @@ def test_thresholds_bound_numbers_require_flags_and_count_failures() -> None:
     assert "timed out" in lines[2]
     with pytest.raises(BatchError, match=r"s.yaml: thresholds.lateral_eror: no such metric"):
         crossings(rows, {"lateral_eror": 0.5}, "s.yaml")
+
+
+def test_progress_bar_only_on_a_terminal() -> None:
+    import io
+
+    from leafgate.batch.engine import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    tty, pipe = Tty(), io.StringIO()
+    for stream in (tty, pipe):
+        bar = Progress(stream, 4, "cases")
+        bar.add({"status": "ok"})
+        bar.add({"status": "failed"})
+        bar.close()
+    assert "2/4 cases, 1 failed" in tty.getvalue()
+    assert pipe.getvalue() == ""
