@@ -30,11 +30,11 @@ from leafgate.batch.sweep import expand, load_sweep
 from leafgate.batch.tasks import sim_case
 from leafgate.sim.runner import WALL_CLOCK_METRICS
 
-ROUTE_POINTS = 7  # waypoints 0.5 m apart: a 3 m route
+ROUTE_POINTS = 4  # waypoints 0.5 m apart: a 1.5 m route (about 8 s of simulated driving)
 
 
 def write_route(path: Path) -> None:
-    """A gentle 3 m curve from rest to rest (x, y, heading, speed)."""
+    """A gentle 1.5 m curve from rest to rest (x, y, heading, speed)."""
     rows = ["x,y,heading,speed"]
     last = ROUTE_POINTS - 1
     for i in range(ROUTE_POINTS):
@@ -73,6 +73,11 @@ def numbers(run: EngineRun) -> dict[str, dict[str, Any]]:
     return {k: {m: v for m, v in row.items() if m not in skip} for k, row in run.rows.items()}
 
 
+def _done(name: str, run: EngineRun) -> None:
+    """Each run's wall time as soon as it is known (stderr), in case a later one is cut short."""
+    print(f"  {name}: {run.wall_s:.1f} s, load average {os.getloadavg()}", file=sys.stderr)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=int, default=1000, help="cases (a multiple of 4)")
@@ -85,18 +90,20 @@ def main() -> int:
         tasks = {c.case_id: (list(c.argv),) for c in cases}
         out: dict[str, Any] = {
             "cases": len(cases),
-            "route": "3 m curve from a trajectory file",
+            "route": "1.5 m curve from a trajectory file",
             "cpu_count": os.cpu_count(),
             "load_average_before": os.getloadavg(),
             "runs": {},
         }
         runs: dict[str, EngineRun] = {}
+        for n in sorted(workers, reverse=True):
+            print(f"local cluster, {n} workers: {len(cases)} cases …", file=sys.stderr)
+            runs[f"dask-{n}"] = run_tasks(sim_case, tasks, workers=n)
+            _done(f"dask-{n}", runs[f"dask-{n}"])
         if not args.no_plain:
             print(f"plain loop: {len(cases)} cases …", file=sys.stderr)
             runs["plain"] = run_plain(sim_case, tasks)
-        for n in workers:
-            print(f"local cluster, {n} workers: {len(cases)} cases …", file=sys.stderr)
-            runs[f"dask-{n}"] = run_tasks(sim_case, tasks, workers=n)
+            _done("plain", runs["plain"])
         out["load_average_after"] = os.getloadavg()
     for name, run in runs.items():
         failed = sum(1 for r in run.rows.values() if r.get("status") != "ok")
