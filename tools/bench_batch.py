@@ -1,10 +1,10 @@
 """Benchmark of ``leafgate batch sim``: the same short cases in a plain loop and on Dask.
 
-Builds a sweep of ``--cases`` seeded cases on a short generated route (a 3 m curve: a few
-seconds of simulated driving each), then runs them
+Builds a sweep of ``--cases`` seeded cases on a short generated route (a 1.5 m curve:
+about 8 s of simulated driving each), then runs them
 
-1. in a plain loop in this process (the same task function, no Dask): the per-case cost;
-2. on a local Dask cluster with each worker count of ``--workers`` (default 1 and 2).
+1. on a local Dask cluster with each worker count of ``--workers`` (default 2, then 1);
+2. in a plain loop in this process (the same task function, no Dask): the per-case cost.
 
 Prints JSON: wall times, per-case cost, the engine's per-case overhead and its ratio to the
 plain loop (1 worker), speed-up and efficiency (speed-up ÷ workers, against the 1-worker run),
