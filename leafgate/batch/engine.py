@@ -115,36 +115,32 @@ def run_tasks(
     run = EngineRun()
     t0 = time.perf_counter()
     logging.getLogger("distributed").setLevel(logging.WARNING)  # not every start and stop
-    try:
-        if scheduler is None:
-            n = max(1, workers or os.cpu_count() or 1)
-            with (
-                LocalCluster(
-                    n_workers=n,
-                    threads_per_worker=1,
-                    processes=True,
-                    host="127.0.0.1",
-                    dashboard_address=None,
-                    silence_logs=logging.ERROR,
-                ) as cluster,
-                Client(cluster) as client,
-            ):
-                run.workers, run.scheduler = n, f"local cluster ({n} worker processes)"
-                _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
-        else:
-            try:
-                client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
-            except (OSError, TimeoutError, ValueError) as exc:
-                reason = " ".join(str(exc).split()) or type(exc).__name__
-                raise BatchError(f"--scheduler {scheduler}: cannot connect: {reason}") from None
-            with client:
-                run.workers = len(client.scheduler_info().get("workers", {}))
-                run.scheduler = scheduler
-                _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
-    except BatchError:
-        raise
-    except OSError as exc:  # the local cluster could not start (ports, processes)
-        raise BatchError(f"the local Dask cluster did not start: {exc}") from None
+    if scheduler is None:
+        n = max(1, workers or os.cpu_count() or 1)
+        try:
+            cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,  # no dashboard; its health endpoint: 8787, else free
+                silence_logs=logging.ERROR,
+            )
+        except (OSError, RuntimeError) as exc:  # ports, processes
+            raise BatchError(f"the local Dask cluster did not start: {exc}") from None
+        with cluster, Client(cluster) as client:
+            run.workers, run.scheduler = n, f"local cluster ({n} worker processes)"
+            _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
+    else:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError, ValueError) as exc:
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            raise BatchError(f"--scheduler {scheduler}: cannot connect: {reason}") from None
+        with client:
+            run.workers = len(client.scheduler_info().get("workers", {}))
+            run.scheduler = scheduler
+            _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
     run.wall_s = time.perf_counter() - t0
     return run
 
