@@ -122,6 +122,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
         "controller.mpc.solver": args.solver,
         "controller.mpc.mode": args.mode,
         "sim.plant.kind": args.plant,
+        # the seeded disturbances' random processes (a batch case's --seed)
+        "sim.localization.seed": args.seed,
     }
     if args.controller:  # the names `compare` uses: mpc-steer is the MPC with the lag model
         from leafgate.sim.compare import CONTROLLERS
@@ -628,6 +630,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument(
+        "--seed",
+        type=int,
+        help="seed of the simulated disturbances (localization noise): `leafgate batch sim` "
+        "prints each case's --seed and --set so it can be run alone",
+    )
+    p.add_argument(
         "--inject",
         action="append",
         default=[],
@@ -719,6 +727,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_arguments(p)
     p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser(
+        "batch", help="simulation sweeps, log checks and session re-runs on Dask (many inputs)"
+    )
+    from leafgate.batch.cli import add_arguments as add_batch_arguments
+    from leafgate.batch.cli import cmd_batch
+
+    add_batch_arguments(p)
+    p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("replay", help="check, play back, re-run and plot recorded drives")
     rsub = p.add_subparsers(dest="replay_command", metavar="ACTION", required=True)

@@ -29,7 +29,16 @@ from leafgate.errors import ConfigError, ReplayError
 from leafgate.replay.session import TOPIC_CAN, SessionReader, frame_from_record
 from leafgate.settings import LeafgateConfig, load_config, with_profile
 
-__all__ = ["FrameSource", "RecordingContext", "is_session", "recording_context"]
+__all__ = [
+    "READABLE_SUFFIXES",
+    "FrameSource",
+    "RecordingContext",
+    "is_session",
+    "recording_context",
+]
+
+#: File suffixes :class:`FrameSource` reads (python-can's logs and leafgate sessions).
+READABLE_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4", ".mcap")
 
 # ASC stores times relative to a start written with ms resolution; absolute times keep the
 # formats comparable (to ±1 ms for ASC).
@@ -141,7 +150,7 @@ class FrameSource:
             reason = " ".join((str(exc) or type(exc).__name__).split())
             if self.frames == 0 and "unknown log format" in reason:
                 raise ReplayError(
-                    f"{self.path}: {reason} (readable: .log, .asc, .blf, .trc, .csv, .mf4, .mcap)"
+                    f"{self.path}: {reason} (readable: {', '.join(READABLE_SUFFIXES)})"
                 ) from None
             raise ReplayError(
                 f"{self.path}: unreadable after {self.frames} frames: {reason}"

@@ -17,6 +17,8 @@ class PlantConfig:
     steer_dead_time: float = 0.1  # s
     steer_rate_max: float = 0.6  # rad/s, road-wheel angle rate limit of the actuator
     accel_tau: float = 0.2  # s, first-order lag on acceleration
+    # m, the plant's wheelbase minus vehicle.wheelbase: a model error the controller does not know
+    wheelbase_error: float = 0.0
     # Dynamic plant only: below blend_speed_low the lateral motion is the kinematic bicycle's,
     # above blend_speed_high the linear-tyre model's, linearly blended between (well-posed at rest).
     blend_speed_low: float = 0.5  # m/s
@@ -121,3 +123,7 @@ class SimConfig:
     plant: PlantConfig = field(default_factory=PlantConfig)
     ecu: EcuConfig = field(default_factory=EcuConfig)
     localization: LocalizationConfig = field(default_factory=LocalizationConfig)
+    # The plant starts this far off the route's first waypoint (batch runs draw these within the
+    # gateway's engage envelope): m to the left of its heading, and rad.
+    start_lateral_offset: float = 0.0
+    start_heading_offset: float = 0.0

@@ -14,6 +14,7 @@ In P, N or no gear the car brakes (P) or rolls (N) to rest.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 
@@ -289,7 +290,9 @@ class SpeedController:
 
 
 def make_plant(cfg: PlantConfig, vehicle: VehicleConfig, start: Pose) -> KinematicPlant:
-    """Build the plant named by ``cfg.kind``."""
+    """Build the plant named by ``cfg.kind`` (with ``cfg.wheelbase_error`` on its wheelbase)."""
+    if cfg.wheelbase_error:
+        vehicle = dataclasses.replace(vehicle, wheelbase=vehicle.wheelbase + cfg.wheelbase_error)
     if cfg.kind == "kinematic":
         return KinematicPlant(
             vehicle,

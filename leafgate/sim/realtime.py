@@ -227,6 +227,8 @@ class LocalizationFeed:
     ``on_tick`` is called by the ECU loop at its 1 kHz tick; it keeps a short history so the pose
     published is the one ``latency`` seconds old.
 
+    :param wall_clock: stamp samples with the wall clock (a live run); False stamps them with
+        the simulated ``now`` of :meth:`on_tick` (the simulated-clock loop)
     :param faults: asked each sample for the :data:`LOCALIZATION_FAULTS` that act now:
         ``localization-stop`` publishes nothing, ``localization-jump`` offsets the position
         (``lateral`` to the left of the heading, ``longitudinal`` ahead, m),
@@ -235,9 +237,15 @@ class LocalizationFeed:
     """
 
     def __init__(
-        self, publish: Any, cfg: LocalizationConfig, faults: FaultLookup | None = None
+        self,
+        publish: Any,
+        cfg: LocalizationConfig,
+        faults: FaultLookup | None = None,
+        *,
+        wall_clock: bool = True,
     ) -> None:
         self._publish = publish  # callable(Pose)
+        self._wall_clock = wall_clock  # stamps from time.time(), else from the tick's ``now``
         self.cfg = cfg
         self.period = 1.0 / cfg.rate_hz
         self._next = 0.0
@@ -266,7 +274,8 @@ class LocalizationFeed:
             pose = dataclasses.replace(
                 pose, x=pose.x + nx, y=pose.y + ny, heading=pose.heading + nh
             )
-        pose = dataclasses.replace(pose, stamp=time.time() - self.cfg.latency)
+        stamp = (time.time() if self._wall_clock else now) - self.cfg.latency
+        pose = dataclasses.replace(pose, stamp=stamp)
         faults = self._faults
         if faults is not None:
             if faults(now, "localization-stop") is not None:

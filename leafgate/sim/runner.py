@@ -13,7 +13,9 @@ paper's Simulink check: the controller drives the plant with nothing in between.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import itertools
+import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -39,11 +41,13 @@ from leafgate.messages import (
     Trajectory,
 )
 from leafgate.settings import LeafgateConfig
+from leafgate.sim.config import SimConfig
 from leafgate.sim.ecu import SimulatedEcu
 from leafgate.sim.metrics import Projector, path_errors, tracking_metrics
 from leafgate.sim.names import TO_SIM
 from leafgate.sim.plant import STANDSTILL_SPEED, SpeedController, gear_direction, make_plant
 from leafgate.sim.plots import Trace
+from leafgate.sim.realtime import LocalizationFeed
 from leafgate.sim.scenarios import Scenario
 
 if TYPE_CHECKING:  # recording is optional: leafgate.replay is imported only by its callers
@@ -69,6 +73,23 @@ ECU_INJECTIONS = {
     "actuator-fault": ("actuator-fault", {}, None),
 }
 INJECTION_KINDS = sorted(GATEWAY_INJECTIONS | set(ECU_INJECTIONS))
+#: Metrics measured on the wall clock: they differ between runs of the same drive.
+WALL_CLOCK_METRICS = frozenset({"wall_time_s", "solve_time_median_s", "solve_time_p99_s"})
+
+
+def start_pose(scenario: Scenario, sim: SimConfig) -> Pose:
+    """The plant's start: the scenario's, moved by ``sim.start_lateral_offset`` (left of its
+    heading) and turned by ``sim.start_heading_offset``."""
+    start = scenario.start
+    if not (sim.start_lateral_offset or sim.start_heading_offset):
+        return start
+    left = sim.start_lateral_offset
+    return dataclasses.replace(
+        start,
+        x=start.x - left * math.sin(start.heading),
+        y=start.y + left * math.cos(start.heading),
+        heading=start.heading + sim.start_heading_offset,
+    )
 
 
 def default_model(plant: str) -> Literal["kinematic", "kinematic_steer_lag"]:
@@ -300,7 +321,7 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
     period = config.gateway.period
     traj = scenario.trajectory
     controller = make_controller(config.controller, config.vehicle, period)
-    plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
+    plant = make_plant(config.sim.plant, config.vehicle, start_pose(scenario, config.sim))
     velocity_mode = config.controller.mpc.mode == "velocity"
     speed_ctl = SpeedController(min_accel=-3.0, max_accel=config.vehicle.max_accel)
     rec = _Recorder()
@@ -390,7 +411,7 @@ def run(
     if recorder is not None:  # recording: a transparent wrapper lets it see the predicted path
         controller = recorder.wrap_controller(controller)
     gateway = Gateway(config.gateway, config.vehicle, controller, config.long_mode)
-    plant = make_plant(config.sim.plant, config.vehicle, scenario.start)
+    plant = make_plant(config.sim.plant, config.vehicle, start_pose(scenario, config.sim))
     ecu = SimulatedEcu(config.sim.ecu, plant, config.vehicle, CanCodec.for_config(config))
     ecu.set_driver_path(traj)  # lateral-only vehicles: the driver holds the planned speed
     gw_codec = CanCodec.for_config(config)
@@ -409,6 +430,13 @@ def run(
             ecu_kind, kwargs, default_duration = ECU_INJECTIONS[inj.kind]
             ecu.inject(ecu_kind, at=inj.at, duration=inj.duration or default_duration, **kwargs)
     gw_injections = [i for i in injections if i.kind in GATEWAY_INJECTIONS]
+    # Localization with noise or latency (sim.localization; the seed makes it repeatable): the
+    # same feed as sim-ecu's, on the simulated clock; without either, the plant's pose each tick.
+    loc = config.sim.localization
+    localized: list[Pose] = []  # samples the feed published since the last control tick
+    feed = None
+    if loc.position_noise > 0 or loc.heading_noise > 0 or loc.latency > 0:
+        feed = LocalizationFeed(localized.append, loc, wall_clock=False)
     planner = None if window is None else _Planner(traj, window)
     whole_plan = Stamped(traj, 0.0)
 
@@ -436,6 +464,8 @@ def run(
             now = k * ecu_dt
             # 1. The ECU actuates the plant for one ECU tick and sends the reports due now.
             ecu.step(now, ecu_dt)
+            if feed is not None:
+                feed.on_tick(now, ecu)
             for msg in ecu.reports(now):
                 ecu_bus.send(msg)
             # 2. The gateway's receive side decodes what arrived.
@@ -467,19 +497,23 @@ def run(
             if k % ticks_per_control:
                 continue
             # 3. Localization from the plant (unless a fault is injected), the scripted operator.
-            pose = plant.pose()
-            pose = Pose(pose.x, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now)
-            dropout = jump = command_dropout = False
+            pose: Pose | None
+            if feed is None:
+                pose = plant.pose()
+                pose = Pose(pose.x, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now)
+            else:  # the newest sample published since the last tick, if any
+                pose = localized[-1] if localized else None
+                localized.clear()
+            dropout = pose is None
+            jump = command_dropout = False
             for inj in gw_injections:
                 if inj.active(now):
                     dropout |= inj.kind == "localization-dropout"
                     jump |= inj.kind == "position-jump"
                     command_dropout |= inj.kind == "command-dropout"
-            if jump:
-                pose = Pose(
-                    pose.x + 2.0, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now
-                )
-            if not dropout:
+            if jump and pose is not None:
+                pose = dataclasses.replace(pose, x=pose.x + 2.0)
+            if not dropout and pose is not None:
                 last_pose = Stamped(pose, now)
             request = OperatorRequest.ENGAGE if abs(now - engage_at) < ecu_dt / 2 else None
             good, bad = slots.take_counts()

@@ -1,0 +1,1 @@
+"""``leafgate batch``: simulation sweeps, log checks and session re-runs on Dask distributed."""

@@ -1,0 +1,235 @@
+"""``leafgate batch sim|check|rerun``: the command line of the batch jobs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from leafgate.batch import sweep as sweep_module
+from leafgate.batch.engine import BatchError, EngineRun, run_tasks
+from leafgate.batch.results import crossings, make_out_dir, write_report, write_table
+
+__all__ = ["add_arguments", "cmd_batch"]
+
+SHOWN = 20  # crossings and failures printed to the terminal (all are in report.md)
+
+
+def _common(p: argparse.ArgumentParser, out: str) -> None:
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:8786",
+        help="run on this running Dask cluster (default: a local cluster on this machine)",
+    )
+    p.add_argument(
+        "--workers", type=int, help="worker processes of the local cluster (default: CPU count)"
+    )
+    p.add_argument("--out", default=out, help=f"output folder (default: ./{out}/)")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="batch_command", metavar="JOB", required=True)
+    p = sub.add_parser(
+        "sim",
+        help="Monte-Carlo sweep of `leafgate sim` cases from a sweep file",
+        description="Run every case of a sweep file (one Dask task each) and write "
+        "results.parquet (or .csv without pyarrow), report.md and errors.png. Exit 1 when a "
+        "case fails or crosses a threshold.",
+        epilog=sweep_module.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("sweep", help="sweep file (YAML), e.g. config/sweep.yaml")
+    p.add_argument("--timeout", type=float, help="s per case (default: the sweep's timeout_s)")
+    _common(p, "leafgate-batch")
+    p = sub.add_parser("check", help="`replay check` of every CAN log and session under DIR")
+    p.add_argument("dir", help="folder searched recursively")
+    p.add_argument(
+        "--glob",
+        metavar="PATTERN",
+        help="only files whose name matches, e.g. '*.mcap' (default: every file with a "
+        "readable suffix: .log .asc .blf .trc .csv .mf4 .mcap)",
+    )
+    p.add_argument("--config", help="the deployment config whose limits apply")
+    p.add_argument("--gap-periods", type=float, default=3.0)
+    p.add_argument("--timeout", type=float, help="s per log")
+    _common(p, "leafgate-batch-check")
+    p = sub.add_parser("rerun", help="`replay rerun` of every session (.mcap) under DIR")
+    p.add_argument("dir", help="folder searched recursively")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. controller.mpc.weight_lateral=10",
+    )
+    p.add_argument("--timeout", type=float, help="s per session")
+    _common(p, "leafgate-batch-rerun")
+
+
+def _engine_text(run: EngineRun) -> str:
+    return f"{run.scheduler}, {run.workers} workers, {run.wall_s:.1f} s wall time"
+
+
+def _files(directory: str, suffixes: tuple[str, ...], pattern: str | None = None) -> list[Path]:
+    root = Path(directory)
+    if not root.is_dir():
+        raise BatchError(f"{root}: no such folder")
+    files = sorted(
+        p for p in root.rglob(pattern or "*") if p.is_file() and p.suffix.lower() in suffixes
+    )
+    if not files:
+        raise BatchError(f"{root}: no {pattern or ', '.join(suffixes)} files in it")
+    return files
+
+
+def _save(out: Path, rows: list[dict[str, Any]], run: EngineRun, extra: dict[str, Any]) -> Path:
+    table = write_table(rows, out)
+    info = {
+        "scheduler": run.scheduler,
+        "workers": run.workers,
+        "wall_time_s": run.wall_s,
+        "cases": len(rows),
+        "failed": sum(1 for r in rows if r.get("status") != "ok"),
+        **extra,
+    }
+    (out / "batch.json").write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
+    return table
+
+
+def cmd_batch_sim(args: argparse.Namespace) -> int:
+    from leafgate.batch.tasks import sim_case
+
+    sweep = sweep_module.load_sweep(args.sweep)
+    cases = sweep_module.expand(sweep)
+    out = make_out_dir(args.out)
+    timeout = args.timeout if args.timeout is not None else sweep.timeout_s
+    print(f"{sweep.path}: {len(cases)} cases", flush=True)
+    run = run_tasks(
+        sim_case,
+        {c.case_id: (list(c.argv),) for c in cases},
+        scheduler=args.scheduler,
+        workers=args.workers,
+        timeout=timeout,
+    )
+    rows = []
+    for c in cases:
+        rows.append(
+            {
+                "case_id": c.case_id,
+                "route": c.route,
+                **run.rows[c.case_id],
+                # the case's names win over metrics.json's (its controller is the kind)
+                "plant": c.plant,
+                "controller": c.controller,
+                "seed": c.seed,
+                "command": c.command,
+            }
+        )
+    rows = [_ordered(r) for r in rows]
+    crossed = crossings(rows, sweep.thresholds, sweep.path)
+    table = _save(out, rows, run, {"sweep": sweep.path, "crossings": len(crossed)})
+    md, png = write_report(
+        rows,
+        out,
+        title=f"Sweep {sweep.name} ({sweep.path})",
+        engine=_engine_text(run),
+        crossed=crossed,
+    )
+    failed = sum(1 for r in rows if r["status"] != "ok")
+    print(f"{len(rows)} cases, {failed} failed; {_engine_text(run)}")
+    for line in crossed[:SHOWN]:
+        print(f"  {line}")
+    if len(crossed) > SHOWN:
+        print(f"  … {len(crossed) - SHOWN} more in {md}")
+    print(f"wrote {table}, {md}" + (f", {png}" if png else ""))
+    if crossed:
+        print(f"FAILED: {len(crossed)} threshold crossings or failed cases")
+        return 1
+    print(f"PASSED: every case ran and stayed within the thresholds of {sweep.path}")
+    return 0
+
+
+_FIRST = ("case_id", "route", "plant", "controller", "seed", "status", "error", "exit_status")
+
+
+def _ordered(row: dict[str, Any]) -> dict[str, Any]:
+    first = {k: row.get(k) for k in _FIRST}
+    return {**first, **{k: v for k, v in row.items() if k not in first}}
+
+
+def _per_file(
+    args: argparse.Namespace,
+    fn: Any,
+    files: list[Path],
+    extra: tuple[Any, ...],
+    what: str,
+) -> tuple[EngineRun, list[dict[str, Any]]]:
+    """``fn(path, *extra)`` for every file, one task each; rows in file order."""
+    run = run_tasks(
+        fn,
+        {str(f): (str(f), *extra) for f in files},
+        scheduler=args.scheduler,
+        workers=args.workers,
+        timeout=args.timeout,
+        what=what,
+    )
+    return run, [{"path": str(f), **run.rows[str(f)]} for f in files]
+
+
+def cmd_batch_check(args: argparse.Namespace) -> int:
+    from leafgate.batch.tasks import check_case
+    from leafgate.replay.logs import READABLE_SUFFIXES
+
+    files = _files(args.dir, READABLE_SUFFIXES, args.glob)
+    out = make_out_dir(args.out)
+    config = str(Path(args.config).resolve()) if args.config else None
+    if config is not None:
+        from leafgate.settings import load_config
+
+        load_config(config)  # a bad config is one error, not one per log
+    run, rows = _per_file(args, check_case, files, (config, args.gap_periods), "logs")
+    bad = 0
+    for r in rows:
+        if r["status"] != "ok":
+            verdict = f"FAILED: {r['error']}"
+        else:
+            verdict = (
+                f"{'OK' if r['ok'] else 'FINDINGS'}: {r['frames']} frames, "
+                f"{r['violations']} limit violations, {r['e2e_errors']} E2E errors, {r['gaps']} gaps"
+            )
+        bad += r["status"] != "ok" or not r["ok"]
+        print(f"{r['path']}: {verdict}")
+    table = _save(out, rows, run, {"dir": args.dir})
+    print(
+        f"{len(rows)} logs, {bad} with findings or unreadable; {_engine_text(run)}; wrote {table}"
+    )
+    return 1 if bad else 0
+
+
+def cmd_batch_rerun(args: argparse.Namespace) -> int:
+    from leafgate.batch.tasks import rerun_case
+    from leafgate.config import parse_overrides
+
+    overrides = parse_overrides(args.set)
+    files = _files(args.dir, (".mcap",))
+    out = make_out_dir(args.out)
+    run, rows = _per_file(args, rerun_case, files, (overrides,), "sessions")
+    differing = 0
+    for r in rows:
+        if r["status"] != "ok":
+            verdict = f"FAILED: {r['error']}"
+        elif r["identical"]:
+            verdict = f"IDENTICAL: {r['ticks']} ticks, every command reproduced"
+        else:
+            verdict = f"DIVERGED at {r['first_divergence_s']:.3f} s: {r['diverging_signals']}"
+        differing += r["status"] != "ok" or not r["identical"]
+        print(f"{r['path']}: {verdict}")
+    table = _save(out, rows, run, {"dir": args.dir, "overrides": overrides})
+    print(f"{len(rows)} sessions, {differing} not reproduced; {_engine_text(run)}; wrote {table}")
+    return 1 if differing else 0
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    job = {"sim": cmd_batch_sim, "check": cmd_batch_check, "rerun": cmd_batch_rerun}
+    return job[args.batch_command](args)

@@ -1,0 +1,226 @@
+"""Many independent tasks on Dask distributed: a local cluster by default, or an existing one.
+
+One task per case. A task function returns a row (a dict); the engine adds a failed row for a
+task that raised on its worker, whose worker died, or that ran longer than the timeout (its
+future is cancelled and, since a running Python call cannot be interrupted, its worker is
+restarted). Nothing a case does stops the batch.
+
+The local cluster runs worker *processes* with one thread each: the controllers hold the GIL.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, TextIO
+
+from leafgate.errors import LeafgateError
+
+__all__ = ["BatchError", "EngineRun", "run_plain", "run_tasks"]
+
+POLL_S = 0.5  # s between looks at the futures (progress, timeouts)
+CONNECT_TIMEOUT_S = 10.0  # s to reach an existing scheduler
+
+
+class BatchError(LeafgateError):
+    """The batch cannot run (no scheduler, no output folder)."""
+
+
+@dataclass
+class EngineRun:
+    """What the engine did: one row per task key, and how."""
+
+    rows: dict[str, dict[str, Any]] = field(default_factory=dict)
+    wall_s: float = 0.0
+    workers: int = 0
+    scheduler: str = "local"
+
+
+def failed(error: str) -> dict[str, Any]:
+    """The row of a task that produced no result."""
+    return {"status": "failed", "error": " ".join(error.split())}
+
+
+class Progress:
+    """``[#####.....] 12/20 cases, 1 failed`` on a terminal; nothing when not a TTY."""
+
+    def __init__(self, stream: TextIO | None, total: int, what: str) -> None:
+        self.stream = stream if stream is not None and stream.isatty() else None
+        self.total, self.what = total, what
+        self.done = self.failed = 0
+        self.t0 = time.monotonic()
+
+    def add(self, row: Mapping[str, Any]) -> None:
+        self.done += 1
+        self.failed += row.get("status") != "ok"
+        self.draw()
+
+    def draw(self) -> None:
+        if self.stream is None:
+            return
+        fraction = self.done / max(self.total, 1)
+        filled = int(30 * fraction)
+        elapsed = time.monotonic() - self.t0
+        self.stream.write(
+            f"\r[{'#' * filled}{'.' * (30 - filled)}] {self.done}/{self.total} {self.what}, "
+            f"{self.failed} failed, {elapsed:.0f} s "
+        )
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.stream is not None:
+            self.stream.write("\r" + " " * 78 + "\r")
+            self.stream.flush()
+
+
+def run_plain(fn: Callable[..., dict[str, Any]], tasks: Mapping[str, Sequence[Any]]) -> EngineRun:
+    """The same tasks one after another in this process (the baseline of ``bench_batch``)."""
+    run = EngineRun(workers=1, scheduler="none (plain loop)")
+    t0 = time.perf_counter()
+    for key, args in tasks.items():
+        try:
+            run.rows[key] = fn(*args)
+        except Exception as exc:
+            run.rows[key] = failed(f"{type(exc).__name__}: {exc}")
+    run.wall_s = time.perf_counter() - t0
+    return run
+
+
+def run_tasks(
+    fn: Callable[..., dict[str, Any]],
+    tasks: Mapping[str, Sequence[Any]],
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    timeout: float | None = None,
+    progress: TextIO | None = None,
+    what: str = "cases",
+) -> EngineRun:
+    """Run ``fn(*args)`` for every ``key: args`` of ``tasks``, one Dask task each.
+
+    :param fn: a module-level function (workers import it); returns the task's row
+    :param scheduler: ``tcp://HOST:PORT`` of a running ``dask scheduler``; None starts a local
+        cluster of ``workers`` processes (default: this machine's cores) and closes it after
+    :param timeout: s a task may run (counted from when the scheduler hands it to a worker)
+    :param progress: the stream for the progress bar (drawn when it is a terminal)
+    :raises BatchError: the scheduler cannot be reached or the local cluster does not start
+    """
+    from distributed import Client, LocalCluster
+
+    run = EngineRun()
+    t0 = time.perf_counter()
+    logging.getLogger("distributed").setLevel(logging.WARNING)  # not every start and stop
+    if scheduler is None:
+        n = max(1, workers or os.cpu_count() or 1)
+        try:
+            cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                dashboard_address=None,  # no dashboard; its health endpoint: 8787, else free
+                silence_logs=logging.ERROR,
+            )
+        except (OSError, RuntimeError) as exc:  # ports, processes
+            raise BatchError(f"the local Dask cluster did not start: {exc}") from None
+        with cluster, Client(cluster) as client:
+            run.workers, run.scheduler = n, f"local cluster ({n} worker processes)"
+            _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
+    else:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError, ValueError) as exc:
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            raise BatchError(f"--scheduler {scheduler}: cannot connect: {reason}") from None
+        with client:
+            run.workers = len(client.scheduler_info().get("workers", {}))
+            run.scheduler = scheduler
+            _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
+    run.wall_s = time.perf_counter() - t0
+    return run
+
+
+def _submit_and_wait(
+    client: Any,
+    fn: Callable[..., dict[str, Any]],
+    tasks: Mapping[str, Sequence[Any]],
+    timeout: float | None,
+    progress: TextIO | None,
+    what: str,
+    run: EngineRun,
+) -> None:
+    from distributed import as_completed
+
+    if not tasks:
+        return
+    token = uuid.uuid4().hex[:8]  # keys stay unique when batches share a cluster
+    names = list(tasks)
+    columns = list(zip(*tasks.values(), strict=True)) if tasks else []
+    futures = client.map(
+        fn, *columns, key=[f"leafgate-{token}-{name}" for name in names], pure=False
+    )
+    pending = dict(zip(futures, names, strict=True))
+    bar = Progress(progress if progress is not None else sys.stderr, len(pending), what)
+    started: dict[str, float] = {}  # dask key → when first seen on a worker
+    done = as_completed(futures)
+    next_look = time.monotonic() + POLL_S
+    try:
+        while pending:
+            batch = done.next_batch(block=False) if done.has_ready() else []
+            for future in batch:
+                key = pending.pop(future, None)
+                if key is None:  # timed out before, cancelled since
+                    continue
+                if future.status == "finished":
+                    row = future.result()
+                else:
+                    exc = future.exception() if future.status == "error" else None
+                    row = failed(
+                        f"{type(exc).__name__}: {exc}" if exc is not None else future.status
+                    )
+                run.rows[key] = row
+                bar.add(row)
+            if not batch:
+                time.sleep(0.05)
+            if time.monotonic() >= next_look:  # a look at timeouts, and the bar's clock
+                if timeout is not None and pending:
+                    _time_out(client, pending, started, timeout, run, bar)
+                bar.draw()
+                next_look = time.monotonic() + POLL_S
+    finally:
+        bar.close()
+
+
+def _time_out(
+    client: Any,
+    pending: dict[Any, str],
+    started: dict[str, float],
+    timeout: float,
+    run: EngineRun,
+    bar: Progress,
+) -> None:
+    """Record tasks running longer than ``timeout`` as failed; free their workers."""
+    now = time.monotonic()
+    where: dict[str, str] = {}
+    for worker, keys in client.processing().items():
+        for k in keys:
+            started.setdefault(k, now)
+            where[k] = worker
+    restart = set()
+    for future, key in list(pending.items()):
+        since = started.get(future.key)
+        if since is not None and now - since > timeout:
+            del pending[future]
+            future.cancel()
+            row = failed(f"timed out after {timeout:g} s")
+            run.rows[key] = row
+            bar.add(row)
+            if future.key in where:
+                restart.add(where[future.key])
+    if restart:  # a running call cannot be stopped: restart its worker process
+        client.restart_workers(sorted(restart), raise_for_error=False)

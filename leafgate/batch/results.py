@@ -1,0 +1,217 @@
+"""Results of a batch: one row per case in Parquet (pyarrow) or CSV, thresholds, the report."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from leafgate.batch.engine import BatchError
+
+__all__ = ["crossings", "make_out_dir", "read_table", "write_report", "write_table"]
+
+#: The metrics the report's distributions and worst cases are about, in order of preference.
+ERROR_METRICS = ("lateral_error_max_m", "lateral_error_rms_m", "heading_error_max_rad")
+WORST_SHOWN = 5
+
+
+def make_out_dir(path: str | Path) -> Path:
+    """Create the output folder, or one line saying why it cannot be."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BatchError(f"--out {out}: cannot create the folder: {exc.strerror or exc}") from None
+    return out
+
+
+def flat(row: Mapping[str, Any]) -> dict[str, Any]:
+    """Scalars as they are; lists and mappings (transitions, timeline) as JSON text."""
+    return {k: json.dumps(v) if isinstance(v, (list, dict, tuple)) else v for k, v in row.items()}
+
+
+def _columns(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    names: dict[str, None] = {}
+    for row in rows:
+        names.update(dict.fromkeys(row))
+    return list(names)
+
+
+def write_table(rows: Sequence[Mapping[str, Any]], out: Path, stem: str = "results") -> Path:
+    """``stem.parquet`` when pyarrow is installed, else ``stem.csv``; one row per case."""
+    flat_rows = [flat(r) for r in rows]
+    names = _columns(flat_rows)
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        path = out / f"{stem}.csv"
+        with path.open("w", newline="", encoding="utf-8") as f:
+            writer = csv.DictWriter(f, fieldnames=names)
+            writer.writeheader()
+            writer.writerows(flat_rows)
+        return path
+    arrays = {}
+    for name in names:
+        values = [r.get(name) for r in flat_rows]
+        try:
+            arrays[name] = pa.array(values)
+        except (pa.ArrowInvalid, pa.ArrowTypeError):  # mixed types: keep them as text
+            arrays[name] = pa.array([None if v is None else str(v) for v in values])
+    path = out / f"{stem}.parquet"
+    pq.write_table(pa.table(arrays), path)
+    return path
+
+
+def read_table(path: str | Path) -> list[dict[str, Any]]:
+    """The rows of a results file written by :func:`write_table`."""
+    path = Path(path)
+    if path.suffix == ".parquet":
+        import pyarrow.parquet as pq
+
+        return list(pq.read_table(path).to_pylist())
+    with path.open(newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+def crossings(
+    rows: Sequence[Mapping[str, Any]], thresholds: Mapping[str, float | bool], source: str
+) -> list[str]:
+    """One line per case and threshold it crosses (a number is an upper bound, a bool the
+    required value); a failed case crosses them all.
+
+    :raises BatchError: a threshold names a metric no case has (names the file and the key)
+    """
+    ok_rows = [r for r in rows if r.get("status") == "ok"]
+    for name in thresholds:
+        if ok_rows and all(name not in r for r in ok_rows):
+            known = ", ".join(k for k, v in ok_rows[0].items() if isinstance(v, (int, float)))
+            raise BatchError(f"{source}: thresholds.{name}: no such metric (known: {known})")
+    lines = []
+    for row in rows:
+        case = row.get("case_id", row.get("path"))
+        if row.get("status") != "ok":
+            lines.append(f"case {case}: failed: {row.get('error')}")
+            continue
+        for name, bound in thresholds.items():
+            value = row.get(name)
+            if isinstance(bound, bool):
+                if value is not bound:
+                    lines.append(f"case {case}: {name} is {value}, required {bound}")
+            elif not isinstance(value, (int, float)) or not value <= bound:
+                lines.append(f"case {case}: {name} = {value} above {bound:g}")
+    return lines
+
+
+def _metric(rows: Sequence[Mapping[str, Any]]) -> str | None:
+    for name in ERROR_METRICS:
+        if any(isinstance(r.get(name), (int, float)) for r in rows):
+            return name
+    return None
+
+
+def _stats(values: list[float]) -> str:
+    import numpy as np
+
+    if not values:
+        return "| - | - | - | - |"
+    a = np.asarray(values)
+    return f"| {np.median(a):.3f} | {np.percentile(a, 95):.3f} | {a.max():.3f} | {np.mean(a):.3f} |"
+
+
+def write_report(
+    rows: Sequence[Mapping[str, Any]],
+    out: Path,
+    *,
+    title: str,
+    engine: str,
+    crossed: Sequence[str],
+) -> tuple[Path, Path | None]:
+    """``report.md`` and ``errors.png``: error distributions per controller and plant, the
+    worst cases with the command line that runs each alone, the failures and crossings."""
+    ok_rows = [r for r in rows if r.get("status") == "ok"]
+    failed_rows = [r for r in rows if r.get("status") != "ok"]
+    groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
+    for r in ok_rows:
+        groups.setdefault((str(r["controller"]), str(r["plant"])), []).append(r)
+    lines = [
+        f"# {title}",
+        "",
+        f"{len(rows)} cases: {len(ok_rows)} ran, {len(failed_rows)} failed; {engine}.",
+        "",
+    ]
+    png: Path | None = None
+    metrics = [m for m in ERROR_METRICS if any(isinstance(r.get(m), float) for r in ok_rows)]
+    for name in metrics:
+        lines += [
+            f"## {name} per controller and plant",
+            "",
+            "| controller | plant | cases | finished | median | p95 | max | mean |",
+            "|---|---|---:|---:|---:|---:|---:|---:|",
+        ]
+        for (controller, plant), group in sorted(groups.items()):
+            values = [float(r[name]) for r in group if isinstance(r.get(name), (int, float))]
+            finished = sum(1 for r in group if r.get("finished") is True)
+            lines.append(f"| {controller} | {plant} | {len(group)} | {finished} " + _stats(values))
+        lines.append("")
+    key = _metric(ok_rows)
+    if key is not None:
+        worst = sorted(
+            (r for r in ok_rows if isinstance(r.get(key), (int, float))),
+            key=lambda r: -float(r[key]) if math.isfinite(float(r[key])) else -math.inf,
+        )[:WORST_SHOWN]
+        lines += [f"## The {len(worst)} worst cases by {key}", ""]
+        for r in worst:
+            lines += [
+                f"- case {r['case_id']}: {key} = {float(r[key]):.3f} ({r['route']}, "
+                f"{r['controller']}, {r['plant']}, seed {r['seed']}, "
+                f"finished {r.get('finished')})",
+                "",
+                "  ```sh",
+                f"  {r['command']}",
+                "  ```",
+            ]
+        lines.append("")
+        png = out / "errors.png"
+        _plot(groups, metrics, png)
+        lines += [f"![error distributions]({png.name})", ""]
+    if failed_rows:
+        lines += ["## Failed cases", ""]
+        for r in failed_rows:
+            lines.append(f"- case {r.get('case_id')}: {r.get('error')}  \n  `{r.get('command')}`")
+        lines.append("")
+    lines += ["## Thresholds", ""]
+    lines += [f"- {c}" for c in crossed] if crossed else ["No case crosses a threshold."]
+    md = out / "report.md"
+    md.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return md, png
+
+
+def _plot(
+    groups: Mapping[tuple[str, str], Sequence[Mapping[str, Any]]], metrics: list[str], path: Path
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = [f"{c}\n{p}" for c, p in sorted(groups)]
+    fig, axes = plt.subplots(
+        len(metrics), 1, figsize=(max(6.0, 1.2 * len(labels) + 2), 3.2 * len(metrics))
+    )
+    axes_list = list(axes) if len(metrics) > 1 else [axes]
+    for ax, name in zip(axes_list, metrics, strict=True):
+        data = [
+            [float(r[name]) for r in groups[g] if isinstance(r.get(name), (int, float))]
+            for g in sorted(groups)
+        ]
+        ax.boxplot(data, tick_labels=labels, showfliers=True)
+        ax.set_ylabel(name)
+        ax.grid(True, axis="y", alpha=0.3)
+    axes_list[0].set_title("error distributions per controller and plant")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,421 @@
+"""``leafgate batch``: sweep files, seeded disturbances, the Dask engine, results and reports."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from leafgate.batch.engine import run_tasks
+from leafgate.batch.results import read_table
+from leafgate.batch.sweep import expand, load_sweep
+from leafgate.cli import main
+from leafgate.errors import ConfigError
+from leafgate.sim.runner import WALL_CLOCK_METRICS
+
+#: A small sweep on the shortest route: 2 controllers × 2 seeded samples, with noise.
+SMALL_SWEEP = """\
+name: small
+seed: 11
+samples: 2
+routes: [straight]
+plants: [kinematic]
+controllers: [mpc, stanley]
+disturbances:
+  sim.localization.position_noise: [0.01, 0.03]
+  sim.localization.latency: [0.0, 0.04]
+  sim.plant.wheelbase_error: [-0.05, 0.05]
+  sim.start_lateral_offset: [-0.2, 0.2]
+thresholds:
+  lateral_error_max_m: 0.0001
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "sweep.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def same_numbers(a: dict[str, Any], b: dict[str, Any]) -> dict[str, tuple[Any, Any]]:
+    """The keys both have whose values differ, wall-clock metrics aside."""
+    skip = WALL_CLOCK_METRICS | {"case_wall_s"}
+    return {k: (a[k], b[k]) for k in a.keys() & b.keys() if k not in skip and a[k] != b[k]}
+
+
+def sim_alone(command: str, out: Path) -> dict[str, Any]:
+    """Run a results row's command line (in this process) and read its metrics.json."""
+    argv = shlex.split(command)
+    assert argv[:2] == ["leafgate", "sim"]
+    i = argv.index("--out")
+    argv[i + 1] = str(out)
+    main([*argv[1:], "--no-plots"])
+    return json.loads((out / "metrics.json").read_text())
+
+
+# --- sweep files --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("routes: [straight]\nbogus: 1\n", "bogus: unknown key"),
+        ("routes: [nowhere]\n", "routes: 'nowhere' is neither a scenario"),
+        ("routes: [missing.csv]\n", "routes: 'missing.csv': no such file"),
+        ("routes: [straight]\nplants: [wobbly]\n", "plants: unknown 'wobbly'"),
+        ("routes: [straight]\nsamples: 0\n", "samples: expected an integer >= 1"),
+        (
+            "routes: [straight]\ndisturbances:\n  sim.plant.nope: [0, 1]\n",
+            "sim.plant.nope: unknown key",
+        ),
+        (
+            "routes: [straight]\ndisturbances:\n  sim.plant.steer_tau: [0.5, 0.1]\n",
+            "disturbances.sim.plant.steer_tau: low 0.5 is above high 0.1",
+        ),
+        (
+            "routes: [straight]\ndisturbances:\n  sim.plant.steer_tau: [-1, 0.1]\n",
+            "steer_tau must be a positive number",
+        ),
+        (
+            "routes: [straight]\ndisturbances:\n  sim.start_lateral_offset: [-2, 2]\n",
+            "disturbances.sim.start_lateral_offset: [-2, 2] m leaves the engage envelope",
+        ),
+        ("routes: [straight]\nset:\n  controller.mpc.solver: fast\n", "controller.mpc.solver"),
+        ("routes: [straight]\nthresholds:\n  finished: maybe\n", "thresholds.finished"),
+        ("routes: [straight\n", "sweep.yaml"),
+    ],
+)
+def test_bad_sweep_file_names_file_and_key(tmp_path: Path, text: str, expected: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        load_sweep(path)
+    message = str(info.value)
+    assert str(path) in message and expected in message
+    assert "\n" not in message
+
+
+def test_bad_sweep_file_on_the_command_line_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = write(tmp_path, "routes: [straight]\ndisturbances:\n  sim.plant.nope: [0, 1]\n")
+    assert main(["batch", "sim", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert str(path) in err and "sim.plant.nope" in err
+
+
+def test_output_folder_that_cannot_be_created_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    sweep = write(tmp_path, "routes: [straight]\n")
+    assert main(["batch", "sim", str(sweep), "--out", str(blocker / "out")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert "cannot create the folder" in err and str(blocker / "out") in err
+
+
+def test_cases_are_seeded_and_reproducible(tmp_path: Path) -> None:
+    sweep = load_sweep(write(tmp_path, SMALL_SWEEP))
+    cases = expand(sweep)
+    assert [c.case_id for c in cases] == ["0000", "0001", "0002", "0003"]
+    assert [c.seed for c in cases] == [11, 12, 13, 14]
+    assert [(c.controller, c.plant, c.route) for c in cases[:2]] == [
+        ("mpc", "kinematic", "straight")
+    ] * 2
+    assert expand(load_sweep(write(tmp_path, SMALL_SWEEP, "again.yaml"))) == cases
+    draws = []
+    for case in cases:
+        settings = dict(a.split("=", 1) for a in case.argv if "=" in a)
+        noise = float(settings["sim.localization.position_noise"])
+        offset = float(settings["sim.start_lateral_offset"])
+        assert 0.01 <= noise <= 0.03 and -0.2 <= offset <= 0.2
+        draws.append(noise)
+        assert f"--seed {case.seed}" in case.command
+    assert len(set(draws)) == len(draws)  # each seed draws its own values
+
+
+def test_the_example_sweep_file_loads() -> None:
+    sweep = load_sweep(Path(__file__).parents[1] / "config" / "sweep.yaml")
+    assert 16 <= sweep.size <= 30
+    assert sweep.thresholds
+
+
+def test_batch_sim_help_describes_the_sweep_format(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["batch", "sim", "--help"])
+    text = capsys.readouterr().out
+    for key in ("routes:", "plants:", "controllers:", "disturbances:", "thresholds:", "seed:"):
+        assert key in text
+
+
+# --- seeded disturbances in `leafgate sim` ----------------------------------------------------
+
+
+@pytest.mark.slow
+def test_sim_seed_and_noise_change_the_drive_and_repeat(tmp_path: Path) -> None:
+    """Localization noise acts in the simulated loop (it was ignored there), follows --seed,
+    and the same seed gives the same numbers."""
+    base = ["sim", "--scenario", "straight", "--no-plots"]
+    noise = ["--set", "sim.localization.position_noise=0.05"]
+
+    def metrics(name: str, *extra: str) -> dict[str, Any]:
+        assert main([*base, "--out", str(tmp_path / name), *extra]) in (0, 1)
+        return json.loads((tmp_path / name / "metrics.json").read_text())
+
+    clean = metrics("clean")
+    a = metrics("a", *noise, "--seed", "1")
+    a_again = metrics("a2", *noise, "--seed", "1")
+    b = metrics("b", *noise, "--seed", "2")
+    assert clean["lateral_error_max_m"] == 0.0  # a straight line, driven exactly
+    assert a["lateral_error_max_m"] > 0.0
+    assert same_numbers(a, a_again) == {}
+    assert a["lateral_error_rms_m"] != b["lateral_error_rms_m"]
+
+
+@pytest.mark.slow
+def test_start_offset_and_wheelbase_error_reach_the_plant(tmp_path: Path) -> None:
+    def metrics(name: str, *extra: str) -> dict[str, Any]:
+        main(["sim", "--scenario", "straight", "--no-plots", "--out", str(tmp_path / name), *extra])
+        return json.loads((tmp_path / name / "metrics.json").read_text())
+
+    offset = metrics("offset", "--set", "sim.start_lateral_offset=0.4")
+    assert offset["lateral_error_max_m"] == pytest.approx(0.4, abs=1e-6)
+    assert offset["finished"] is True
+    s_curve = ["--scenario", "s-curve"]
+    plain = metrics("plain", *s_curve)
+    longer = metrics("longer", *s_curve, "--set", "sim.plant.wheelbase_error=0.3")
+    assert longer["lateral_error_max_m"] != plain["lateral_error_max_m"]
+
+
+# --- the engine ---------------------------------------------------------------------------------
+
+
+def _task(kind: str) -> dict[str, Any]:
+    if kind == "raise":
+        raise RuntimeError("this case breaks")
+    if kind == "hang":
+        time.sleep(120.0)
+    return {"status": "ok", "error": None, "kind": kind}
+
+
+@pytest.mark.slow
+def test_local_cluster_records_failures_and_timeouts_and_goes_on() -> None:
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(__import__(__name__))  # workers need not import tests
+    t0 = time.monotonic()
+    run = run_tasks(
+        _task,
+        {"a": ("ok",), "b": ("raise",), "c": ("hang",), "d": ("ok",), "e": ("ok",)},
+        workers=2,
+        timeout=3.0,
+    )
+    assert time.monotonic() - t0 < 100.0  # did not wait for the hanging case to end
+    assert run.workers == 2 and "local cluster" in run.scheduler
+    rows = run.rows
+    assert {k: r["status"] for k, r in rows.items()} == {
+        "a": "ok",
+        "b": "failed",
+        "c": "failed",
+        "d": "ok",
+        "e": "ok",
+    }
+    assert "RuntimeError: this case breaks" in rows["b"]["error"]
+    assert "timed out after 3 s" in rows["c"]["error"]
+
+
+@pytest.fixture(scope="module")
+def local_sweep(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[dict[str, Any]]]:
+    """The small sweep on a local cluster of two workers."""
+    tmp = tmp_path_factory.mktemp("batch")
+    sweep = write(tmp, SMALL_SWEEP)
+    status = main(["batch", "sim", str(sweep), "--workers", "2", "--out", str(tmp / "local")])
+    assert status == 1  # the threshold (1e-4 m) is crossed: the batch says so
+    return sweep, read_table(tmp / "local" / "results.parquet")
+
+
+@pytest.mark.slow
+def test_local_cluster_results_are_those_of_single_runs(
+    local_sweep: tuple[Path, list[dict[str, Any]]], tmp_path: Path
+) -> None:
+    sweep, rows = local_sweep
+    cases = expand(load_sweep(sweep))
+    assert [r["case_id"] for r in rows] == [c.case_id for c in cases]
+    for row, case in zip(rows, cases, strict=True):
+        assert row["status"] == "ok", row["error"]
+        assert (row["route"], row["plant"], row["controller"], row["seed"]) == (
+            case.route,
+            case.plant,
+            case.controller,
+            case.seed,
+        )
+        assert row["command"] == case.command
+        alone = sim_alone(row["command"], tmp_path / case.case_id)
+        for key in alone.keys() - {"controller", "plant"}:  # every metrics.json key is a column
+            assert key in row
+        flat_alone = {
+            k: json.dumps(v) if isinstance(v, (list, dict)) else v for k, v in alone.items()
+        }
+        flat_alone.pop("controller")  # the kind; the row has the sweep's controller name
+        assert same_numbers(flat_alone, row) == {}
+    # the seeds make the noisy drives differ from one another
+    assert len({r["lateral_error_rms_m"] for r in rows}) == len(rows)
+
+
+@pytest.mark.slow
+def test_report_lists_worst_cases_with_their_command_lines(
+    local_sweep: tuple[Path, list[dict[str, Any]]],
+) -> None:
+    sweep, rows = local_sweep
+    out = sweep.parent / "local"
+    report = (out / "report.md").read_text()
+    worst = max(rows, key=lambda r: r["lateral_error_max_m"])
+    assert "worst cases by lateral_error_max_m" in report
+    assert worst["command"] in report
+    assert (out / "errors.png").stat().st_size > 1000
+    assert "lateral_error_max_m =" in report  # the thresholds crossed are listed
+    info = json.loads((out / "batch.json").read_text())
+    assert info["workers"] == 2 and info["cases"] == len(rows)
+
+
+# --- batch check and batch rerun ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two recorded drives in a folder tree, and one unreadable log."""
+    root = tmp_path_factory.mktemp("drives")
+    for i, scenario in enumerate(("straight", "s-curve")):
+        out = root / f"day{i}" / scenario
+        assert (
+            main(
+                [
+                    "sim",
+                    "--scenario",
+                    scenario,
+                    "--no-plots",
+                    "--out",
+                    str(root.parent / f"{root.name}-sim{i}"),  # trace.csv: not in the tree
+                    "--record",
+                    str(out / "rec"),
+                ]
+            )
+            == 0
+        )
+    (root / "broken.log").write_text("this is not a CAN log\n")
+    return root
+
+
+@pytest.mark.slow
+def test_batch_check_checks_every_log_and_records_the_unreadable(
+    recordings: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    status = main(["batch", "check", str(recordings), "--workers", "2", "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    rows = read_table(tmp_path / "results.parquet")
+    recorded = sorted(p for p in recordings.rglob("rec/*") if p.is_file())
+    assert len(recorded) >= 2
+    assert {r["path"] for r in rows} == {str(p) for p in [*recorded, recordings / "broken.log"]}
+    by_path = {r["path"]: r for r in rows}
+    for path in recorded:
+        assert by_path[str(path)]["status"] == "ok"
+        assert by_path[str(path)]["ok"] is True, by_path[str(path)]
+    broken = by_path[str(recordings / "broken.log")]
+    assert broken["status"] == "failed" or broken["ok"] is False
+    assert status == 1
+    assert f"{recordings / 'broken.log'}:" in out
+
+
+@pytest.mark.slow
+def test_batch_rerun_reproduces_and_shows_where_a_change_diverges(
+    recordings: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    same = main(["batch", "rerun", str(recordings), "--workers", "2", "--out", str(tmp_path / "a")])
+    out = capsys.readouterr().out
+    sessions = sorted(recordings.rglob("*.mcap"))
+    assert len(sessions) == 2
+    assert same == 0
+    assert out.count("IDENTICAL") == 2
+    changed = main(
+        [
+            "batch",
+            "rerun",
+            str(recordings),
+            "--workers",
+            "2",
+            "--out",
+            str(tmp_path / "b"),
+            "--set",
+            "controller.mpc.weight_lateral=100",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert changed == 1
+    rows = read_table(tmp_path / "b" / "results.parquet")
+    curved = next(r for r in rows if "s-curve" in r["path"])
+    assert curved["identical"] is False
+    assert curved["first_divergence_s"] > 0.0
+    assert "steer.angle" in curved["diverging_signals"]
+    assert "DIVERGED at" in out
+
+
+# --- results ------------------------------------------------------------------------------------
+
+
+def test_results_are_csv_without_pyarrow(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from leafgate.batch.results import write_table
+
+    rows = [
+        {"case_id": "0000", "status": "ok", "lateral_error_max_m": 0.25, "transitions": [{"t": 1}]},
+        {"case_id": "0001", "status": "failed", "error": "boom"},
+    ]
+    monkeypatch.setitem(__import__("sys").modules, "pyarrow", None)  # import pyarrow fails
+    path = write_table(rows, tmp_path)
+    assert path.name == "results.csv"
+    back = read_table(path)
+    assert [r["case_id"] for r in back] == ["0000", "0001"]
+    assert back[0]["lateral_error_max_m"] == "0.25" and back[1]["error"] == "boom"
+    assert json.loads(back[0]["transitions"]) == [{"t": 1}]
+
+
+def test_thresholds_bound_numbers_require_flags_and_count_failures() -> None:
+    from leafgate.batch.engine import BatchError
+    from leafgate.batch.results import crossings
+
+    rows = [
+        {"case_id": "a", "status": "ok", "lateral_error_max_m": 0.2, "finished": True},
+        {"case_id": "b", "status": "ok", "lateral_error_max_m": 0.7, "finished": True},
+        {"case_id": "c", "status": "ok", "lateral_error_max_m": 0.1, "finished": False},
+        {"case_id": "d", "status": "failed", "error": "timed out after 3 s"},
+        {"case_id": "e", "status": "ok", "lateral_error_max_m": float("nan"), "finished": True},
+    ]
+    lines = crossings(rows, {"lateral_error_max_m": 0.5, "finished": True}, "s.yaml")
+    assert [line.split(":")[0] for line in lines] == ["case b", "case c", "case d", "case e"]
+    assert "timed out" in lines[2]
+    with pytest.raises(BatchError, match=r"s.yaml: thresholds.lateral_eror: no such metric"):
+        crossings(rows, {"lateral_eror": 0.5}, "s.yaml")
+
+
+def test_progress_bar_only_on_a_terminal() -> None:
+    import io
+
+    from leafgate.batch.engine import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    tty, pipe = Tty(), io.StringIO()
+    for stream in (tty, pipe):
+        bar = Progress(stream, 4, "cases")
+        bar.add({"status": "ok"})
+        bar.add({"status": "failed"})
+        bar.close()
+    assert "2/4 cases, 1 failed" in tty.getvalue()
+    assert pipe.getvalue() == ""

@@ -1,0 +1,166 @@
+"""``leafgate batch sim --scheduler``: the same sweep on a real ``dask scheduler`` and two
+``dask worker`` processes on loopback gives the local run's numbers and single runs' numbers."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from leafgate.batch.results import read_table
+from leafgate.cli import main
+from leafgate.sim.runner import WALL_CLOCK_METRICS
+
+pytestmark = pytest.mark.slow
+
+BIN = Path(sys.executable).parent
+
+SWEEP = """\
+name: cluster
+seed: 5
+samples: 2
+routes: [straight]
+plants: [kinematic, steer-lag]
+controllers: [stanley]
+disturbances:
+  sim.localization.position_noise: [0.01, 0.03]
+  sim.plant.steer_bias_deg: [-0.5, 0.5]
+  sim.start_heading_offset: [-0.05, 0.05]
+"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def comparable(row: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in row.items() if k not in WALL_CLOCK_METRICS | {"case_wall_s"}}
+
+
+@contextlib.contextmanager
+def dask_cluster(log_dir: Path) -> Iterator[str]:
+    """``dask scheduler`` and two ``dask worker`` processes on loopback, free ports, no
+    dashboard; every process stopped after."""
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
+    procs: list[subprocess.Popen[bytes]] = []
+
+    def start(name: str, *args: str) -> None:
+        with (log_dir / f"{name}.log").open("wb") as log:
+            procs.append(
+                subprocess.Popen(
+                    [str(BIN / "dask"), *args],
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    env=env,
+                    start_new_session=True,  # its own process group: stopped as a whole
+                )
+            )
+
+    try:
+        start(
+            "scheduler", "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"
+        )
+        for i in range(2):
+            start(
+                f"worker{i}",
+                "worker",
+                address,
+                "--host",
+                "127.0.0.1",
+                "--nworkers",
+                "1",
+                "--nthreads",
+                "1",
+                "--no-dashboard",
+                "--name",
+                f"w{i}",
+            )
+        _wait_for_workers(address, 2, timeout=120.0)
+        yield address
+    finally:
+        for p in reversed(procs):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=10)
+
+
+def _wait_for_workers(address: str, n: int, timeout: float) -> None:
+    from distributed import Client
+
+    deadline = time.monotonic() + timeout
+    with Client(address, timeout=timeout) as client:
+        while len(client.scheduler_info()["workers"]) < n:
+            assert time.monotonic() < deadline, f"{n} workers did not join {address}"
+            time.sleep(0.5)
+
+
+def test_scheduler_and_workers_give_the_local_and_single_run_numbers(tmp_path: Path) -> None:
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP, encoding="utf-8")
+    assert (
+        main(["batch", "sim", str(sweep), "--workers", "2", "--out", str(tmp_path / "local")]) == 0
+    )
+    local = read_table(tmp_path / "local" / "results.parquet")
+    with dask_cluster(tmp_path) as address:
+        status = main(
+            ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "remote")]
+        )
+        info = json.loads((tmp_path / "remote" / "batch.json").read_text())
+    assert status == 0
+    assert info["scheduler"] == address and info["workers"] == 2
+    remote = read_table(tmp_path / "remote" / "results.parquet")
+    assert len(remote) == len(local) == 4
+    assert all(r["status"] == "ok" for r in remote)
+    assert [comparable(r) for r in remote] == [comparable(r) for r in local]
+    # and a case run alone, as its command line says, in a process of its own
+    for row in (remote[0], remote[-1]):
+        argv = shlex.split(row["command"])
+        argv[argv.index("--out") + 1] = str(tmp_path / row["case_id"])
+        done = subprocess.run(
+            [str(BIN / "leafgate"), *argv[1:], "--no-plots"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert done.returncode == 0, done.stderr
+        alone = json.loads((tmp_path / row["case_id"] / "metrics.json").read_text())
+        for key, value in alone.items():
+            if key in WALL_CLOCK_METRICS or key in ("controller", "plant"):
+                continue
+            expected = json.dumps(value) if isinstance(value, (list, dict)) else value
+            assert row[key] == expected, key
+
+
+def test_unreachable_scheduler_is_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP, encoding="utf-8")
+    address = f"tcp://127.0.0.1:{free_port()}"  # nobody listens there
+    status = main(
+        ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "o")]
+    )
+    err = capsys.readouterr().err.strip()
+    assert status == 1
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert f"--scheduler {address}: cannot connect" in err
