@@ -117,7 +117,7 @@ def test_output_folder_that_cannot_be_created_is_one_line(
     assert main(["batch", "sim", str(sweep), "--out", str(blocker / "out")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "Traceback" not in err
-    assert "cannot create the folder" in err and str(blocker / "out") in err
+    assert "cannot create the output folder" in err and str(blocker / "out") in err
 
 
 def test_cases_are_seeded_and_reproducible(tmp_path: Path) -> None:
