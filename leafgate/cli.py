@@ -124,6 +124,11 @@ def cmd_sim(args: argparse.Namespace) -> int:
     )
     if args.profile:
         cfg = with_profile(cfg, args.profile)
+    if not _model_given(args.config, args.set):  # the steering-aware model where the wheel lags
+        from leafgate.sim.runner import default_model
+
+        mpc = dataclasses.replace(cfg.controller.mpc, model=default_model(cfg.sim.plant.kind))
+        cfg = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, mpc=mpc))
     if args.trajectory and args.scenario:
         raise ConfigError("sim: give --scenario NAME or --trajectory FILE, not both")
     if args.start and not args.trajectory:
@@ -149,9 +154,16 @@ def cmd_sim(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.realtime:
         from leafgate.sim.realtime import run_realtime
+        from leafgate.sim.runner import finish_verdict
 
         outcome = run_realtime(cfg, scenario)
         metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
+        final = metrics["final_state"]
+        metrics["finished"], reason = finish_verdict(
+            metrics, final == "STANDBY", f"the gateway ended in {final}"
+        )
+        if reason:
+            metrics["not_finished_reason"] = reason
         loop = "real time (daemon runtime, in-process Zenoh, virtual CAN)"
     else:
         if args.direct:
@@ -171,7 +183,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"  t={t:7.2f} s  {event}")
     print(
         f"scenario {scenario.name}: controller {cfg.controller.kind}, "
-        f"solver {cfg.controller.mpc.solver}, mode {cfg.controller.mpc.mode}, "
+        f"model {cfg.controller.mpc.model}, solver {cfg.controller.mpc.solver}, "
+        f"mode {cfg.controller.mpc.mode}, "
         f"plant {cfg.sim.plant.kind}; {loop}"
     )
     print(format_metrics(metrics))
@@ -179,6 +192,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         {
             "scenario": scenario.name,
             "controller": cfg.controller.kind,
+            "model": cfg.controller.mpc.model,
             "solver": cfg.controller.mpc.solver,
             "mode": cfg.controller.mpc.mode,
             "plant": cfg.sim.plant.kind,
@@ -207,11 +221,27 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _model_given(path: str | None, sets: Sequence[str]) -> bool:
+    """Whether the config file or a ``--set`` chooses ``controller.mpc.model``."""
+    if "controller.mpc.model" in parse_overrides(sets):
+        return True
+    if path is None:
+        return False
+    from leafgate.config import load_yaml
+
+    node: Any = load_yaml(path)
+    for key in ("controller", "mpc", "model"):
+        if not isinstance(node, dict) or key not in node:
+            return False
+        node = node[key]
+    return True
+
+
 def _start_pose(text: str | None) -> Any:
     """``X,Y,HEADING_DEG`` → a pose at rest (SI), or None."""
     if not text:
         return None
-    from math import radians
+    from math import isfinite, radians
 
     from leafgate.messages import Pose
 
@@ -222,15 +252,9 @@ def _start_pose(text: str | None) -> Any:
         raise ConfigError(
             f"--start {text!r}: expected X,Y,HEADING_DEG (m, m, degrees), e.g. 0,0,90"
         ) from None
-    if not all(map(_finite, (x, y, heading_deg))):
+    if not all(isfinite(v) for v in (x, y, heading_deg)):
         raise ConfigError(f"--start {text!r}: values must be finite")
     return Pose(x=x, y=y, heading=radians(heading_deg), speed=0.0)
-
-
-def _finite(value: float) -> bool:
-    from math import isfinite
-
-    return isfinite(value)
 
 
 # --- the daemon and its tools ------------------------------------------------------------------
@@ -482,7 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--plant", choices=("kinematic", "steer-lag", "dynamic"))
     p.add_argument("--controller", choices=("mpc", "pure-pursuit", "stanley"))
-    p.add_argument("--solver", choices=("hildreth", "osqp"))
+    p.add_argument("--solver", choices=("daqp", "hildreth", "osqp"))
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
         "--profile",

@@ -18,8 +18,11 @@ from leafgate.sim.compare import (
     drive_config,
     run_compare,
 )
+from leafgate.sim.scenarios import SCENARIOS, get_scenario
 
 pytestmark = pytest.mark.slow
+
+FEASIBLE = [name for name in SCENARIOS if get_scenario(name).feasible]
 
 
 def test_report_holds_the_table_the_numbers_and_the_plots(tmp_path: Path) -> None:
@@ -117,6 +120,7 @@ def test_mpc_lateral_error_is_below_both_baselines_on_every_scenario_and_plant(
         report = run_compare(
             LeafgateConfig(),
             tmp_path / plant,
+            scenarios=FEASIBLE,  # the infeasible hairpin has no accuracy to rank
             plants=[plant],
             controllers=[mpc, "pure-pursuit", "stanley"],
             direct=True,
@@ -134,3 +138,21 @@ def test_mpc_lateral_error_is_below_both_baselines_on_every_scenario_and_plant(
                 assert mine <= TIE, (scenario, plant)
             else:
                 assert mine < best_baseline, (scenario, plant, mine, best_baseline)
+
+
+def test_compare_drives_the_route_library(tmp_path: Path) -> None:
+    report = run_compare(
+        LeafgateConfig(),
+        tmp_path,
+        plants=["kinematic"],
+        controllers=["mpc"],
+        direct=True,
+        workers=1,
+        plots=False,
+    )
+    library = {"switch-back", "figure-eight", "closed-loop", "u-turn", "corner", "cusp-retrace"}
+    assert library | {"tight-hairpin"} <= set(report["scenarios"])
+    finished = {r["scenario"]: r["metrics"]["finished"] for r in report["runs"]}
+    assert all(finished[name] for name in library), finished
+    text = (tmp_path / "report.md").read_text()
+    assert "## tight-hairpin" in text and "Infeasible by design" in text

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from leafgate.control.qp import OsqpBackend, hildreth
+from leafgate.control.qp import DaqpBackend, OsqpBackend, hildreth
 
 
 def _random_qp(seed: int, n: int = 8, m: int = 12) -> tuple[np.ndarray, ...]:
@@ -156,3 +156,96 @@ def test_hildreth_with_a_cholesky_factor_is_hildreth_with_the_inverse(seed: int)
     by_inverse = hildreth(E, f, M, gamma, max_iter=2000, E_inv=np.linalg.inv(E))
     assert by_factor.converged == by_inverse.converged
     np.testing.assert_allclose(by_factor.x, by_inverse.x, atol=1e-9)
+
+
+# --- DAQP (issue 13): the default backend ------------------------------------------------------
+
+
+def _closed_loop_qps() -> list[tuple[np.ndarray, ...]]:
+    """The QPs the MPC really solves with constraints active: a parking move and a slalom from
+    standing starts 0.9 m and 25° off the path (the steering saturates for seconds)."""
+    import dataclasses
+    import math
+
+    from leafgate.control.config import ControllerConfig, MpcConfig
+    from leafgate.control.mpc import MpcController
+    from leafgate.messages import Pose
+    from leafgate.settings import LeafgateConfig
+    from leafgate.sim.runner import run_direct
+    from leafgate.sim.scenarios import get_scenario
+
+    captured: list[tuple[np.ndarray, ...]] = []
+
+    class Capturing(MpcController):
+        def _solve(self, E, f, gamma):  # type: ignore[no-untyped-def]
+            result = super()._solve(E, f, gamma)
+            if result.iterations > 0:  # the unconstrained optimum was not feasible
+                captured.append((E.copy(), f.copy(), self.M, gamma.copy()))
+            return result
+
+    cfg = LeafgateConfig(controller=ControllerConfig(mpc=MpcConfig(solver="osqp")))
+    import leafgate.control.mpc as mpc_module
+
+    original = mpc_module.MpcController
+    mpc_module.MpcController = Capturing  # type: ignore[misc]
+    try:
+        for name in ("parallel-park", "slalom"):
+            s = get_scenario(name)
+            h = s.start.heading
+            start = Pose(
+                s.start.x - 0.9 * math.sin(h), s.start.y + 0.9 * math.cos(h), h + 0.44, 0.0
+            )
+            run_direct(cfg, dataclasses.replace(s, start=start, duration=12.0))
+    finally:
+        mpc_module.MpcController = original  # type: ignore[misc]
+    return captured
+
+
+@pytest.mark.slow
+def test_daqp_hildreth_and_osqp_give_the_same_first_move_on_closed_loop_qps() -> None:
+    qps = _closed_loop_qps()
+    assert len(qps) > 200
+    n_dual_bound = 0
+    osqp_converged = 0
+    for E, f, M, gamma in qps:
+        daqp_result = DaqpBackend(M).solve(E, f, gamma)
+        assert daqp_result.converged
+        reference = hildreth(E, f, M, gamma, max_iter=100_000, tol=1e-20)
+        assert reference.converged
+        np.testing.assert_allclose(daqp_result.x[:2], reference.x[:2], rtol=0, atol=1e-6)
+        n_dual_bound += int((daqp_result.lam > 0).any())
+        osqp_result = OsqpBackend(E, M, eps=1e-8).solve(E, f, gamma)
+        if osqp_result.converged:  # a capped OSQP says so (checked below); never a wrong answer
+            osqp_converged += 1
+            np.testing.assert_allclose(osqp_result.x[:2], daqp_result.x[:2], rtol=0, atol=1e-6)
+    assert n_dual_bound == len(qps)  # every one of them saturated a constraint
+    assert osqp_converged >= 0.97 * len(qps)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_daqp_solves_the_mpc_box_qp_exactly(seed: int) -> None:
+    E, f, M, gamma = _box_qp(seed)
+    result = DaqpBackend(M).solve(E, f, gamma)
+    reference = hildreth(E, f, M, gamma, max_iter=100_000, tol=1e-20)
+    assert result.converged
+    np.testing.assert_allclose(result.x, reference.x, atol=1e-8)
+    assert (M @ result.x <= gamma + 1e-8).all()
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_daqp_on_a_general_constraint_matrix(seed: int) -> None:
+    E, f, M, gamma = _random_qp(seed)
+    result = DaqpBackend(M).solve(E, f, gamma)
+    reference = OsqpBackend(E, M, eps=1e-10, max_iter=100_000).solve(E, f, gamma)
+    assert result.converged and reference.converged
+    np.testing.assert_allclose(result.x, reference.x, atol=1e-6)
+
+
+def test_daqp_infeasible_and_capped_are_not_converged() -> None:
+    E = np.eye(2)
+    f = np.zeros(2)
+    M = np.array([[1.0, 0.0], [-1.0, 0.0]])
+    gamma = np.array([-1.0, -1.0])  # x₀ ≤ −1 and x₀ ≥ 1
+    assert not DaqpBackend(M).solve(E, f, gamma).converged
+    E, f, M, gamma = _box_qp(3)
+    assert not DaqpBackend(M, max_iter=1).solve(E, f, gamma).converged

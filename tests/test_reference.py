@@ -10,15 +10,16 @@ import pytest
 import yaml
 
 from leafgate.control.reference import (
+    Progress,
     ReferencePath,
     _interp_scalar,
     load_trajectory,
-    nearest_index,
     split_segments,
     validate,
 )
 from leafgate.errors import TrajectoryError
 from leafgate.messages import Trajectory
+from tests import routes
 
 GOOD_ROWS = [(0.5 * i, 0.0, 0.0, 1.0) for i in range(8)]
 
@@ -134,23 +135,6 @@ def test_spacing_is_reported() -> None:
 # --- nearest point ---
 
 
-def test_nearest_index_searches_forward_within_a_window() -> None:
-    traj = _line(100)
-    assert nearest_index(traj, 10.1, 0.3, start=15, window=20) == 20
-    # the point at x = 40 m is out of the window from 15: the search stops at the window's end
-    assert nearest_index(traj, 40.0, 0.0, start=15, window=20) == 33
-
-
-def test_nearest_index_ignores_an_earlier_pass_over_the_same_place() -> None:
-    """A loop: waypoints 0 and 40 are at the same place; from index 35 it must find 40."""
-    angle = np.linspace(0.0, 2 * math.pi, 41)
-    traj = Trajectory(
-        x=10 * np.cos(angle), y=10 * np.sin(angle), heading=angle + math.pi / 2, speed=np.ones(41)
-    )
-    assert nearest_index(traj, 10.0, 0.0, start=35, window=10) == 40
-    assert nearest_index(traj, 10.0, 0.0, start=0, window=10) == 0
-
-
 # --- segments and resampling ---
 
 
@@ -236,18 +220,6 @@ def _parking_like() -> Trajectory:
     )
 
 
-def test_path_nearest_index_is_the_functions() -> None:
-    traj = _parking_like()
-    path = ReferencePath(traj)
-    rng = np.random.default_rng(4)
-    for _ in range(300):
-        start = int(rng.integers(0, len(traj)))
-        x, y = traj.x[start] + rng.normal(0, 0.7), traj.y[start] + rng.normal(0, 0.7)
-        window, stop = int(rng.integers(1, 25)), int(rng.integers(0, len(traj)))
-        expected = nearest_index(traj, x, y, start, window=window, stop=stop)
-        assert path.nearest_index(x, y, start, window=window, stop=stop) == expected
-
-
 def test_horizon_is_sample_of_horizon_arclength_and_reference_speed() -> None:
     """The fused per-tick query returns exactly what the three separate queries return."""
     traj = _parking_like()
@@ -277,3 +249,23 @@ def test_scalar_interpolation_is_numpys_bit_for_bit() -> None:
         queries = np.concatenate((rng.uniform(xp[0] - 1.0, xp[-1] + 1.0, 500), xp))
         got = [_interp_scalar(float(x), xp.tolist(), fp.tolist()) for x in queries]
         np.testing.assert_array_equal(got, np.interp(queries, xp, fp))
+
+
+def test_a_stop_just_short_of_a_cusp_ends_the_segment() -> None:
+    """A stop 1 mm before the cusp's end line, 0.5 m aside: the progress is at the end, so the
+    next segment starts (the old half-plane test held the car there for good)."""
+    traj = routes.with_reverse(routes.leg([(6.0, 0.0)]), [(4.0, 0.0)])
+    path = ReferencePath(traj)
+    prog = Progress(path, window=20)
+    end = path.segments[0].end
+    for i in range(end):
+        prog.update(float(traj.x[i]), 0.5, 0.0)
+    prog.update(float(traj.x[end]) - 0.001, 0.5, 0.0)
+    assert not prog.passed and not prog.at_end(float(traj.x[end]) - 0.001, 0.5, 0.15)
+    assert prog.ended(float(traj.x[end]) - 0.001, 0.5, 0.15)
+    assert prog.next_segment() and prog.segment.direction == -1
+    # the last segment needs the goal tolerance: progress alone does not finish the route
+    for i in range(prog.segment.start, prog.segment.end + 1):
+        prog.update(float(traj.x[i]), 0.5, 0.0)
+    assert not prog.ended(float(traj.x[-1]), 0.5, 0.15)
+    assert prog.ended(float(traj.x[-1]), 0.05, 0.15)

@@ -352,6 +352,7 @@ def _feed(
     steer_rate: float = 0.0,
     gear_change: bool = False,
     progress0: float = 0.0,
+    route_length: float = 50.0,
 ) -> tuple[float | None, float]:
     """Feed ticks at 50 Hz; return when the first STOP came (or None) and the end time."""
     t = t0
@@ -361,7 +362,7 @@ def _feed(
             t,
             plan,
             progress0 + speed * (t - t0),
-            50.0,
+            route_length,
             steer_rate * (t - t0),
             standstill=abs(speed) < 0.05,
             gear_change=gear_change,
@@ -407,6 +408,33 @@ def test_progress_watchdog_turning_the_wheel_at_rest_is_no_stop_but_a_stuck_whee
     assert _feed(wd, 10.0, t0=4.1, speed=0.3, progress0=0.04)[0] is None
     # an actuator that does not move is no reason to wait
     assert _feed(ProgressWatchdog(CFG), 10.0, steer_rate=0.0)[0] is not None
+
+
+def test_progress_watchdog_braking_to_a_commanded_stop_is_no_stall_but_resting_after_is() -> None:
+    # Past a segment's end (an overshoot) progress stands still while the car brakes to rest.
+    wd = ProgressWatchdog(CFG)
+    for k in range(250):  # 5 s braking from 2.5 m/s at 0.5 m/s²
+        check = wd.update(k * PERIOD, "plan", 6.8, 8.6, 0.0, False, False, commanded_speed=0.0)
+        assert check.ok, k
+    # at rest, nothing pending, the target still zero: that is a stall
+    t0 = 250 * PERIOD
+    stop_at = None
+    for k in range(300):
+        check = wd.update(t0 + k * PERIOD, "plan", 6.8, 8.6, 0.0, True, False, commanded_speed=0.0)
+        if check.reaction is Reaction.STOP:
+            stop_at = (k + 1) * PERIOD  # since the last braking tick
+            break
+    assert stop_at == pytest.approx(CFG.no_progress_time, abs=PERIOD)
+
+
+def test_progress_watchdog_leaves_the_last_stretch_to_the_goal_check() -> None:
+    wd = ProgressWatchdog(CFG)
+    for k in range(500):  # creeping onto the goal, progress saturated at the plan's end
+        check = wd.update(k * PERIOD, "plan", 27.85, 27.9, 0.0, False, False, commanded_speed=0.1)
+        assert check.ok
+    # at rest on the goal and still not finished: the goal check had its time
+    stop_at, _ = _feed(wd, 10.0, t0=10.0, progress0=27.85, route_length=27.9)
+    assert stop_at == pytest.approx(10.0 + CFG.no_progress_time, abs=2 * PERIOD)
 
 
 def test_progress_watchdog_counts_progress_across_re_sent_plans() -> None:

@@ -34,7 +34,9 @@ class MpcConfig:
     model: Literal["kinematic", "kinematic_steer_lag"] = "kinematic"
 
     # output weights Q (diagonal), path-aligned frame
-    weight_along: float = 0.5  # 1/m², along-track position: stops the car on the goal point
+    weight_along: float = 1.5  # 1/m², along-track position: stops the car on the goal point
+    # (0.5 until issue 13: the last centimetres then crept at ≈ 2 s, and the car came to rest
+    # ≈ 4 cm short; 1.5 brings it to ≈ 2 cm with the same lateral errors)
     weight_lateral: float = 40.0  # 1/m², cross-track error: the quantity the tests bound
     weight_speed: float = 2.0  # s²/m², speed error
     weight_heading: float = 4.0  # 1/rad², heading error: damps the lateral response
@@ -68,6 +70,17 @@ class MpcConfig:
     speed_lead_time: float = 0.8  # s, velocity mode: how far ahead the planned speed is sent
     # (≈ the time constant of the vehicle's speed loop, 1/kp with kp ≈ 1.2–1.5 1/s)
     delay_compensation: float = 0.0  # s, predict the pose this far over the last command
+
+    # offset-free tracking (leafgate.control.disturbance): constant input disturbances
+    # estimated from the measured increments; 0 switches an estimate off
+    disturbance_tau_steer: float = 1.0  # s, filter of the steering misalignment estimate
+    disturbance_tau_accel: float = 2.0  # s, filter of the drag / incline estimate
+
+    # speed bounds: the MPC never asks for more than the plan's speed plus a margin, nor for
+    # more than the maneuver limit (so the safety gate's speed clamp is never needed)
+    speed_margin: float = 0.15  # m/s, above the plan's speed (the bound is approached from below
+    # with a little overshoot: 0.15 keeps the car within 0.2 m/s of the plan)
+    max_speed: float = 3.0  # m/s, the maneuver limit (the gateway's safety.max_speed)
 
     # steering actuator (model "kinematic_steer_lag")
     steer_tau: float = 0.3  # s, first-order lag of the road-wheel angle
@@ -108,6 +121,11 @@ class MpcConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        for name in ("disturbance_tau_steer", "disturbance_tau_accel", "speed_margin"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
+        positive(self, "max_speed")
         for name in ("delay_compensation", "steer_dead_time"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 <= value <= 1.0):

@@ -59,6 +59,15 @@ segment's end point it brakes to rest (status ``stopping``) and never creeps on 
 heading; the next segment (or the finish) starts from where it stopped. While finished or
 aligning the wheel holds or ramps monotonically: no chatter at standstill.
 
+**Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed over the
+horizon plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit): in acceleration
+mode the command is governed so that the jerk-limited ramp-down ends at the bound (status
+``speed-limited``), in velocity mode the target is clamped. A path the car cannot follow (a
+hairpin tighter than its turning circle) is driven at the plan's speed, never sprinted through.
+
+**Offset-free.** A constant steering misalignment and a constant drag are estimated from the
+measured increments (:mod:`leafgate.control.disturbance`) and the model predicts with them.
+
 Faults never raise: non-finite inputs or results give ``converged=False,
 status="non-finite"`` and the last applied command; a bad trajectory gives
 ``status="bad-trajectory"``.
@@ -77,6 +86,7 @@ from scipy.linalg import lapack
 
 from leafgate.config import VehicleConfig
 from leafgate.control.config import MpcConfig
+from leafgate.control.disturbance import DisturbanceEstimator
 from leafgate.control.model import (
     N_INPUTS,
     N_STATES,
@@ -100,6 +110,7 @@ from leafgate.control.reference import (
 )
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
+_GOVERN_TIME = 0.5  # s, time constant with which a car above the speed bound is slowed
 _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a clip (solver
 # tolerances leave smaller excursions, which are clipped but not counted)
 
@@ -172,6 +183,9 @@ class MpcController:
         # the multipliers of a feasible unconstrained optimum: all zero, one read-only array
         self._no_multipliers = np.zeros(self.M.shape[0])
         self._no_multipliers.setflags(write=False)
+        self._disturbance = DisturbanceEstimator(
+            period, self.L, cfg.disturbance_tau_steer, cfg.disturbance_tau_accel
+        )
         self._osqp: OsqpBackend | None = None
         self._daqp = DaqpBackend(self.M) if cfg.solver == "daqp" else None
         if cfg.solver == "osqp":
@@ -195,6 +209,7 @@ class MpcController:
         self._in_flight: deque[float] = deque(maxlen=max(self._dead_ticks, 1))
         if self._osqp is not None:
             self._osqp.reset()
+        self._disturbance.reset()
 
     def step(self, pose: Pose, steer_angle: float, trajectory: Trajectory) -> ControlOutput:
         """Compute the command for this tick (never raises on bad data: see module notes)."""
@@ -255,6 +270,13 @@ class MpcController:
             return self._hold("non-finite", seg.direction, t0)
         if self._u_prev is None:
             self._u_prev = np.array([0.0, math.tan(_clip(steer_angle, cfg.steer_max))])
+        dist = self._disturbance  # measured increments → steering bias and drag estimates
+        dist.update(
+            pose.heading,
+            pose.speed,
+            math.tan(_clip(steer_angle, cfg.steer_max)),
+            float(self._u_prev[0]),
+        )
 
         # 1. reference: progress along the segment, and segment bookkeeping
         if not self._finished:
@@ -296,8 +318,10 @@ class MpcController:
             return self._brake_to_rest(direction, t0)
 
         # dead time: the state when the command computed now starts to act
+        bias = dist.bias  # tan δ: the car turns as with tan δ + bias
+        drag = direction * dist.accel  # signed d(v)/dt added to the command
         if self.steer_model:
-            gx, gy, gv, gth, gt = self._predict_dead_time(pose, steer_angle, direction)
+            gx, gy, gv, gth, gt = self._predict_dead_time(pose, steer_angle, direction, bias, drag)
         else:  # the kinematic model has no actuator state: the measured pose (no call, no tan)
             gx, gy, gv, gth, gt = pose.x, pose.y, pose.speed, pose.heading, math.nan
 
@@ -305,7 +329,7 @@ class MpcController:
         s0 = path.project(seg, prog.index, gx, gy)
         if at_rest and not self._aligned:
             if s0 - path.s[seg.start] <= cfg.goal_tolerance:
-                out = self._align(seg, s0, steer_angle, direction, t0)
+                out = self._align(seg, s0, steer_angle, direction, t0, bias)
                 if out is not None:
                     return out
             self._aligned = True
@@ -316,8 +340,11 @@ class MpcController:
         c, s = math.cos(psi0), math.sin(psi0)
         dx, dy = gx - ox, gy - oy
         kin = [c * dx + s * dy, -s * dx + c * dy, gv, _wrap(gth - psi0)]
+        # the model acts with the effective inputs: the commands plus the disturbances
+        a_eff, t_eff = a_prev + drag, t_prev + bias
         if cfg.delay_compensation > 0.0 and not self.steer_model:
-            kin = rk4_step(np.array(kin), u_prev, cfg.delay_compensation, self.L).tolist()
+            u_eff = np.array([a_eff, t_eff])
+            kin = rk4_step(np.array(kin), u_eff, cfg.delay_compensation, self.L).tolist()
         v0, th0 = kin[2], kin[3]
 
         # The prediction's rows are grouped by output (all Np along-track positions, then
@@ -342,13 +369,14 @@ class MpcController:
             increment = (
                 Ts * (v0 * math.cos(th0)),
                 Ts * (v0 * math.sin(th0)),
-                Ts * a_prev,
-                Ts * (v0 * t_prev / L),
+                Ts * a_eff,
+                Ts * (v0 * t_eff / L),
             )
-            dx_k = kinematic_first_increment(increment, v0, th0, t_prev, Ts, L)
-            ST, free = self._kinematic(v_op, heading_op, t_prev, dx_k)
-        else:
-            ST, free = self._predict_steer_lag(kin, gt, u_prev, v_op, heading_op)
+            dx_k = kinematic_first_increment(increment, v0, th0, t_eff, Ts, L)
+            ST, free = self._kinematic(v_op, heading_op, t_eff, dx_k)
+        else:  # the lag acts on tan δ + bias alike: shift the actual and the commanded angle
+            u_eff = np.array([a_eff, t_eff])
+            ST, free = self._predict_steer_lag(kin, gt + bias, u_eff, v_op, heading_op)
         y0 = np.array(kin)[:, None]
         ref -= y0
         err = ref.ravel() - free  # Rs − F x
@@ -387,6 +415,11 @@ class MpcController:
             min(self.tan_max, t_prev + self._du_first[1]),
         )
         clips = int(abs(a_cmd - a_new) > _EPS_CLIP) + int(abs(tan_cmd - tan_new) > _EPS_CLIP)
+        # speed bound: never faster than the plan's speed plus the margin, nor the maneuver limit
+        v_cap = min(float(np.abs(ref_speed).max()) + cfg.speed_margin, cfg.max_speed)
+        a_free = a_cmd
+        a_cmd = self._govern(a_cmd, a_prev, direction * v0, v_cap, direction)
+        limited = a_cmd != a_free
         self._apply(a_cmd, tan_cmd)
 
         SdU = dU @ ST
@@ -403,10 +436,15 @@ class MpcController:
         speed_cmd = float(Y[2, lead]) + (a_cmd - a_new) * self.Ts * (lead + 1)
         if direction * speed_cmd < 0.0:
             speed_cmd = 0.0  # never ask the speed controller to drive the other way
+        if direction * speed_cmd > v_cap:
+            speed_cmd = direction * v_cap
+            limited = True
         if not result.converged:
             status = "not-converged"
         elif clips:
             status = "clipped"
+        elif limited:
+            status = "speed-limited"
         else:
             status = "ok"
         return ControlOutput(
@@ -461,13 +499,13 @@ class MpcController:
             self._in_flight.append(tan_delta)
 
     def _predict_dead_time(
-        self, pose: Pose, steer_angle: float, direction: int
+        self, pose: Pose, steer_angle: float, direction: int, bias: float, drag: float
     ) -> tuple[float, float, float, float, float]:
         """``(x, y, v, θ, tan δ)`` once the commands in flight have acted (steering-aware model).
 
         Starts from the measured pose and road-wheel angle and steps the lagged bicycle one
         control period per queued command; with the kinematic model (or no dead time) it is the
-        measured state.
+        measured state. ``bias`` (tan δ) and ``drag`` (m/s²) are the estimated disturbances.
         """
         t = math.tan(_clip(steer_angle, self.cfg.steer_max))
         x, y, v, th = pose.x, pose.y, pose.speed, pose.heading
@@ -475,22 +513,22 @@ class MpcController:
             return x, y, v, th, t
         assert self._u_prev is not None
         h = self.period
-        a = float(self._u_prev[0])
+        a = float(self._u_prev[0]) + drag
         for t_cmd in self._in_flight:
             v_next = v + a * h
             if v_next * v < 0.0 or direction * v_next < 0.0:
                 v_next = 0.0  # braking stops the car, it does not reverse it
             v_mid = 0.5 * (v + v_next)
-            th_mid = th + 0.5 * h * v_mid * t / self.L
+            th_mid = th + 0.5 * h * v_mid * (t + bias) / self.L
             x += h * v_mid * math.cos(th_mid)
             y += h * v_mid * math.sin(th_mid)
-            th += h * v_mid * t / self.L
+            th += h * v_mid * (t + bias) / self.L
             t += self._alpha_tick * (t_cmd - t)
             v = v_next
         return x, y, v, th, t
 
     def _align(
-        self, seg: Segment, s0: float, steer_angle: float, direction: int, t0: float
+        self, seg: Segment, s0: float, steer_angle: float, direction: int, t0: float, bias: float
     ) -> ControlOutput | None:
         """At rest at a segment's start: turn the wheel to the path's curvature, brake held.
 
@@ -502,7 +540,9 @@ class MpcController:
         psi = path.sample(seg, np.array([s0, s0 + ds]))[:, 2]
         span = max(min(s0 + ds, float(path.s[seg.end])) - s0, 1e-6)
         # θ̇ = v tan δ / L: in reverse the heading turns the other way for the same wheel
-        tan_target = _clip(direction * self.L * float(psi[1] - psi[0]) / span, self.tan_max)
+        # (the wheel that gives it, with the estimated misalignment taken off)
+        curvature = direction * self.L * float(psi[1] - psi[0]) / span
+        tan_target = _clip(curvature - bias, self.tan_max)
         target = math.atan(tan_target)
         tol = self.cfg.align_tolerance
         step_a = self._du_first[0]
@@ -577,6 +617,26 @@ class MpcController:
         )
         self._lam = result.lam  # a good start next tick even when the cap was hit
         return result
+
+    def _govern(
+        self, accel: float, a_prev: float, speed: float, v_cap: float, direction: int
+    ) -> float:
+        """The acceleration command within the speed bound ``v_cap`` (m/s, > 0).
+
+        ``speed`` is in the driving direction. Below the bound the acceleration in the driving
+        direction is at most ``√(j (v_cap − v))`` — half the jerk ``j`` that the limit allows
+        for taking it back to zero before the bound is reached, so the delay of a tick or two
+        does not carry the car over it; above it, the car slows at ``(v − v_cap) / 0.5 s``.
+        The jerk bound of this tick still holds (the command never drops faster than it).
+        """
+        jerk = self.cfg.jerk_max
+        excess = speed - v_cap
+        bound = math.sqrt(jerk * -excess) if excess < 0.0 else -excess / _GOVERN_TIME
+        a_dir = direction * accel
+        if a_dir <= bound:
+            return accel
+        floor = direction * a_prev - self._du_first[0]  # the jerk limit of this tick
+        return direction * max(bound, floor)
 
     def _ramp_to_hold(self, direction: int) -> float:
         """The brake-hold acceleration of this tick, reached at the jerk limit.

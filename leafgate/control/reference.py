@@ -419,23 +419,6 @@ class ReferencePath:
             t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
         return i, t
 
-    def nearest_index(
-        self, x: float, y: float, start: int, window: int = 20, stop: int | None = None
-    ) -> int:
-        """:func:`nearest_index` on this path's trajectory (the same result, on Python floats)."""
-        last = self.n - 1 if stop is None else min(stop, self.n - 1)
-        lo = min(max(start - 1, 0), last)
-        hi = min(lo + window, last + 1)
-        tx, ty = self._x, self._y
-        best, best_d = lo, math.inf
-        for i in range(lo, hi):
-            dx = tx[i] - x
-            dy = ty[i] - y
-            d = dx * dx + dy * dy
-            if d < best_d:  # strict: the first of equal distances, like numpy's argmin
-                best, best_d = i, d
-        return best
-
     def horizon(self, seg: Segment, s0: float, steps: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The horizon's reference in one call: :meth:`horizon_arclength`, :meth:`sample` at
         ``s0`` and those arc lengths, and :meth:`reference_speed` there (the same values).
@@ -531,30 +514,6 @@ class ReferencePath:
         t_seg = self.time[sl]
         t0 = float(np.interp(s0, s_seg, t_seg))
         return np.interp(t0 + steps, t_seg, s_seg)
-
-
-def nearest_index(
-    traj: Trajectory,
-    x: float,
-    y: float,
-    start: int,
-    window: int = 20,
-    stop: int | None = None,
-) -> int:
-    """Index of the waypoint nearest ``(x, y)``, searched forward from ``start``.
-
-    Only ``window`` waypoints from one before ``start`` are examined — the car cannot pass more
-    in one control tick — so the cost does not grow with the path and a path that comes back
-    on itself is not confused with its earlier part.
-
-    :param stop: last index that may be returned (a segment's end), default the last waypoint
-    """
-    last = len(traj) - 1 if stop is None else min(stop, len(traj) - 1)
-    lo = min(max(start - 1, 0), last)
-    hi = min(lo + window, last + 1)
-    dx = traj.x[lo:hi] - x
-    dy = traj.y[lo:hi] - y
-    return lo + int(np.argmin(dx * dx + dy * dy))
 
 
 def _interp_scalar(x: float, xp: list[float], fp: list[float]) -> float:
@@ -653,10 +612,14 @@ class Progress:
         """Whether a car at rest at ``(x, y)`` has finished the current segment.
 
         By progress and within ``tolerance`` of the end (:meth:`at_end`); a segment before a
-        cusp also ends with a stop past its end (the next segment corrects what is left).
+        cusp also ends with a stop past its end, or with the progress within ``tolerance`` of
+        the end however far aside the car stopped (the next segment corrects what is left).
         """
-        last = self.seg_index + 1 == len(self.path.segments)
-        return self.at_end(x, y, tolerance) or (self.passed and not last)
+        if self.at_end(x, y, tolerance):
+            return True
+        if self.seg_index + 1 == len(self.path.segments):
+            return False
+        return self.passed or self.s >= float(self.path.s[self.segment.end]) - tolerance
 
     def update(self, x: float, y: float, heading: float) -> float:
         """Advance the progress to the car at ``(x, y)``; the arc length of its projection, m.

@@ -31,7 +31,8 @@ class WatchdogConfig:
     max_report_errors: int = 5  # bad-frame counter (+1 bad, −1 good, floor 0) at which → FAULT
     max_overruns: int = 3  # consecutive late control ticks → FAULT
     # Engaged and commanded to move, the car must gain no_progress_distance along the plan within
-    # every no_progress_time (waiting at rest for a gear change or the steering excepted) → STOP
+    # every no_progress_time (waiting for a gear change or the wheel, braking to a commanded
+    # stop and the plan's last no_progress_distance excepted) → STOP
     no_progress_time: float = 3.0  # s
     no_progress_distance: float = 0.1  # m
 

@@ -36,7 +36,8 @@ Decisions that go beyond DESIGN's tables (documented here so the tests can hold 
   car must gain ``watchdog.no_progress_distance`` along the plan within every
   ``watchdog.no_progress_time``, or the gateway makes a controlled stop naming it
   (:class:`~leafgate.gateway.watchdog.ProgressWatchdog`; waiting at rest for a gear change or
-  for the wheel to turn does not count).
+  for the wheel to turn, braking to a stop the controller asked for and the plan's last
+  ``no_progress_distance`` do not count).
 - A plan replaced while ENGAGED is judged like an engage: when the vehicle is outside the engage
   envelope of the new plan (``engage.max_distance``, ``engage.max_heading_error``) the gateway
   makes a controlled stop instead of chasing it; a plan within the envelope is followed.
@@ -464,8 +465,10 @@ class Gateway:
         if traj is None or traj.value is self._plan or wd.pose is None:
             return None
         self._plan = traj.value
-        distance, heading_error = path_deviation(wd.pose.value, traj.value)
         limits = self.config.engage
+        distance, heading_error = path_deviation(
+            wd.pose.value, traj.value, within=limits.max_distance
+        )
         if distance > limits.max_distance:
             return (
                 f"trajectory replaced: vehicle {distance:.2f} m from the new plan "
@@ -571,6 +574,7 @@ class Gateway:
             wd.steer.value.angle,
             standstill,
             gear_change=want != measured.gear,
+            commanded_speed=out.speed,
         )
 
     def _remaining_causes(self, now: float, wd: WatchdogReport, bus_errors: int) -> list[str]:

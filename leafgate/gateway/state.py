@@ -97,11 +97,16 @@ def wrap_angle(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def path_deviation(pose: Pose, trajectory: Trajectory) -> tuple[float, float]:
+def path_deviation(
+    pose: Pose, trajectory: Trajectory, within: float | None = None
+) -> tuple[float, float]:
     """Distance to the nearest point of the trajectory polyline and the heading error there.
 
     The heading of the path at the nearest point is interpolated between the segment's two
-    waypoints (the shorter way round).
+    waypoints (the shorter way round). With ``within``, a route that passes the vehicle more
+    than once (it crosses itself, closes on its start, retraces a leg after a cusp) is judged
+    by the pass that fits best: among the segments closer than ``within``, the one whose
+    heading is nearest the vehicle's; the nearest point when none is that close.
 
     :returns: (distance in m, absolute heading error in rad)
     """
@@ -116,10 +121,12 @@ def path_deviation(pose: Pose, trajectory: Trajectory) -> tuple[float, float]:
         t = np.where(length2 > 0.0, (px * dx + py * dy) / length2, 0.0)
     t = np.clip(t, 0.0, 1.0)
     dist = np.hypot(px - t * dx, py - t * dy)
-    i = int(np.argmin(dist))
-    h0, h1 = float(trajectory.heading[i]), float(trajectory.heading[i + 1])
-    heading = h0 + float(t[i]) * wrap_angle(h1 - h0)
-    return float(dist[i]), abs(wrap_angle(pose.heading - heading))
+    h0, h1 = trajectory.heading[:-1], trajectory.heading[1:]
+    dh = (h1 - h0 + math.pi) % (2.0 * math.pi) - math.pi  # the shorter way round
+    err = np.abs((pose.heading - (h0 + t * dh) + math.pi) % (2.0 * math.pi) - math.pi)
+    close = dist <= within if within is not None else np.zeros(dist.shape, dtype=bool)
+    i = int(np.argmin(np.where(close, err, np.inf))) if close.any() else int(np.argmin(dist))
+    return float(dist[i]), float(err[i])
 
 
 def engage_refusal(
@@ -160,7 +167,9 @@ def engage_refusal(
         return f"ECU not ready (state {system.state.name})"
     if not config.allow_reverse and bool((watchdogs.trajectory.value.speed < 0.0).any()):
         return "the trajectory has reverse segments and this vehicle cannot request a gear"
-    distance, heading_error = path_deviation(watchdogs.pose.value, watchdogs.trajectory.value)
+    distance, heading_error = path_deviation(
+        watchdogs.pose.value, watchdogs.trajectory.value, within=config.max_distance
+    )
     if distance > config.max_distance:
         return f"vehicle {distance:.2f} m from the trajectory (limit {config.max_distance:g} m)"
     if heading_error > config.max_heading_error:

@@ -502,6 +502,7 @@ class Watchdogs:
 
 STEER_SETTLE_BAND = math.radians(0.5)  # rad, the measured angle moving beyond this is turning
 STEER_SETTLE_TIME = 0.5  # s, steering still within the band this long has stopped turning
+STOP_COMMAND_SPEED = 0.05  # m/s, a target speed below this while moving is a stop being made
 
 
 class ProgressWatchdog:
@@ -512,10 +513,13 @@ class ProgressWatchdog:
     The car must gain at least ``no_progress_distance`` along the plan within every
     ``no_progress_time``; otherwise the check asks for a controlled stop, naming it.
 
-    The timer does not run while the car legitimately waits at rest: while a gear change is
-    pending (cusp) and while the steering is still turning at standstill (the MPC sets the
-    wheel before it drives off). "Turning" means the measured angle left a ±0.5° band within
-    the last 0.5 s, so a steering actuator that does not move is no excuse. A new plan object
+    The timer does not run while the car legitimately waits: while a gear change is pending
+    (cusp), while the steering is still turning at standstill (the MPC sets the wheel before it
+    drives off), while the car brakes to a stop the controller asked for (target speed zero,
+    still moving: a stop ends by itself), and while the car creeps along the last
+    ``no_progress_distance`` of the plan, where the controller's goal check decides. "Turning" means the measured angle left a ±0.5°
+    band within the last 0.5 s, so a steering actuator that does not move is no excuse, and a
+    car at rest with nothing to wait for is judged whatever the controller says. A new plan object
     (a planner's rolling window) changes where progress is counted from: the progress gained on
     the old plan within the window is carried over, so a re-sent plan neither resets the timer
     nor counts as progress. A controller that reports no route (``route_length`` 0, unknown) is
@@ -555,6 +559,7 @@ class ProgressWatchdog:
         steer_angle: float,
         standstill: bool,
         gear_change: bool,
+        commanded_speed: float = math.inf,
     ) -> Check:
         """Judge one tick of an engagement in which the controller drives.
 
@@ -564,6 +569,8 @@ class ProgressWatchdog:
         :param steer_angle: rad, the measured road-wheel angle
         :param standstill: the car stands still
         :param gear_change: a gear change is pending (the gateway holds the brake for it)
+        :param commanded_speed: m/s, the controller's target speed; zero while the car still
+            moves is a stop being made (at a cusp, at the end, after an overshoot), not a stall
         """
         if not (route_length > 0.0 and math.isfinite(progress)):
             return self.idle()
@@ -577,8 +584,13 @@ class ProgressWatchdog:
             self._plan, self._base = plan, progress
         self._last_progress = progress
         turning_at_rest = standstill and now - self._steer_moved < STEER_SETTLE_TIME - TIME_EPS
+        braking = not standstill and abs(commanded_speed) < STOP_COMMAND_SPEED
+        # creeping onto the goal: nothing left to progress along (at rest there, the goal
+        # check must have decided within the time)
+        at_end = not standstill and route_length - progress < self.distance
         gained = self._carried + max(progress - self._base, 0.0)
-        if self._since is None or gained >= self.distance or gear_change or turning_at_rest:
+        waiting = gear_change or turning_at_rest or braking or at_end
+        if self._since is None or gained >= self.distance or waiting:
             self._since, self._base, self._carried = now, progress, 0.0  # a new window
             return self._ok
         waited = now - self._since

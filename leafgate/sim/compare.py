@@ -372,7 +372,9 @@ def _markdown(
     ]
     header = ["plant", "controller", *(c[1] for c in COLUMNS), "finished"]
     for s in report["scenarios"]:
-        lines += [f"## {s}", "", f"{get_scenario(s).description}.", ""]
+        sc = get_scenario(s)
+        note = "" if sc.feasible else " Infeasible by design: judged on speed and honesty."
+        lines += [f"## {s}", "", f"{sc.description}.{note}", ""]
         lines.append("| " + " | ".join(header) + " |")
         lines.append("|" + "---|" * len(header))
         for p in report["plants"]:

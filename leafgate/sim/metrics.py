@@ -132,6 +132,29 @@ def sign_changes(rate: FloatArray, deadband: float = STEER_RATE_DEADBAND) -> int
     return int(np.count_nonzero(np.diff(signs)))
 
 
+PATH_CURVATURE_RATE_DEADBAND = 2e-3  # 1/m², curvature changes slower than this are no reversal
+
+
+def path_steer_sign_changes(traj: Trajectory) -> int:
+    """Reversals of the steering the path itself asks for, over its arc length.
+
+    The steering follows the curvature the vehicle drives, ``direction · dθ/ds`` (reversing,
+    the heading turns the other way for the same wheel angle); its reversals are those of the
+    curvature's rate. At a cusp the car stands while the wheel turns, so the curvature on
+    either side of it counts as one profile. The yardstick for a run's
+    ``steer_rate_sign_changes``.
+    """
+    gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
+    direction = np.sign(traj.speed[1:] + traj.speed[:-1])
+    direction[direction == 0] = 1.0
+    curvature = direction * np.asarray(wrap_angle(np.diff(traj.heading))) / np.maximum(gaps, 1e-9)
+    mid = np.cumsum(gaps) - 0.5 * gaps  # m, arc length of each interval's middle
+    if curvature.shape[0] < 2:
+        return 0
+    rate = np.diff(curvature) / np.maximum(np.diff(mid), 1e-9)
+    return sign_changes(rate, PATH_CURVATURE_RATE_DEADBAND)
+
+
 def tracking_metrics(
     traj: Trajectory,
     t: FloatArray,
@@ -157,6 +180,62 @@ def tracking_metrics(
         "steer_rate_max_radps": float(np.max(np.abs(steer_rate))),
         "steer_rate_rms_radps": float(np.sqrt(np.mean(steer_rate**2))),
         "steer_rate_sign_changes": sign_changes(steer_rate),
+        "path_steer_sign_changes": path_steer_sign_changes(traj),
+        # m/s, how far the speed ran above the plan's at the car's place on the route
+        "overspeed_max_mps": float(np.max(np.abs(speed) - np.abs(errors.speed_ref))),
         "progress_m": float(np.max(errors.progress)) if errors.progress.size else 0.0,
         "route_length_m": route_length,
     }
+
+
+# --- the goals of issue 13 for the route library -------------------------------------------------
+
+GOAL_LATERAL_KINEMATIC = 0.05  # m, max lateral error on the kinematic plant
+GOAL_FINAL_POSITION = 0.05  # m, kinematic plant
+GOAL_FINAL_HEADING = math.radians(1.0)  # rad, kinematic plant
+GOAL_LATERAL_LAG = 0.15  # m, max lateral error on the steer-lag and dynamic plants
+GOAL_EXTRA_SIGN_CHANGES = 2  # steering reversals beyond the path's own, lag plants
+GOAL_OVERSPEED = 0.2  # m/s above the plan's speed, on every route (the infeasible one too)
+
+
+def route_goal_misses(metrics: dict[str, object], plant: str, feasible: bool) -> list[str]:
+    """Which goals a run missed (empty: all met), each naming the figure and its limit.
+
+    Feasible routes must finish; on the kinematic plant within 5 cm laterally, 5 cm and 1° at
+    the goal; on the steer-lag and dynamic plants within 15 cm with at most two steering
+    reversals more than the path's. Every route, the infeasible one too, keeps the speed within
+    0.2 m/s of the plan's.
+    """
+
+    def num(key: str) -> float:
+        value = metrics[key]
+        assert isinstance(value, (int, float))
+        return float(value)
+
+    misses = []
+    if num("overspeed_max_mps") > GOAL_OVERSPEED:
+        misses.append(f"overspeed {num('overspeed_max_mps'):.2f} m/s > {GOAL_OVERSPEED} m/s")
+    if not feasible:
+        return misses
+    if not metrics.get("finished"):
+        misses.append(f"not finished: {metrics.get('not_finished_reason', '?')}")
+    lateral = num("lateral_error_max_m")
+    if plant == "kinematic":
+        if lateral > GOAL_LATERAL_KINEMATIC:
+            misses.append(f"lateral error {lateral:.3f} m > {GOAL_LATERAL_KINEMATIC} m")
+        if num("final_position_error_m") > GOAL_FINAL_POSITION:
+            misses.append(
+                f"final position {num('final_position_error_m'):.3f} m > {GOAL_FINAL_POSITION} m"
+            )
+        if num("final_heading_error_rad") > GOAL_FINAL_HEADING:
+            misses.append(f"final heading {math.degrees(num('final_heading_error_rad')):.2f}° > 1°")
+    else:
+        if lateral > GOAL_LATERAL_LAG:
+            misses.append(f"lateral error {lateral:.3f} m > {GOAL_LATERAL_LAG} m")
+        allowed = num("path_steer_sign_changes") + GOAL_EXTRA_SIGN_CHANGES
+        if num("steer_rate_sign_changes") > allowed:
+            misses.append(
+                f"steering sign changes {num('steer_rate_sign_changes'):.0f} > {allowed:.0f} "
+                f"(the path's {num('path_steer_sign_changes'):.0f} + {GOAL_EXTRA_SIGN_CHANGES})"
+            )
+    return misses

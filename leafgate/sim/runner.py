@@ -20,14 +20,14 @@ import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import can
 import numpy as np
 
 from leafgate.can.codec import CanCodec, EncodeError
 from leafgate.control import make_controller
-from leafgate.control.reference import MIN_POINTS, split_segments
+from leafgate.control.reference import MIN_POINTS
 from leafgate.errors import ConfigError
 from leafgate.gateway.core import END_REACHED, Gateway, GatewayInputs
 from leafgate.messages import (
@@ -89,6 +89,13 @@ def start_pose(scenario: Scenario, sim: SimConfig) -> Pose:
         y=start.y + left * math.cos(start.heading),
         heading=start.heading + sim.start_heading_offset,
     )
+
+
+def default_model(plant: str) -> Literal["kinematic", "kinematic_steer_lag"]:
+    """The MPC prediction model the simulator uses on ``plant`` unless told otherwise: the
+    steering-aware one wherever the wheel lags (as on the car), the paper's kinematic one on
+    the kinematic plant."""
+    return "kinematic" if plant == "kinematic" else "kinematic_steer_lag"
 
 
 @dataclass(frozen=True)
@@ -161,7 +168,8 @@ class _Recorder:
         }
 
 
-#: ``trace.csv`` columns: name, unit, the recorder's series (SI inside; degrees at this edge).
+#: ``trace.csv`` columns (name with its unit) and the recorder's series behind each (SI inside;
+#: degrees only in the file).
 TRACE_COLUMNS: tuple[tuple[str, str], ...] = (
     ("t_s", "t"),
     ("x_m", "x"),
@@ -178,9 +186,9 @@ TRACE_COLUMNS: tuple[tuple[str, str], ...] = (
 class RollingWindow:
     """A planner's rolling plan: the next ``length`` of the route, re-sent every ``period``.
 
-    Each plan starts at the waypoint the car last passed (never before the start of the
-    direction segment it drives on) and is a new object with a new receive time, as from a
-    planner over Zenoh.
+    Each plan starts at the waypoint the car last passed (its projection on the route, followed
+    in time order and in its direction of travel) and is a new object with a new receive time,
+    as from a planner over Zenoh (the transport makes a new object of every message).
     """
 
     length: float = 30.0  # m
@@ -201,7 +209,6 @@ class _Planner:
         self.route = route
         self.window = window
         self.projector = Projector(route)
-        self.segments = split_segments(route.speed)
         self.last_sent: float | None = None
         self.plan: Stamped[Trajectory] | None = None
 
@@ -212,9 +219,8 @@ class _Planner:
         if self.plan is not None and not due:
             return self.plan
         route, proj = self.route, self.projector
-        seg_start = max(seg.start for seg in self.segments if seg.start <= k)
         n = len(route)
-        first = min(max(k, seg_start), n - MIN_POINTS)
+        first = min(k, n - MIN_POINTS)  # a plan has at least four waypoints
         end_s = proj.s[first] + self.window.length
         last = max(int(np.searchsorted(proj.s, end_s, side="right")), first + MIN_POINTS)
         cut = slice(first, min(last, n))
@@ -251,7 +257,7 @@ class SimResult:
 FINISH_TOLERANCE = 0.5  # m: a run finished only when it ended this close to the route's end
 
 
-def _verdict(metrics: dict[str, Any], claimed: bool, why_not: str) -> tuple[bool, str]:
+def finish_verdict(metrics: dict[str, Any], claimed: bool, why_not: str) -> tuple[bool, str]:
     """Did the run finish the maneuver? Checked against the route, not only taken from the
     gateway: the car must have got along the whole route and stopped on its end."""
     length, progress = metrics["route_length_m"], metrics["progress_m"]
@@ -285,7 +291,7 @@ def _finish(
     metrics["solve_time_median_s"] = float(np.median(solve))
     metrics["solve_time_p99_s"] = float(np.percentile(solve, 99))
     metrics.update(extra)
-    metrics["finished"], reason = _verdict(metrics, bool(extra["finished"]), why_not)
+    metrics["finished"], reason = finish_verdict(metrics, bool(extra["finished"]), why_not)
     if reason:
         metrics["not_finished_reason"] = reason
     speed_ref = path_errors(traj, arr["x"], arr["y"], arr["heading"], arr["speed"]).speed_ref
@@ -601,11 +607,11 @@ def run(
     ended = [tr for tr in transitions if tr["to"] in ("FAULT", "STOPPING", "STANDBY")]
     if not engaged_once:
         why_not = "the gateway never engaged" + (f": {r}" if (r := _refusal(timeline)) else "")
-    elif gateway.state != GatewayState.STANDBY:
-        why_not = f"time limit {scenario.duration:.0f} s reached in {gateway.state.name}"
     elif ended and (ended[0]["to"] != "STANDBY" or ended[0]["reason"] != END_REACHED):
         first = ended[0]
         why_not = f"{first['to']} at t = {first['t']:.2f} s: {first['reason']}"
+    elif gateway.state != GatewayState.STANDBY:
+        why_not = f"time limit {scenario.duration:.0f} s reached in {gateway.state.name}"
     extra["finished"] = not why_not
     return _finish(config, scenario, rec, solve_times, extra, timeline, label, why_not)
 

@@ -479,6 +479,19 @@ def tight_hairpin() -> Scenario:
     return Scenario(sc.name, sc.description, sc.trajectory, sc.start, sc.duration, feasible=False)
 
 
+def offset_start(sc: Scenario, lateral: float, heading: float) -> Scenario:
+    """``sc`` started ``lateral`` m to the left of its first waypoint (right when negative) and
+    turned ``heading`` rad from its heading, at rest (engage-envelope starts)."""
+    x0, y0, h0 = float(sc.trajectory.x[0]), float(sc.trajectory.y[0]), sc.start.heading
+    start = Pose(
+        x=x0 - lateral * math.sin(h0),
+        y=y0 + lateral * math.cos(h0),
+        heading=h0 + heading,
+        speed=0.0,
+    )
+    return Scenario(sc.name, sc.description, sc.trajectory, start, sc.duration, sc.feasible)
+
+
 def file_scenario(path: str, start: Pose | None = None) -> Scenario:
     """A user's route from a trajectory file (:func:`~leafgate.control.reference.load_trajectory`).
 

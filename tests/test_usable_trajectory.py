@@ -1,0 +1,118 @@
+"""Issue 13: one rule for a usable trajectory — transport, engage check and controllers.
+
+Old code: the transport needed ≥ 1 point, the watchdog (engage) ≥ 2, the controller ≥ 4 and no
+repeated point; an Autoware plan with overlapping points was accepted at engage and then
+refused by the controller ("controller: bad-trajectory"), its reason never shown.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from leafgate.config import VehicleConfig
+from leafgate.control.baselines import PurePursuit, PurePursuitConfig
+from leafgate.control.config import MpcConfig
+from leafgate.control.mpc import MpcController
+from leafgate.control.reference import remove_overlap_points, trajectory_problem
+from leafgate.gateway import watchdog
+from leafgate.messages import GatewayState, OperatorRequest, Pose, Trajectory
+from leafgate.transport import node
+from tests.test_gateway_core import PERIOD, Rig
+
+
+def _line(n: int, spacing: float = 0.5) -> Trajectory:
+    x = spacing * np.arange(n, dtype=np.float64)
+    return Trajectory(x=x, y=np.zeros(n), heading=np.zeros(n), speed=np.ones(n))
+
+
+def _with_overlaps(traj: Trajectory, at: list[int], gap: float = 0.004) -> Trajectory:
+    """``traj`` with a second waypoint ``gap`` m after each waypoint in ``at`` (as planners
+    emit them at a stop point or where two path pieces join)."""
+    keep = np.repeat(np.arange(len(traj)), [2 if i in at else 1 for i in range(len(traj))])
+    x = traj.x[keep].copy()
+    dup = np.flatnonzero(np.diff(keep) == 0) + 1
+    x[dup] += gap
+    return Trajectory(x=x, y=traj.y[keep], heading=traj.heading[keep], speed=traj.speed[keep])
+
+
+CASES = {
+    "one point": _line(1),
+    "two points": _line(2),
+    "three points": _line(3),
+    "four points": _line(4),
+    "a NaN": Trajectory(
+        x=[0.0, 0.5, math.nan, 1.5], y=[0.0] * 4, heading=[0.0] * 4, speed=[1.0] * 4
+    ),
+    "overlapping points": _with_overlaps(_line(20), [0, 7, 19]),
+    "exact repeats": _with_overlaps(_line(20), [5, 6], gap=0.0),
+    "four points, one overlapping": _with_overlaps(_line(3), [2]),
+}
+
+
+def _controller_accepts(traj: Trajectory) -> bool:
+    out = MpcController(MpcConfig(), VehicleConfig(), PERIOD).step(
+        Pose(0.0, 0.0, 0.0, 0.0), 0.0, traj
+    )
+    return not out.status.startswith("bad-trajectory")
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_transport_engage_check_and_controller_use_one_rule(name: str) -> None:
+    traj = CASES[name]
+    usable = trajectory_problem(traj) is None
+    assert node.trajectory_is_valid(traj) == usable
+    assert watchdog.trajectory_is_valid(traj) == usable
+    assert _controller_accepts(traj) == usable
+
+
+def test_overlapping_points_are_removed_not_refused() -> None:
+    traj = CASES["overlapping points"]
+    assert trajectory_problem(traj) is None
+    cleaned = remove_overlap_points(traj)
+    assert len(cleaned) == 20
+    assert float(np.hypot(np.diff(cleaned.x), np.diff(cleaned.y)).min()) >= 0.01
+    assert remove_overlap_points(_line(5)) is not None
+
+
+def test_the_reason_names_the_problem() -> None:
+    assert trajectory_problem(_line(3)) == ("trajectory: 3 waypoint(s), at least 4 are needed")
+    assert trajectory_problem(CASES["four points, one overlapping"]) == (
+        "trajectory: 3 waypoint(s) (1 overlapping removed), at least 4 are needed"
+    )
+    assert trajectory_problem(CASES["a NaN"]) == "trajectory: row 3: x is not finite"
+
+
+@pytest.mark.parametrize("kind", ["mpc", "pure-pursuit"])
+def test_a_plan_with_overlapping_points_is_driven(kind: str) -> None:
+    traj = _with_overlaps(_line(30), [0, 10, 29])
+    ctrl = (
+        MpcController(MpcConfig(), VehicleConfig(), PERIOD)
+        if kind == "mpc"
+        else PurePursuit(PurePursuitConfig(), VehicleConfig(), PERIOD)
+    )
+    out = ctrl.step(Pose(0.0, 0.0, 0.0, 0.5), 0.0, traj)
+    assert out.converged and not out.status.startswith("bad-trajectory")
+    assert out.route_length == pytest.approx(14.5)
+
+
+def test_engage_with_an_unusable_plan_is_refused_with_the_controllers_reason() -> None:
+    """Old code: ``{"accepted": true}`` and the engagement ended at once with
+    "controller: bad-trajectory"."""
+    ctrl = MpcController(MpcConfig(), VehicleConfig(), PERIOD)
+    rig = Rig(controller=ctrl, trajectory=_line(3))  # type: ignore[arg-type]
+    rig.run(0.1)
+    reply = rig.step(OperatorRequest.ENGAGE).reply
+    assert reply is not None and not reply.accepted
+    assert "3 waypoint(s), at least 4 are needed" in reply.reason
+    assert rig.state == GatewayState.STANDBY
+
+
+def test_engage_with_overlapping_points_starts_and_drives() -> None:
+    ctrl = MpcController(MpcConfig(), VehicleConfig(), PERIOD)
+    rig = Rig(controller=ctrl, trajectory=_with_overlaps(_line(30), [0, 3, 29]))  # type: ignore[arg-type]
+    rig.engage()
+    rig.run(1.0)
+    assert rig.state == GatewayState.ENGAGED, rig.gw.machine.reason
