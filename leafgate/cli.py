@@ -81,7 +81,7 @@ def _run_recorded(
     cfg: LeafgateConfig, scenario: Scenario, injections: Any, directory: Path, window: Any
 ) -> Any:
     """Run the simulated loop while recording it as the daemon would (CAN log + session)."""
-    from leafgate.replay.recorder import open_recording
+    from leafgate.record.recorder import open_recording
     from leafgate.sim.runner import run
 
     rec_cfg = dataclasses.replace(cfg.recording, enabled=True, directory=str(directory))
@@ -284,7 +284,7 @@ def _scenario(name: str) -> Scenario:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from leafgate.gateway.daemon import run_daemon
+    from leafgate.runtime.daemon import run_daemon
 
     return run_daemon(load_config(args.config))
 
@@ -310,7 +310,7 @@ EXIT_UNCHANGED = 3  # an operator request found nothing to do (already in the re
 
 def cmd_request(args: argparse.Namespace) -> int:
     """engage / disengage / reset: print the reply; exit 0 only when it was carried out."""
-    from leafgate.gateway.daemon import tool_view
+    from leafgate.runtime.daemon import tool_view
     from leafgate.transport.client import engage, request
 
     cfg = load_config(args.config)
@@ -356,7 +356,7 @@ def vehicle_text(vehicle: Any) -> str:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from leafgate.gateway.daemon import tool_view
+    from leafgate.runtime.daemon import tool_view
     from leafgate.transport.client import watch_diagnostics
 
     cfg = load_config(args.config)
@@ -449,7 +449,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 def cmd_publish_trajectory(args: argparse.Namespace) -> int:
     import time
 
-    from leafgate.gateway.daemon import tool_view
+    from leafgate.runtime.daemon import tool_view
     from leafgate.transport.client import TrajectoryPublisher
     from leafgate.transport.session import open_session
 
@@ -517,8 +517,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
-    from leafgate.can.decode import decode_log
-    from leafgate.replay.logs import recording_context
+    from leafgate.record.logs import recording_context
+    from leafgate.replay.decode import decode_log
 
     context = recording_context(args.log, config=args.config, profile=args.profile)
     return decode_log(

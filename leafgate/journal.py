@@ -69,7 +69,7 @@ def under_journal(stream: TextIO | None = None) -> bool:
 
 
 class TextFormatter(logging.Formatter):
-    """``WARNING leafgate.gateway.daemon: message``, with ``<N>`` in front for the journal."""
+    """``WARNING leafgate.runtime.daemon: message``, with ``<N>`` in front for the journal."""
 
     def __init__(self, journal: bool = False) -> None:
         super().__init__("%(levelname)s %(name)s: %(message)s")

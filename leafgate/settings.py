@@ -12,16 +12,16 @@ from typing import Any
 
 import numpy as np
 
-from leafgate.can.config import CanConfig
 from leafgate.can.profile import Profile, SteerRateTable, load_profile
 from leafgate.config import _UNIT_SUFFIXES, VehicleConfig, apply_overrides, from_mapping, load_yaml
-from leafgate.control.config import ControllerConfig
+from leafgate.config.can import CanConfig
+from leafgate.config.control import ControllerConfig
+from leafgate.config.gateway import GatewayConfig, SafetyConfig
+from leafgate.config.recording import RecordingConfig
+from leafgate.config.sim import SimConfig
+from leafgate.config.transport import ZenohConfig
 from leafgate.errors import ConfigError
-from leafgate.gateway.config import GatewayConfig, SafetyConfig
 from leafgate.messages import LongMode
-from leafgate.replay.config import RecordingConfig
-from leafgate.sim.config import SimConfig
-from leafgate.transport.config import ZenohConfig
 
 
 @dataclass(frozen=True)

@@ -30,13 +30,13 @@ import pytest
 import yaml
 import zenoh
 
+from leafgate.config.transport import ZenohConfig
 from leafgate.errors import TransportError
 from leafgate.messages import GatewayState
+from leafgate.runtime.node import GatewayTransport
 from leafgate.sim.scenarios import get_scenario
 from leafgate.transport import client, keys
 from leafgate.transport.client import OdometryPublisher, TrajectoryPublisher
-from leafgate.transport.config import ZenohConfig
-from leafgate.transport.node import GatewayTransport
 from leafgate.transport.session import build_config, open_session
 from tests.conftest import free_port
 

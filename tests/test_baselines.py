@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from leafgate.config import VehicleConfig, from_mapping
+from leafgate.config.control import ControllerConfig
 from leafgate.control import make_controller
 from leafgate.control.baselines import PurePursuit, PurePursuitConfig, Stanley, StanleyConfig
-from leafgate.control.config import ControllerConfig
 from leafgate.errors import ConfigError
 from leafgate.messages import Gear, Pose, Trajectory
 from leafgate.settings import LeafgateConfig

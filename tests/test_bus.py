@@ -12,8 +12,8 @@ import pytest
 
 from leafgate.can.bus import Buses, filters_for, open_bus, open_buses
 from leafgate.can.codec import CanCodec
-from leafgate.can.config import UDP_MULTICAST_DEFAULT_GROUP, BusConfig, CanConfig
 from leafgate.config import from_mapping
+from leafgate.config.can import UDP_MULTICAST_DEFAULT_GROUP, BusConfig, CanConfig
 from leafgate.errors import BusError, ConfigError
 from leafgate.messages import SteerCommand, SteerReport
 

@@ -36,6 +36,7 @@ from leafgate.can import e2e
 from leafgate.can.codec import CanCodec
 from leafgate.can.profile import Profile
 from leafgate.config import VehicleConfig
+from leafgate.config.sim import EcuConfig
 from leafgate.gateway.safety import SafetyLimits
 from leafgate.messages import (
     Gear,
@@ -49,12 +50,11 @@ from leafgate.messages import (
     SteerReport,
     WheelSpeeds,
 )
+from leafgate.record.logs import FrameSource
+from leafgate.record.recorder import CanLogRecorder, Recording, SessionRecorder
 from leafgate.replay.check import CheckReport, check_frames, check_log
-from leafgate.replay.logs import FrameSource
 from leafgate.replay.plot import main_plot
-from leafgate.replay.recorder import CanLogRecorder, Recording, SessionRecorder
 from leafgate.settings import LeafgateConfig, with_profile
-from leafgate.sim.config import EcuConfig
 from leafgate.sim.ecu import SimulatedEcu
 from leafgate.sim.plant import make_plant
 from leafgate.sim.runner import run
@@ -553,7 +553,7 @@ def test_decode_and_check_warn_about_a_log_that_goes_backwards(tmp_path: Path) -
     )
     import io
 
-    from leafgate.can.decode import decode_log
+    from leafgate.replay.decode import decode_log
 
     out, err = io.StringIO(), io.StringIO()
     decode_log(path, out, profile="leafgate-dbw", err=err)

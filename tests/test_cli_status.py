@@ -8,8 +8,8 @@ from types import SimpleNamespace
 from typing import Any
 
 from leafgate.cli import vehicle_text
-from leafgate.gateway.daemon import VehicleView
 from leafgate.messages import Gear, LongReport, Stamped, SteerReport
+from leafgate.runtime.daemon import VehicleView
 from leafgate.sim.scenarios import get_scenario
 
 

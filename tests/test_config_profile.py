@@ -96,6 +96,6 @@ def test_run_names_the_file_in_a_cross_section_config_error(
     def run_daemon(cfg: LeafgateConfig) -> int:
         raise ConfigError("controller.mpc.horizon: longer than the trajectory buffer")
 
-    monkeypatch.setattr("leafgate.gateway.daemon.run_daemon", run_daemon)
+    monkeypatch.setattr("leafgate.runtime.daemon.run_daemon", run_daemon)
     assert cli.main(["run", "--config", str(path)]) == cli.EXIT_USAGE
     assert f"leafgate: error: {path}: controller.mpc.horizon" in capsys.readouterr().err

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from leafgate.config import VehicleConfig
+from leafgate.config.control import ControllerConfig, MpcConfig
+from leafgate.config.sim import PlantConfig, SimConfig
 from leafgate.control.baselines import PurePursuit, PurePursuitConfig, Stanley, StanleyConfig
-from leafgate.control.config import ControllerConfig, MpcConfig
 from leafgate.control.mpc import MpcController
 from leafgate.control.reference import Progress, ReferencePath
 from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
 from leafgate.settings import LeafgateConfig, load_config
-from leafgate.sim.config import PlantConfig, SimConfig
 from leafgate.sim.plant import STANDSTILL_SPEED, KinematicPlant, gear_direction, make_plant
 from leafgate.sim.runner import run_direct
 from tests import routes

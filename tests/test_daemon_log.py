@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
-from leafgate.gateway.daemon import StateLog, SystemdWatchdog, set_rt_priority
 from leafgate.journal import JsonFormatter, TextFormatter, priority_of, under_journal
+from leafgate.runtime.daemon import StateLog, SystemdWatchdog, set_rt_priority
 from leafgate.settings import load_config
 from leafgate.sim.runner import Injection, run
 from leafgate.sim.scenarios import get_scenario
@@ -125,7 +125,7 @@ def test_under_journal_compares_device_and_inode(
 def test_systemd_watchdog_kicks_at_half_the_interval(monkeypatch: pytest.MonkeyPatch) -> None:
     sent: list[str] = []
     monkeypatch.setattr(
-        "leafgate.gateway.daemon.sd_notify", lambda state: sent.append(state) or True
+        "leafgate.runtime.daemon.sd_notify", lambda state: sent.append(state) or True
     )
     monkeypatch.setenv("WATCHDOG_USEC", "2000000")
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))

@@ -9,9 +9,9 @@ import can
 import pytest
 
 from leafgate.can.codec import CanCodec
-from leafgate.can.decode import decode_log
 from leafgate.errors import ReplayError
 from leafgate.messages import Gear, GearPosition, LongCommand, LongMode, SteerCommand, WheelSpeeds
+from leafgate.replay.decode import decode_log
 
 
 def recording() -> list[can.Message]:

@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from leafgate.config import VehicleConfig
+from leafgate.config.sim import PlantConfig
 from leafgate.messages import Gear, Pose
-from leafgate.sim.config import PlantConfig
 from leafgate.sim.plant import DynamicPlant, SteerLagPlant, make_plant
 
 VEHICLE = VehicleConfig()

@@ -15,8 +15,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from leafgate.can.codec import CanCodec
-from leafgate.can.config import BusConfig, CanConfig
 from leafgate.config import VehicleConfig
+from leafgate.config.can import BusConfig, CanConfig
+from leafgate.config.sim import EcuConfig, PlantConfig, SimConfig
 from leafgate.errors import LeafgateError
 from leafgate.messages import (
     EcuState,
@@ -36,7 +37,6 @@ from leafgate.messages import (
     WheelSpeeds,
 )
 from leafgate.settings import LeafgateConfig
-from leafgate.sim.config import EcuConfig, PlantConfig, SimConfig
 from leafgate.sim.ecu import InjectionError, RealtimeStats, SimulatedEcu, run_ecu_realtime
 from leafgate.sim.plant import make_plant
 

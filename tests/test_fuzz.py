@@ -30,13 +30,13 @@ from hypothesis import strategies as st
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.config import MAX_YAML_DEPTH
+from leafgate.config.transport import ZenohConfig
 from leafgate.control.reference import load_trajectory
 from leafgate.errors import ConfigError, TrajectoryError
-from leafgate.gateway.runtime import CanReceiver
 from leafgate.messages import LongReport, Pose, SteerReport, SystemReport, Trajectory
+from leafgate.runtime.node import GatewayTransport
+from leafgate.runtime.receiver import CanReceiver
 from leafgate.settings import load_config
-from leafgate.transport.config import ZenohConfig
-from leafgate.transport.node import GatewayTransport
 from leafgate.transport.payloads import codecs
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from leafgate.config import VehicleConfig
-from leafgate.gateway.config import GatewayConfig
+from leafgate.config.gateway import GatewayConfig
 from leafgate.gateway.core import EngagePhase, Gateway, GatewayInputs, StepResult
 from leafgate.gateway.safety import Measured, check, gear_sign
 from leafgate.messages import (

@@ -122,6 +122,11 @@ def package_of(module: str) -> str:
     return ".".join(module.split(".")[:2])
 
 
+#: the entry point: it imports every command's package, and a package that runs command lines
+#: (``batch`` runs the exact ``leafgate sim`` line of a case) may reach it; no arrow into it counts
+ENTRY_POINT = "leafgate.cli"
+
+
 def package_cycles() -> list[list[str]]:
     """The cycles of the package graph (one per strongly connected component)."""
     graph: dict[str, set[str]] = {}
@@ -129,7 +134,9 @@ def package_cycles() -> list[list[str]]:
         if module == "leafgate":
             continue
         source = package_of(module)
-        targets = {package_of(d) for d in internal_imports(module) if d != "leafgate"}
+        targets = {
+            package_of(d) for d in internal_imports(module) if d not in ("leafgate", ENTRY_POINT)
+        }
         graph.setdefault(source, set()).update(targets - {source})
     index: dict[str, int] = {}
     low: dict[str, int] = {}

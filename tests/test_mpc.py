@@ -10,9 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from leafgate.config import VehicleConfig
+from leafgate.config.control import ControllerConfig, MpcConfig
 from leafgate.control import make_controller
 from leafgate.control.baselines import PurePursuit, Stanley
-from leafgate.control.config import ControllerConfig, MpcConfig
 from leafgate.control.mpc import MpcController
 from leafgate.errors import ConfigError
 from leafgate.messages import Gear, Pose, Trajectory

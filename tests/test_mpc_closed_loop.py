@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from leafgate.control.config import ControllerConfig, MpcConfig
+from leafgate.config.control import ControllerConfig, MpcConfig
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import run, run_direct
 from leafgate.sim.scenarios import get_scenario

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from leafgate.config import VehicleConfig
-from leafgate.control.config import ControllerConfig, MpcConfig
+from leafgate.config.control import ControllerConfig, MpcConfig
+from leafgate.config.sim import PlantConfig, SimConfig
 from leafgate.messages import Gear
 from leafgate.settings import LeafgateConfig
 from leafgate.sim import runner
-from leafgate.sim.config import PlantConfig, SimConfig
 from leafgate.sim.plant import KinematicPlant, gear_direction, make_plant
 from leafgate.sim.scenarios import (
     LEAF_LENGTH,

@@ -8,8 +8,8 @@ import math
 import pytest
 
 from leafgate.config import VehicleConfig
+from leafgate.config.sim import PlantConfig
 from leafgate.messages import Gear, Pose
-from leafgate.sim.config import PlantConfig
 from leafgate.sim.plant import KinematicPlant, SpeedController, SteerLagPlant, make_plant
 
 VEHICLE = VehicleConfig()

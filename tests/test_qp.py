@@ -167,7 +167,7 @@ def _closed_loop_qps() -> list[tuple[np.ndarray, ...]]:
     import dataclasses
     import math
 
-    from leafgate.control.config import ControllerConfig, MpcConfig
+    from leafgate.config.control import ControllerConfig, MpcConfig
     from leafgate.control.mpc import MpcController
     from leafgate.messages import Pose
     from leafgate.settings import LeafgateConfig

@@ -14,14 +14,14 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from leafgate.config import from_mapping
+from leafgate.config.recording import RecordingConfig
 from leafgate.control import make_controller
 from leafgate.errors import ConfigError
 from leafgate.gateway.core import Gateway, GatewayInputs, StepResult
 from leafgate.messages import LongMode, Pose, Stamped, Trajectory
-from leafgate.replay.config import RecordingConfig
-from leafgate.replay.logs import FrameSource
-from leafgate.replay.recorder import CanLogRecorder, SessionRecorder, open_recording
-from leafgate.replay.session import TOPIC_CAN, TOPIC_TICK, SessionReader
+from leafgate.record.logs import FrameSource
+from leafgate.record.recorder import CanLogRecorder, SessionRecorder, open_recording
+from leafgate.record.session import TOPIC_CAN, TOPIC_TICK, SessionReader
 from leafgate.settings import LeafgateConfig
 from leafgate.transport import cdr
 from leafgate.transport.payloads import odometry_to_pose, pose_to_odometry
@@ -334,7 +334,7 @@ def test_check_reports_a_log_without_its_end_marker_as_incomplete(tmp_path: Path
 
 
 def test_engage_refused_while_a_required_recording_fails() -> None:
-    from leafgate.gateway.daemon import recording_refusal
+    from leafgate.runtime.daemon import recording_refusal
 
     cfg = from_mapping(
         LeafgateConfig, {"recording": {"enabled": True, "required": True}}, "test.yaml"

@@ -22,10 +22,10 @@ from leafgate.can import e2e
 from leafgate.can.codec import CanCodec
 from leafgate.gateway.safety import CLAMP_KINDS
 from leafgate.messages import SteerCommand
+from leafgate.record.logs import FrameSource
+from leafgate.record.recorder import CanLogRecorder, Recording, SessionRecorder
 from leafgate.replay.check import LONG_KINDS, STEER_KINDS, check_log, main_check
-from leafgate.replay.logs import FrameSource
 from leafgate.replay.plot import main_plot
-from leafgate.replay.recorder import CanLogRecorder, Recording, SessionRecorder
 from leafgate.replay.rerun import main_rerun, rerun_session
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import ENGAGE_AT, SimResult, run

@@ -8,9 +8,9 @@ from pathlib import Path
 import can
 import pytest
 
-from leafgate.can.config import BusConfig
+from leafgate.config.can import BusConfig
 from leafgate.errors import ReplayError
-from leafgate.replay.logs import FrameSource
+from leafgate.record.logs import FrameSource
 from leafgate.replay.play import main_play, parse_ids, play_frames
 
 

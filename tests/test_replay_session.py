@@ -34,8 +34,8 @@ from leafgate.messages import (
     SystemReport,
     Trajectory,
 )
-from leafgate.replay.recorder import Recording, SessionRecorder
-from leafgate.replay.session import (
+from leafgate.record.recorder import Recording, SessionRecorder
+from leafgate.record.session import (
     TrajectoryRefs,
     config_from_yaml,
     config_to_yaml,

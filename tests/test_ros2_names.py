@@ -13,10 +13,10 @@ import ros2_peer
 import yaml
 
 from leafgate.config import from_mapping
+from leafgate.config.transport import ZenohConfig
 from leafgate.errors import TransportError
 from leafgate.settings import load_config
 from leafgate.transport import cdr, ros2
-from leafgate.transport.config import ZenohConfig
 from leafgate.transport.session import build_config
 
 # RIHS01 hashes for Jazzy as published: std_msgs/String and example_interfaces/AddTwoInts in

@@ -20,6 +20,7 @@ import ros2_peer
 import zenoh
 from test_transport import free_port, wait_until
 
+from leafgate.config.transport import ZenohConfig
 from leafgate.messages import (
     EcuState,
     GatewayState,
@@ -31,8 +32,7 @@ from leafgate.messages import (
     SteerReport,
     Trajectory,
 )
-from leafgate.transport.config import ZenohConfig
-from leafgate.transport.node import GatewayTransport
+from leafgate.runtime.node import GatewayTransport
 from leafgate.transport.payloads import codecs
 
 WAIT = 10.0  # s, upper bound for discovery and delivery on a loaded machine; never a speed goal

@@ -3,7 +3,7 @@ another tool publishes (the daemon routes for the processes connected to it).
 
 Three processes: ``leafgate run`` (config/sim.yaml on a free port and a private multicast
 group), ``leafgate publish-trajectory`` (one tool), and this test's own session, opened as
-every tool opens it (:func:`~leafgate.gateway.daemon.tool_view`).
+every tool opens it (:func:`~leafgate.runtime.daemon.tool_view`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import yaml
 import zenoh
 from test_transport import free_port
 
-from leafgate.gateway.daemon import tool_view
+from leafgate.runtime.daemon import tool_view
 from leafgate.settings import load_config
 from leafgate.transport import keys
 from leafgate.transport.session import open_session

@@ -14,10 +14,9 @@ import pytest
 
 from leafgate.can.codec import CanCodec
 from leafgate.config import VehicleConfig
-from leafgate.gateway.config import GatewayConfig
+from leafgate.config.gateway import GatewayConfig
+from leafgate.config.transport import ZenohConfig
 from leafgate.gateway.core import Gateway
-from leafgate.gateway.daemon import StablePlan, same_plan, tool_view
-from leafgate.gateway.runtime import CanReceiver, RequestBox, Runtime, sd_notify
 from leafgate.messages import (
     ControlOutput,
     EcuState,
@@ -32,7 +31,10 @@ from leafgate.messages import (
     SystemReport,
     Trajectory,
 )
-from leafgate.transport.config import ZenohConfig
+from leafgate.runtime.daemon import StablePlan, same_plan, tool_view
+from leafgate.runtime.loop import RequestBox, Runtime
+from leafgate.runtime.receiver import CanReceiver
+from leafgate.runtime.systemd import sd_notify
 
 STRAIGHT = Trajectory(
     x=np.arange(0.0, 20.0, 0.5), y=np.zeros(40), heading=np.zeros(40), speed=np.full(40, 1.0)
@@ -363,7 +365,7 @@ def test_late_echo_after_a_stall_is_still_our_own() -> None:
 
 def test_frames_waiting_sees_unread_data_in_a_bus_socket() -> None:
     # issue 17, finding 7: ages count only up to what the receive thread has read
-    from leafgate.gateway.runtime import frames_waiting
+    from leafgate.runtime.loop import frames_waiting
 
     class SocketBus:
         def __init__(self, sock: socket.socket) -> None:

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from leafgate.config import VehicleConfig, from_mapping
+from leafgate.config.gateway import GatewayConfig, SafetyConfig
 from leafgate.errors import ConfigError
-from leafgate.gateway.config import GatewayConfig, SafetyConfig
 from leafgate.gateway.safety import (
     CLAMP_KINDS,
     Measured,

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from leafgate.record.recorder import open_recording
 from leafgate.replay.check import check_log
-from leafgate.replay.recorder import open_recording
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import Injection, run
 from leafgate.sim.scenarios import get_scenario

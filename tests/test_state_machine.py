@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_gateway_core import PERIOD, FakeController, Rig, cruise, straight_trajectory
 
-from leafgate.gateway.config import EngageConfig, GatewayConfig, StopConfig, WatchdogConfig
+from leafgate.config.gateway import EngageConfig, GatewayConfig, StopConfig, WatchdogConfig
 from leafgate.gateway.state import (
     TRANSITIONS,
     EngagementMachine,

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from leafgate.config import VehicleConfig, from_mapping
-from leafgate.control.config import ControllerConfig, MpcConfig
+from leafgate.config.control import ControllerConfig, MpcConfig
+from leafgate.config.sim import PlantConfig, SimConfig
 from leafgate.control.model import (
     augment_steer_lag,
     linearise,
@@ -27,7 +28,6 @@ from leafgate.control.mpc import MpcController
 from leafgate.errors import ConfigError
 from leafgate.messages import Pose, Trajectory
 from leafgate.settings import LeafgateConfig
-from leafgate.sim.config import PlantConfig, SimConfig
 from leafgate.sim.metrics import sign_changes
 from leafgate.sim.runner import run, run_direct
 from leafgate.sim.scenarios import get_scenario

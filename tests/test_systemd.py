@@ -120,9 +120,9 @@ def test_a_start_that_fails_on_the_bus_leaves_no_recording(tmp_path: Path) -> No
     """With Restart=on-failure every failed start would leave an empty .blf + .mcap pair."""
     import dataclasses
 
-    from leafgate.can.config import BusConfig
+    from leafgate.config.can import BusConfig
     from leafgate.errors import LeafgateError
-    from leafgate.gateway.daemon import run_daemon
+    from leafgate.runtime.daemon import run_daemon
     from leafgate.settings import load_config
 
     cfg = load_config(ROOT / "config" / "sim.yaml")

@@ -21,6 +21,7 @@ import pytest
 import zenoh
 
 from leafgate.config import from_mapping
+from leafgate.config.transport import ZenohConfig
 from leafgate.errors import ConfigError, TransportError
 from leafgate.messages import (
     Commands,
@@ -37,9 +38,8 @@ from leafgate.messages import (
     SteerReport,
     Trajectory,
 )
+from leafgate.runtime.node import GatewayTransport
 from leafgate.transport import client, keys
-from leafgate.transport.config import ZenohConfig
-from leafgate.transport.node import GatewayTransport
 from leafgate.transport.payloads import (
     ControlMode,
     HazardLights,

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from leafgate.config import VehicleConfig
+from leafgate.config.control import MpcConfig
 from leafgate.control.baselines import PurePursuit, PurePursuitConfig
-from leafgate.control.config import MpcConfig
 from leafgate.control.mpc import MpcController
 from leafgate.control.reference import remove_overlap_points, trajectory_problem
 from leafgate.gateway import watchdog
 from leafgate.messages import GatewayState, OperatorRequest, Pose, Trajectory
-from leafgate.transport import node
+from leafgate.runtime import node
 from tests.test_gateway_core import PERIOD, Rig
 
 

@@ -14,8 +14,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from test_gateway_core import PERIOD, FakeController, Rig, cruise, straight_trajectory
 
+from leafgate.config.gateway import GatewayConfig, WatchdogConfig
 from leafgate.control.reference import trajectory_problem
-from leafgate.gateway.config import GatewayConfig, WatchdogConfig
 from leafgate.gateway.watchdog import (
     CHECK_ORDER,
     Check,

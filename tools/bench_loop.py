@@ -52,9 +52,10 @@ def stats_us(values: list[float] | np.ndarray) -> dict[str, float]:
 def bench_compute() -> dict[str, Any]:
     """Runtime.tick on a simulated clock, with the simulated ECU stepped between ticks."""
     from leafgate.can.codec import CanCodec
-    from leafgate.gateway.daemon import build_gateway
-    from leafgate.gateway.runtime import CanReceiver, Runtime
     from leafgate.messages import GatewayState, OperatorRequest, Pose, Stamped
+    from leafgate.runtime.daemon import build_gateway
+    from leafgate.runtime.loop import Runtime
+    from leafgate.runtime.receiver import CanReceiver
     from leafgate.settings import LeafgateConfig
     from leafgate.sim.ecu import SimulatedEcu
     from leafgate.sim.plant import make_plant

@@ -28,11 +28,11 @@ import osqp
 import scipy.sparse as sp
 
 from leafgate.config import VehicleConfig
-from leafgate.control.config import MpcConfig
+from leafgate.config.control import MpcConfig
+from leafgate.config.sim import PlantConfig
 from leafgate.control.mpc import MpcController
 from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
 from leafgate.messages import Pose
-from leafgate.sim.config import PlantConfig
 from leafgate.sim.plant import gear_direction, make_plant
 from leafgate.sim.scenarios import get_scenario
 

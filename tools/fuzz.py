@@ -9,10 +9,10 @@ Targets, each fed seeded random inputs through the real entry point:
   at the end the per-ID :attr:`CanCodec.stats` and :attr:`CanCodec.unknown_id_count` must add
   up to the frames fed, and per ID ``frames - errors`` must equal the valid decodes seen.
 * ``can_receiver`` — the same frames through the gateway's receive path
-  (:class:`leafgate.gateway.runtime.CanReceiver`, the Notifier listener): never raises, its
+  (:class:`leafgate.runtime.loop.CanReceiver`, the Notifier listener): never raises, its
   slots only ever hold valid reports.
 * ``zenoh_cdr`` / ``zenoh_json`` — Odometry and Trajectory payloads through the subscriber
-  callbacks of a real :class:`~leafgate.transport.node.GatewayTransport` (declared on a stub
+  callbacks of a real :class:`~leafgate.runtime.node.GatewayTransport` (declared on a stub
   session, so no network): random bytes, truncated, bit-flipped and spliced valid CDR (both
   byte orders), CDR with a forged sequence length; random, truncated and mistyped JSON, NaN,
   ±Infinity, 1e999, huge integers, huge arrays, deep nesting, non-UTF-8. No exception escapes
@@ -70,9 +70,9 @@ import zenoh
 
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded, EncodableMessage
+from leafgate.config.transport import ZenohConfig
 from leafgate.control.reference import load_trajectory
 from leafgate.errors import ConfigError, LeafgateError, TrajectoryError
-from leafgate.gateway.runtime import CanReceiver
 from leafgate.messages import (
     EcuState,
     GatewayState,
@@ -92,9 +92,9 @@ from leafgate.messages import (
     Trajectory,
     WheelSpeeds,
 )
+from leafgate.runtime.node import GatewayTransport, parse_request
+from leafgate.runtime.receiver import CanReceiver
 from leafgate.transport import cdr
-from leafgate.transport.config import ZenohConfig
-from leafgate.transport.node import GatewayTransport, parse_request
 from leafgate.transport.payloads import codecs, pose_to_odometry, trajectory_to_ros
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -580,7 +580,7 @@ def run_soak(args: argparse.Namespace) -> dict[str, Any]:
     import can
 
     from leafgate.can.codec import CanCodec
-    from leafgate.gateway.daemon import tool_view
+    from leafgate.runtime.daemon import tool_view
     from leafgate.settings import load_config
     from leafgate.transport.session import open_session
 

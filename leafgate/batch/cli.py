@@ -179,7 +179,7 @@ def _per_file(
 
 def cmd_batch_check(args: argparse.Namespace) -> int:
     from leafgate.batch.tasks import check_case
-    from leafgate.replay.logs import READABLE_SUFFIXES
+    from leafgate.record.logs import READABLE_SUFFIXES
 
     files = _files(args.dir, READABLE_SUFFIXES, args.glob)
     out = make_out_dir(args.out)

@@ -35,7 +35,7 @@ from types import TracebackType
 
 import can
 
-from leafgate.can.config import BusConfig, CanConfig
+from leafgate.config.can import BusConfig, CanConfig
 from leafgate.errors import BusError
 
 __all__ = ["Buses", "filters_for", "open_bus", "open_buses"]

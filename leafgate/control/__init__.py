@@ -1,7 +1,7 @@
 """Path- and speed-tracking controllers: the paper's MPC, Pure Pursuit and Stanley.
 
 >>> from leafgate.config import VehicleConfig
->>> from leafgate.control.config import ControllerConfig
+>>> from leafgate.config.control import ControllerConfig
 >>> ctrl = make_controller(ControllerConfig(), VehicleConfig(), period=0.02)
 >>> ctrl.period
 0.02
@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 
 from leafgate.config import VehicleConfig
+from leafgate.config.control import ControllerConfig, MpcConfig, PurePursuitConfig, StanleyConfig
 from leafgate.control.base import Controller
-from leafgate.control.config import ControllerConfig, MpcConfig, PurePursuitConfig, StanleyConfig
 from leafgate.errors import ConfigError
 
 __all__ = ["Controller", "make_controller"]

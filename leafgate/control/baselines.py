@@ -33,18 +33,22 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from leafgate.config import VehicleConfig, positive
+from leafgate.config import VehicleConfig
+from leafgate.config.control import PurePursuitConfig, StanleyConfig
+from leafgate.config.control import TrackerConfig as _TrackerConfig
 from leafgate.control.reference import (
     Progress,
     ReferencePath,
     Segment,
     prepare_plan,
 )
+from leafgate.geometry import clip_abs as _clip
+from leafgate.geometry import wrap_angle as _wrap
 from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
 
 __all__ = [
@@ -54,87 +58,6 @@ __all__ = [
     "Stanley",
     "StanleyConfig",
 ]
-
-
-@dataclass(frozen=True)
-class _TrackerConfig:
-    """What both baselines share: the speed loop, the limits and the stop/cusp handling.
-
-    Limits default to the MPC's (:class:`~leafgate.control.config.MpcConfig`) so every
-    controller works inside the same envelope.
-    """
-
-    speed_kp: float = 1.2  # 1/s, proportional gain of the PI speed loop
-    speed_ki: float = 0.3  # 1/s², integral gain
-    speed_integral_band: float = 0.2  # m/s, integrate only within this speed error (anti-windup)
-    creep_speed: float = 0.3  # m/s, slowest target speed while the segment's end is ahead
-    stop_decel: float = 0.4  # m/s², target speed ≤ √(2 b d) over the distance d to the end
-    accel_min: float = -3.0  # m/s², gear-relative braking limit
-    accel_max: float = 1.5  # m/s², gear-relative drive limit
-    jerk_max: float = 2.0  # m/s³
-    hold_decel: float = 1.0  # m/s², braking request at rest (aligning, finished)
-    steer_max: float = math.radians(30.0)  # rad, road-wheel
-    steer_rate_max: float = 0.5  # rad/s, road-wheel
-    goal_tolerance: float = 0.25  # m, a segment's end counts as reached within this distance
-    # (wider than the MPC's 0.15 m: both laws end parking moves up to ≈ 0.22 m off the goal, and
-    # a segment ends only by progress *and* within this distance — farther is "off-goal")
-    stop_speed: float = 0.02  # m/s, "at rest" below this
-    align_tolerance: float = 0.03  # rad, wheel within this of the law's angle before driving off
-    search_window: int = 20  # waypoints examined by the forward nearest-point search
-
-    def __post_init__(self) -> None:
-        positive(
-            self,
-            "speed_kp",
-            "speed_integral_band",
-            "creep_speed",
-            "stop_decel",
-            "accel_max",
-            "jerk_max",
-            "steer_max",
-            "steer_rate_max",
-            "goal_tolerance",
-            "stop_speed",
-            "align_tolerance",
-            "search_window",
-        )
-        for name in ("speed_ki", "hold_decel"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")
-        if not self.accel_min < 0.0:
-            raise ValueError("accel_min must be negative")
-        if not self.steer_max < math.pi / 2:
-            raise ValueError("steer_max must be below 90°")
-
-
-@dataclass(frozen=True)
-class PurePursuitConfig(_TrackerConfig):
-    """Pure Pursuit (``controller.pure_pursuit``): speed-dependent look-ahead."""
-
-    lookahead_min: float = 2.0  # m, look-ahead at (and near) standstill
-    lookahead_gain: float = 1.0  # s, Ld = max(lookahead_min, gain·|v|): ≈ 1 s of travel
-    lookahead_max: float = 8.0  # m
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        positive(self, "lookahead_min", "lookahead_max")
-        if not (math.isfinite(self.lookahead_gain) and self.lookahead_gain >= 0.0):
-            raise ValueError(f"lookahead_gain must be ≥ 0, got {self.lookahead_gain!r}")
-        if self.lookahead_max < self.lookahead_min:
-            raise ValueError("lookahead_max must not be below lookahead_min")
-
-
-@dataclass(frozen=True)
-class StanleyConfig(_TrackerConfig):
-    """Stanley (``controller.stanley``): heading error plus softened cross-track term."""
-
-    gain: float = 1.5  # 1/s, k: cross-track gain (the error decays as ė ≈ −k e at speed)
-    softening: float = 0.5  # m/s, k_soft: atan(k e / (k_soft + |v|)) stays finite at rest
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        positive(self, "gain", "softening")
 
 
 class SpeedPi:
@@ -444,11 +367,3 @@ class Stanley(_Tracker):
         error = -(fx - px) * math.sin(tangent) + (fy - py) * math.cos(tangent)
         heading_error = _wrap(tangent - travel)
         return heading_error + math.atan2(cfg.gain * -error, cfg.softening + abs(pose.speed))
-
-
-def _clip(value: float, limit: float) -> float:
-    return min(max(value, -limit), limit)
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi

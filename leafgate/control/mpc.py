@@ -85,7 +85,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from leafgate.config import VehicleConfig
-from leafgate.control.config import MpcConfig
+from leafgate.config.control import MpcConfig
 from leafgate.control.disturbance import DisturbanceEstimator
 from leafgate.control.model import (
     N_INPUTS,
@@ -108,6 +108,9 @@ from leafgate.control.reference import (
     Segment,
     prepare_plan,
 )
+from leafgate.geometry import clip as _clamp
+from leafgate.geometry import clip_abs as _clip
+from leafgate.geometry import wrap_angle as _wrap
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
 _GOVERN_TIME = 0.5  # s, time constant with which a car above the speed bound is slowed
@@ -665,15 +668,3 @@ class MpcController:
             solve_time=time.perf_counter() - t0,
             **self._where(),
         )
-
-
-def _clamp(value: float, lo: float, hi: float) -> float:
-    return lo if value < lo else hi if value > hi else value
-
-
-def _clip(value: float, limit: float) -> float:
-    return min(max(value, -limit), limit)
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi

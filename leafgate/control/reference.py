@@ -726,8 +726,3 @@ def prepare_plan(
         return None, None, problem
     path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
     return path, Progress(path, window), ""
-
-
-def wrap_angle(angle: float) -> float:
-    """Wrap to [−π, π)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi

@@ -51,8 +51,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 from leafgate.config import VehicleConfig
+from leafgate.config.gateway import GatewayConfig
 from leafgate.control.base import Controller
-from leafgate.gateway.config import GatewayConfig
 from leafgate.gateway.plausibility import MAX_SKEW, cross_check, report_range_error
 from leafgate.gateway.safety import Measured, SafetyGate, SafetyLimits, gear_sign
 from leafgate.gateway.state import (

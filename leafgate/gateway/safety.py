@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 from leafgate.config import VehicleConfig
-from leafgate.gateway.config import SafetyConfig
+from leafgate.config.gateway import SafetyConfig
 from leafgate.messages import Gear, LongCommand, LongMode, SteerCommand
 
 #: Kinds of clamp, in the order they are reported.

@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from leafgate.gateway.config import EngageConfig
+from leafgate.config.gateway import EngageConfig
 from leafgate.gateway.watchdog import Status, WatchdogReport, ecu_fault
+from leafgate.geometry import wrap_angle
 from leafgate.messages import EcuState, GatewayState, Gear, OperatorRequest, Pose, Trajectory
 
 
@@ -124,11 +125,6 @@ class EngageReply:
             "reason": self.reason,
             "changed": self.changed,
         }
-
-
-def wrap_angle(angle: float) -> float:
-    """Angle wrapped to [−π, π), rad."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def path_deviation(

@@ -31,8 +31,8 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Generic, NamedTuple, TypeVar
 
+from leafgate.config.gateway import WatchdogConfig
 from leafgate.control.reference import trajectory_problem
-from leafgate.gateway.config import WatchdogConfig
 from leafgate.messages import (
     EcuState,
     LongReport,

@@ -75,7 +75,7 @@ from leafgate.messages import (
     SteerReport,
     WheelSpeeds,
 )
-from leafgate.replay.logs import FrameSource, is_end_marker, recording_context
+from leafgate.record.logs import FrameSource, is_end_marker, recording_context
 from leafgate.settings import LeafgateConfig
 
 __all__ = ["CheckReport", "Finding", "IdStats", "check_frames", "check_log", "main_check"]

@@ -27,9 +27,9 @@ from typing import Any, TextIO
 import can
 
 from leafgate.can.bus import open_bus
-from leafgate.can.config import BusConfig
+from leafgate.config.can import BusConfig
 from leafgate.errors import BusError, ReplayError
-from leafgate.replay.logs import FrameSource, is_end_marker
+from leafgate.record.logs import FrameSource, is_end_marker
 
 __all__ = [
     "PlayStats",
@@ -153,7 +153,7 @@ def _profile_ids(
 ) -> frozenset[int]:
     """The IDs of the profile's command or report frames (``--ids commands|reports``)."""
     from leafgate.can.codec import CanCodec
-    from leafgate.replay.logs import recording_context
+    from leafgate.record.logs import recording_context
 
     context = recording_context(log, config=config, profile=profile)
     codec = CanCodec(context.config.can.dbw_dbc, context.config.can.car_dbc, context.profile)

@@ -33,8 +33,8 @@ from leafgate.messages import (
     SteerReport,
     Trajectory,
 )
-from leafgate.replay.logs import FrameSource, is_session, recording_context
-from leafgate.replay.session import TOPIC_TICK, TOPIC_TRAJECTORY, SessionReader, decode_trajectory
+from leafgate.record.logs import FrameSource, is_session, recording_context
+from leafgate.record.session import TOPIC_TICK, TOPIC_TRAJECTORY, SessionReader, decode_trajectory
 from leafgate.sim.plots import Trace, plot_drive
 
 __all__ = ["main_plot", "plot_recording", "trace_from_log", "trace_from_session"]

@@ -28,7 +28,7 @@ from leafgate.control import make_controller
 from leafgate.errors import ReplayError
 from leafgate.gateway.core import Gateway
 from leafgate.messages import Commands, GatewayState, Trajectory
-from leafgate.replay.session import (
+from leafgate.record.session import (
     TOPIC_TICK,
     TOPIC_TRAJECTORY,
     SessionReader,

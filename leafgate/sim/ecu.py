@@ -7,7 +7,7 @@ through its own :class:`~leafgate.can.codec.CanCodec`. It reads no clock and ope
 so the same object runs in the deterministic closed-loop simulation and, wrapped by
 :func:`run_ecu_realtime`, as the ``leafgate sim-ecu`` process on a real-time bus.
 
-Semantics (defaults from :class:`~leafgate.sim.config.EcuConfig`):
+Semantics (defaults from :class:`~leafgate.config.sim.EcuConfig`):
 
 - Engage needs a 0→1 edge of ENABLE (on both DBW_STEER_CMD and DBW_LONG_CMD, taken together)
   while both commands are fresh and valid. ENABLE held at 1 from the first frame, or on the first
@@ -60,7 +60,9 @@ import can
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.config import VehicleConfig
+from leafgate.config.sim import EcuConfig
 from leafgate.errors import InjectionError, LeafgateError
+from leafgate.geometry import clip_abs as _clip
 from leafgate.messages import (
     EcuState,
     Gear,
@@ -78,7 +80,6 @@ from leafgate.messages import (
     Trajectory,
     WheelSpeeds,
 )
-from leafgate.sim.config import EcuConfig
 from leafgate.sim.plant import KinematicPlant, SpeedController, gear_direction, make_plant
 
 if TYPE_CHECKING:
@@ -632,10 +633,6 @@ class SimulatedEcu:
             data = bytes(broken)
         msg.data = bytearray(data)
         return msg
-
-
-def _clip(value: float, limit: float) -> float:
-    return min(max(value, -limit), limit)
 
 
 # --- the real-time process body ---------------------------------------------------------------

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from leafgate.geometry import wrap_angle
 from leafgate.messages import FloatArray, Trajectory
 
 STEER_RATE_DEADBAND = 0.01  # rad/s, rate changes smaller than this are not a sign change
@@ -22,10 +23,6 @@ class PathErrors:
     heading: FloatArray  # rad, wrapped to (−π, π]
     speed_ref: FloatArray  # m/s, reference speed at the projection
     progress: FloatArray  # m, arc length of the projection along the route
-
-
-def wrap_angle(angle: FloatArray | float) -> FloatArray:
-    return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
 
 
 PROJECTION_WINDOW = 40  # segments ahead the projection may move per sample (20 m at 0.5 m)

@@ -19,8 +19,8 @@ import math
 from collections import deque
 
 from leafgate.config import VehicleConfig
+from leafgate.config.sim import PlantConfig
 from leafgate.messages import Gear, Pose
-from leafgate.sim.config import PlantConfig
 
 MAX_SUBSTEP = 0.002  # s, RK4 sub-step (error far below the metrics' resolution)
 STANDSTILL_SPEED = 0.01  # m/s, below this a braked car is at rest

@@ -36,11 +36,11 @@ from typing import Any
 
 import numpy as np
 
-from leafgate.can.config import BusConfig, CanConfig
+from leafgate.config.can import BusConfig, CanConfig
+from leafgate.config.sim import LocalizationConfig
 from leafgate.errors import ConfigError, LeafgateError
 from leafgate.messages import GatewayState, Pose
 from leafgate.settings import LeafgateConfig
-from leafgate.sim.config import LocalizationConfig
 from leafgate.sim.ecu import INJECTION_KINDS as ECU_INJECTION_KINDS
 from leafgate.sim.ecu import SimulatedEcu, run_ecu_realtime
 from leafgate.sim.metrics import path_errors, tracking_metrics
@@ -317,7 +317,7 @@ def run_sim_ecu(
         by the injection events and the ECU's counters as ``# {json}`` comment lines
     :param injections: faults armed at the ECU's first engagement
     """
-    from leafgate.gateway.daemon import signals_set, tool_view
+    from leafgate.runtime.daemon import signals_set, tool_view
     from leafgate.transport.client import OdometryPublisher
     from leafgate.transport.session import open_session
 
@@ -421,8 +421,8 @@ def run_realtime(
     """
     import zenoh
 
-    from leafgate.gateway.daemon import run_daemon
-    from leafgate.gateway.runtime import Runtime
+    from leafgate.runtime.daemon import run_daemon
+    from leafgate.runtime.loop import Runtime
     from leafgate.transport.client import OdometryPublisher, TrajectoryPublisher, request
 
     channel = f"leafgate-realtime-{next(_channels)}"

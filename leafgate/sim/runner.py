@@ -26,6 +26,7 @@ import can
 import numpy as np
 
 from leafgate.can.codec import CanCodec, EncodeError
+from leafgate.config.sim import SimConfig
 from leafgate.control import make_controller
 from leafgate.control.reference import MIN_POINTS
 from leafgate.errors import ConfigError
@@ -41,7 +42,6 @@ from leafgate.messages import (
     Trajectory,
 )
 from leafgate.settings import LeafgateConfig
-from leafgate.sim.config import SimConfig
 from leafgate.sim.ecu import SimulatedEcu
 from leafgate.sim.metrics import Projector, path_errors, tracking_metrics
 from leafgate.sim.names import TO_SIM
@@ -51,7 +51,7 @@ from leafgate.sim.realtime import LocalizationFeed
 from leafgate.sim.scenarios import Scenario
 
 if TYPE_CHECKING:  # recording is optional: leafgate.replay is imported only by its callers
-    from leafgate.replay.recorder import Recorder
+    from leafgate.record.recorder import Recorder
 
 ECU_TICK = 0.01  # s, simulated ECU step (its fastest report period)
 ENGAGE_AT = 0.5  # s, when the scripted operator asks to engage (reports are fresh by then)
@@ -399,7 +399,7 @@ def run(
 ) -> SimResult:
     """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate.
 
-    :param recorder: records the drive (``leafgate.replay.recorder``): every frame the gateway
+    :param recorder: records the drive (``leafgate.record.recorder``): every frame the gateway
         receives and sends, stamped with the simulated time, and every tick's inputs and result
     :param window: send the route as a planner's rolling window instead of whole, once
     """

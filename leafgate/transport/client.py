@@ -21,10 +21,10 @@ from typing import Any, Generic, Self, TypeVar
 
 import zenoh
 
+from leafgate.config.transport import ZenohConfig
 from leafgate.errors import TransportError
 from leafgate.messages import OperatorRequest, Pose, Trajectory
 from leafgate.transport import keys
-from leafgate.transport.config import ZenohConfig
 from leafgate.transport.payloads import Codec, codecs
 from leafgate.transport.ros2 import INPUT_QOS
 from leafgate.transport.rosnode import RosFace

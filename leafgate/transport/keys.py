@@ -1,7 +1,7 @@
 """leafgate's own Zenoh key expressions, after the configured prefix (DESIGN, "Zenoh interface").
 
 The ROS topics and the engage service are named by role in the configuration
-(:data:`~leafgate.transport.config.DEFAULT_TOPICS`, Autoware's names by default) and turned
+(:data:`~leafgate.config.transport.DEFAULT_TOPICS`, Autoware's names by default) and turned
 into keys by :class:`~leafgate.transport.rosnode.RosFace`: in bridge mode the ROS name ``/a/b``
 is the key ``<prefix>/a/b``, which ``zenoh-bridge-ros2dds -n /<prefix>`` routes to ``/a/b``.
 The keys below are leafgate's own and are the same in every mode.

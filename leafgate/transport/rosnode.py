@@ -1,10 +1,10 @@
 """leafgate's ROS 2 face on a Zenoh session: keys, attachments and discovery tokens per mode.
 
 :class:`RosFace` declares publishers, subscribers and service queryables for the roles of
-:data:`~leafgate.transport.config.DEFAULT_TOPICS` in the mode the configuration chooses
+:data:`~leafgate.config.transport.DEFAULT_TOPICS` in the mode the configuration chooses
 (``zenoh.ros``, see :mod:`leafgate.transport.ros2`): the key expression, the attachment on each
 publication, and the liveliness token that lets ROS tools discover the entity. The gateway
-(:mod:`leafgate.transport.node`) and the tools (:mod:`leafgate.transport.client`) both use it,
+(:mod:`leafgate.runtime.node`) and the tools (:mod:`leafgate.transport.client`) both use it,
 so a key is built in one place.
 """
 
@@ -19,9 +19,9 @@ from typing import Any
 
 import zenoh
 
+from leafgate.config.transport import ZenohConfig
 from leafgate.errors import TransportError
 from leafgate.transport import ros2
-from leafgate.transport.config import ZenohConfig
 
 
 class RosPublisher:

@@ -1,4 +1,4 @@
-"""Opening a Zenoh session from :class:`~leafgate.transport.config.ZenohConfig`.
+"""Opening a Zenoh session from :class:`~leafgate.config.transport.ZenohConfig`.
 
 Every failure (unreadable or invalid JSON5 file, a malformed endpoint, a port in use, an
 unknown setting) becomes one :class:`~leafgate.errors.TransportError` whose one-line message
@@ -14,8 +14,8 @@ from typing import Any
 
 import zenoh
 
+from leafgate.config.transport import RMW_ZENOHD, ZenohConfig
 from leafgate.errors import TransportError
-from leafgate.transport.config import RMW_ZENOHD, ZenohConfig
 
 # TLS settings naming a file (eclipse-zenoh 1.10 ``transport/link/tls``), by the side that uses
 # them: checked before opening, because Zenoh's own error ("Invalid TLS private key file: No such
@@ -138,7 +138,7 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
     """Open a Zenoh session as ``cfg`` says.
 
     Peer mode with explicit endpoints and multicast scouting off unless a JSON5 file is given
-    (see :mod:`leafgate.transport.config`). The caller owns the session and closes it.
+    (see :mod:`leafgate.config.transport`). The caller owns the session and closes it.
 
     :raises TransportError: one line naming the file, endpoint or TLS certificate at fault
     """

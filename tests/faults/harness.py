@@ -256,7 +256,7 @@ def rest_time(rows: np.ndarray, after: float) -> float | None:
 
 def transitions(session: Path) -> list[dict[str, Any]]:
     """Every state transition recorded in the session (times on the gateway's clock)."""
-    from leafgate.replay.session import TOPIC_DIAGNOSTICS, SessionReader
+    from leafgate.record.session import TOPIC_DIAGNOSTICS, SessionReader
 
     out: list[dict[str, Any]] = []
     with SessionReader(session) as reader:
@@ -271,7 +271,7 @@ def frame_key(msg: can.Message) -> tuple[int, bytes]:
 
 def recorded_commands(paths: Iterable[Path]) -> Counter[tuple[int, bytes]]:
     """The gateway's sent command frames in recordings (CAN logs or a session's /can topic)."""
-    from leafgate.replay.logs import FrameSource
+    from leafgate.record.logs import FrameSource
 
     out: Counter[tuple[int, bytes]] = Counter()
     for path in paths:
@@ -425,7 +425,7 @@ class FaultRun:
     def zenoh(self) -> Any:
         """The test's own Zenoh session (a tool's view of the daemon's endpoints)."""
         if self._session is None:
-            from leafgate.gateway.daemon import tool_view
+            from leafgate.runtime.daemon import tool_view
             from leafgate.settings import load_config
             from leafgate.transport.session import open_session
 

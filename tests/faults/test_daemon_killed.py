@@ -18,9 +18,9 @@ from collections.abc import Callable
 
 from harness import CLI, PROCESS_TEST, ROOT, FaultRun
 
-from leafgate.replay.logs import FrameSource
-from leafgate.replay.recorder import DEFAULT_REORDER_WINDOW
-from leafgate.replay.session import SessionReader
+from leafgate.record.logs import FrameSource
+from leafgate.record.recorder import DEFAULT_REORDER_WINDOW
+from leafgate.record.session import SessionReader
 
 pytestmark = PROCESS_TEST
 

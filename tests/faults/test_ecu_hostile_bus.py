@@ -24,10 +24,10 @@ import can
 from harness import PROCESS_TEST, free_port, private_group
 
 from leafgate.can.codec import CanCodec
-from leafgate.can.config import BusConfig, CanConfig
+from leafgate.config.can import BusConfig, CanConfig
+from leafgate.config.sim import EcuConfig, SimConfig
 from leafgate.messages import EcuState, LongCommand, SteerCommand
 from leafgate.settings import LeafgateConfig
-from leafgate.sim.config import EcuConfig, SimConfig
 from leafgate.sim.ecu import RealtimeStats, SimulatedEcu, run_ecu_realtime
 
 pytestmark = PROCESS_TEST

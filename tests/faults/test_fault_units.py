@@ -19,10 +19,10 @@ import pytest
 
 from leafgate.can.codec import CanCodec
 from leafgate.config import VehicleConfig
+from leafgate.config.gateway import GatewayConfig
+from leafgate.config.sim import LocalizationConfig
 from leafgate.errors import ConfigError
-from leafgate.gateway.config import GatewayConfig
 from leafgate.gateway.core import FOREIGN_QUIET, Gateway, GatewayInputs
-from leafgate.gateway.runtime import CanReceiver, Runtime, SentFrames
 from leafgate.messages import (
     ControlOutput,
     EcuState,
@@ -38,9 +38,10 @@ from leafgate.messages import (
     SystemReport,
     Trajectory,
 )
-from leafgate.replay.logs import FrameSource
-from leafgate.replay.session import decode_inputs, encode_inputs
-from leafgate.sim.config import LocalizationConfig
+from leafgate.record.logs import FrameSource
+from leafgate.record.session import decode_inputs, encode_inputs
+from leafgate.runtime.loop import Runtime
+from leafgate.runtime.receiver import CanReceiver, SentFrames
 from leafgate.sim.realtime import EngagedInjection, InjectionSchedule, LocalizationFeed
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,7 +1,7 @@
 """YAML configuration → typed, frozen dataclasses.
 
 Each part of leafgate owns its section's dataclass (``ControllerConfig`` in
-``leafgate.control.config``, ``CanConfig`` in ``leafgate.can.bus`` …); this module composes them
+``leafgate.config.control``, ``CanConfig`` in ``leafgate.can.bus`` …); this module composes them
 into :class:`LeafgateConfig` and loads YAML into it strictly: an unknown key, a value of the
 wrong type or a value outside its range is a :class:`~leafgate.errors.ConfigError` naming the
 file and the dotted key.

@@ -598,7 +598,7 @@ class SessionWriter:
         """One control tick: inputs, commands, state, and (optionally) the diagnostics.
 
         :param predicted_xy: the controller's predicted positions of this tick, (Np, 2) m,
-            when a :class:`~leafgate.replay.recorder.ControllerTap` caught them
+            when a :class:`~leafgate.record.recorder.ControllerTap` caught them
         """
         t = to_ns(now)
         ref: tuple[int, int] | None = None

@@ -1,7 +1,7 @@
 """The gateway's side of Zenoh: input slots, status publishers, the engage queryable.
 
 Zenoh calls the subscriber and queryable callbacks on its own threads. Each input key has a
-:class:`LatestSlot` that keeps only the newest decoded sample as a
+:class:`~leafgate.runtime.slots.LatestSlot` that keeps only the newest decoded sample as a
 :class:`~leafgate.messages.Stamped` value with its receive time; the control thread reads the
 slots without waiting (a read is one reference load of an immutable object). Nothing in here
 raises into the control loop or into Zenoh's threads: undecodable payloads and unencodable
@@ -19,10 +19,11 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, Generic, TypeVar
+from typing import Any, TypeVar
 
 import zenoh
 
+from leafgate.config.transport import ZenohConfig
 from leafgate.control.reference import trajectory_problem
 from leafgate.errors import TransportError
 from leafgate.jsonconv import to_json
@@ -36,9 +37,9 @@ from leafgate.messages import (
     SteerReport,
     Trajectory,
 )
+from leafgate.runtime.slots import LatestSlot
 from leafgate.transport import cdr, keys
 from leafgate.transport.cdr import PayloadError
-from leafgate.transport.config import ZenohConfig
 from leafgate.transport.payloads import (
     Codec,
     ControlModeStatus,
@@ -137,62 +138,6 @@ class _QueryLanes:
         with self.cond:
             self.closed = True
             self.cond.notify_all()
-
-
-class LatestSlot(Generic[T]):
-    """The newest sample of one input key, shared between a Zenoh callback and the control loop.
-
-    Writers (Zenoh's threads) serialise through a lock; readers take no lock: replacing the
-    reference to an immutable :class:`~leafgate.messages.Stamped` is atomic, so a reader sees
-    either the previous or the new sample, never a mix.
-    """
-
-    def __init__(self, key: str) -> None:
-        self.key = key
-        self._latest: Stamped[T] | None = None
-        self._lock = threading.Lock()
-        self._received = 0
-        self._invalid = 0
-        self._errors = 0
-        self._last_error = ""
-
-    def get(self) -> Stamped[T] | None:
-        """The newest decoded sample with its receive time, or None before the first one."""
-        return self._latest
-
-    def put(self, sample: Stamped[T]) -> None:
-        """Replace the newest sample (called by the subscriber)."""
-        with self._lock:
-            self._latest = sample
-            self._received += 1
-            if not sample.valid:
-                self._invalid += 1
-
-    def count_error(self, reason: str) -> None:
-        """Count a payload that was dropped; the newest good sample stays."""
-        with self._lock:
-            self._errors += 1
-            self._last_error = reason
-
-    @property
-    def received(self) -> int:
-        """Samples decoded and stored so far."""
-        return self._received
-
-    @property
-    def invalid(self) -> int:
-        """Samples decoded but stored marked invalid (not finite, no points); in ``received``."""
-        return self._invalid
-
-    @property
-    def errors(self) -> int:
-        """Payloads dropped because they did not decode."""
-        return self._errors
-
-    @property
-    def last_error(self) -> str:
-        """Why the last dropped payload was dropped ("" if none was)."""
-        return self._last_error
 
 
 def pose_is_valid(pose: Pose) -> bool:
@@ -714,7 +659,7 @@ class GatewayTransport:
         """Publish the vehicle status and the command of one control tick.
 
         The runtime's publisher thread calls this (the ``Publisher`` protocol of
-        :mod:`leafgate.gateway.runtime`); only what is known is published.
+        :mod:`leafgate.runtime.loop`); only what is known is published.
 
         :param now: the gateway clock at the tick, s (not used for stamps: see ``stamp_clock``)
         :param result: the tick's ``StepResult`` (``commands``; ``diagnostics.state`` and

@@ -2,7 +2,7 @@
 
 Reads any format python-can's :class:`can.LogReader` reads (``.log`` candump, ``.asc``,
 ``.blf``, ``.trc``, ``.csv``, ``.mf4`` with asammdf, and the same gzip-compressed) and the
-``/can`` topic of a session (``.mcap``), through :class:`leafgate.replay.logs.FrameSource`; prints one
+``/can`` topic of a session (``.mcap``), through :class:`leafgate.record.logs.FrameSource`; prints one
 line per frame and, at the end, how many frames of each ID were received and how many failed
 each check. The frames are read with a vehicle profile (``--profile``, ``--config``, or a
 session's recorded configuration), whose checks include the car's own counters and checksums
@@ -132,7 +132,7 @@ def decode_log(
     latest = -math.inf
     backwards = 0
     worst = 0.0
-    from leafgate.replay.logs import FrameSource  # the one reader of logs and sessions
+    from leafgate.record.logs import FrameSource  # the one reader of logs and sessions
 
     for msg in FrameSource(path):
         codec = codec_for(msg.channel)

@@ -27,15 +27,17 @@ import numpy as np
 from leafgate.can.bus import open_buses
 from leafgate.can.codec import CanCodec
 from leafgate.can.profile import Profile
+from leafgate.config.transport import ZenohConfig
 from leafgate.control import make_controller
 from leafgate.control.base import Controller
 from leafgate.gateway.core import Gateway, StepResult
-from leafgate.gateway.runtime import CanReceiver, InputSource, RequestBox, Runtime, sd_notify
 from leafgate.gateway.watchdog import CHECK_ORDER, Check, Status
 from leafgate.journal import ERR, NOTICE, WARNING
 from leafgate.messages import GatewayState, OperatorRequest, Pose, Stamped, Trajectory
+from leafgate.runtime.loop import InputSource, RequestBox, Runtime
+from leafgate.runtime.receiver import CanReceiver
+from leafgate.runtime.systemd import sd_notify
 from leafgate.settings import LeafgateConfig
-from leafgate.transport.config import ZenohConfig
 
 log = logging.getLogger(__name__)
 
@@ -350,8 +352,8 @@ def run_daemon(
     clock = time.perf_counter
     codec = CanCodec.for_config(cfg)  # CanCodecError: a DBC missing/invalid
     requests = RequestBox()
-    from leafgate.replay.recorder import open_recording
-    from leafgate.transport.node import GatewayTransport  # zenoh loads only where it is used
+    from leafgate.record.recorder import open_recording
+    from leafgate.runtime.node import GatewayTransport  # zenoh loads only where it is used
 
     with ExitStack() as stack:
         buses = stack.enter_context(

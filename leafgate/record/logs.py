@@ -2,7 +2,7 @@
 
 :class:`FrameSource` iterates the frames of a file in recorded order and tells how far it has
 got (for a progress bar): python-can's readers for ``.log``, ``.asc``, ``.blf``, ``.trc``,
-``.csv``, ``.mf4`` (and gzip), :class:`~leafgate.replay.session.SessionReader` for ``.mcap``.
+``.csv``, ``.mf4`` (and gzip), :class:`~leafgate.record.session.SessionReader` for ``.mcap``.
 
 A session's frames carry the time they were recorded at on the gateway clock (MCAP log time),
 so received and sent frames share one clock; in a simulated session it is the frame's own time.
@@ -26,7 +26,7 @@ import can
 
 from leafgate.can.profile import PROFILE_NAMES, Profile, load_profile
 from leafgate.errors import ConfigError, ReplayError
-from leafgate.replay.session import TOPIC_CAN, SessionReader, frame_from_record
+from leafgate.record.session import TOPIC_CAN, SessionReader, frame_from_record
 from leafgate.settings import LeafgateConfig, load_config, with_profile
 
 __all__ = [

@@ -6,7 +6,7 @@ Threads and what they own:
   each kind into a slot (with its receive time and validity) and counts good and bad frames.
   It also watches the gateway's own command IDs: a frame there that the gateway did not send
   (another node commanding the ECU) is counted as foreign, and the core faults on it.
-- Zenoh's callback threads (inside :class:`~leafgate.transport.node.GatewayTransport`) write the
+- Zenoh's callback threads (inside :class:`~leafgate.runtime.node.GatewayTransport`) write the
   latest localization and trajectory into their slots, and queue operator requests.
 - One control thread (the caller of :meth:`Runtime.run`) ticks on absolute deadlines of
   ``time.perf_counter``: it reads the slots without blocking, calls ``Gateway.step``, encodes and
@@ -20,8 +20,8 @@ that frame, is counted and likewise faults.
 
 Own frames and foreign ones: python-can's ``udp_multicast`` delivers every frame a bus sends back
 to that same bus (the socket joins the group with multicast loopback on), while SocketCAN does
-not (unless ``receive_own_messages``) and ``virtual`` does not. :class:`SentFrames` therefore
-remembers each frame sent for :data:`ECHO_WINDOW`; a received frame on a command ID that
+not (unless ``receive_own_messages``) and ``virtual`` does not. :class:`~leafgate.runtime.receiver.SentFrames` therefore
+remembers each frame sent for :data:`~leafgate.runtime.receiver.ECHO_WINDOW`; a received frame on a command ID that
 matches one, byte for byte, is our own echo and is dropped (the recorder already has it as
 sent); any other is foreign. Both bus behaviours give the same verdicts.
 """
@@ -30,10 +30,8 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import queue
 import select
-import socket
 import threading
 import time
 from collections import deque
@@ -41,23 +39,21 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
-from typing import Any, Generic, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import can
 import numpy as np
 
-from leafgate.can.codec import CanCodec, Decoded
+from leafgate.can.codec import CanCodec
 from leafgate.gateway.core import Gateway, GatewayInputs, StepResult
 from leafgate.messages import (
     STOP_REQUESTS,
-    LongReport,
     OperatorRequest,
     Pose,
     Stamped,
-    SteerReport,
-    SystemReport,
     Trajectory,
 )
+from leafgate.runtime.receiver import CanReceiver, _watch_ids
 
 log = logging.getLogger(__name__)
 
@@ -67,220 +63,6 @@ SHUTDOWN_TICKS = 5  # ticks of ENABLE=0 frames sent before exit (100 ms at 50 Hz
 DIAGNOSTICS_PERIOD = 0.1  # s, 10 Hz
 STATS_WINDOW = 3000  # ticks kept for the timing figures (one minute at 50 Hz)
 REQUEST_TIMEOUT = 1.0  # s an operator request waits for the control thread
-# s a sent frame waits for its echo. Loopback delivers in well under a millisecond, but the
-# Notifier thread may be starved for far longer on a loaded machine; a late echo must not count
-# as foreign. A foreign frame byte-identical to one we sent within this window passes as ours.
-ECHO_WINDOW = 2.0
-FOREIGN_LOGGED = 20  # foreign frames logged one by one, then every thousandth
-# s, how far back a frame's own receive timestamp (python-can ``msg.timestamp``, wall clock) is
-# believed; a timestamp older than this, in the future or unset counts as "received now".
-TIMESTAMP_TRUST = 10.0
-
-
-class LatestSlot(Generic[T]):
-    """The latest value of one input, written by one thread and read by another."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._value: T | None = None
-
-    def set(self, value: T) -> None:
-        with self._lock:
-            self._value = value
-
-    def get(self) -> T | None:
-        with self._lock:
-            return self._value
-
-
-class _Sent:
-    """One frame sent, waiting for its echo."""
-
-    __slots__ = ("key", "taken", "time")
-
-    def __init__(self, time: float, key: tuple[int, bytes]) -> None:
-        self.time = time  # s, when it was sent
-        self.key = key
-        self.taken = False  # its echo came back
-
-
-class SentFrames:
-    """The command frames sent in the last ``window`` seconds, to recognise their echoes.
-
-    Written by the control thread (:meth:`add`, before the send) and read by the Notifier
-    thread (:meth:`take`). Frames are keyed by ``(ID, data)``; the same key recurs (a STANDBY
-    frame repeats whenever its 4-bit alive counter wraps), so each key holds its sent frames in
-    order and an echo takes the oldest one still waiting.
-
-    :param window: s a sent frame waits for its echo
-    """
-
-    def __init__(self, window: float = ECHO_WINDOW) -> None:
-        self.window = window
-        self._lock = threading.Lock()
-        self._waiting: dict[tuple[int, bytes], deque[_Sent]] = {}
-        self._order: deque[_Sent] = deque()  # every frame of the window, oldest first
-
-    def add(self, msg: can.Message, now: float) -> None:
-        """Remember a frame about to be sent at ``now``."""
-        sent = _Sent(now, (msg.arbitration_id, bytes(msg.data)))
-        with self._lock:
-            self._expire(now)
-            self._order.append(sent)
-            waiting = self._waiting.get(sent.key)
-            if waiting is None:
-                self._waiting[sent.key] = deque((sent,))
-            else:
-                waiting.append(sent)
-
-    def take(self, msg: can.Message, now: float) -> bool:
-        """True (and forgotten) when ``msg`` is the echo of a frame we sent."""
-        key = (msg.arbitration_id, bytes(msg.data))
-        with self._lock:
-            self._expire(now)
-            waiting = self._waiting.get(key)
-            if not waiting:
-                return False
-            waiting.popleft().taken = True
-            if not waiting:
-                del self._waiting[key]
-            return True
-
-    def __len__(self) -> int:
-        """Frames still waiting for their echo."""
-        with self._lock:
-            return sum(len(w) for w in self._waiting.values())
-
-    def _expire(self, now: float) -> None:
-        order = self._order
-        while order and now - order[0].time > self.window:
-            sent = order.popleft()
-            if sent.taken:
-                continue
-            # The oldest frame of the window still waiting is the oldest waiting for its key.
-            waiting = self._waiting[sent.key]
-            waiting.popleft()
-            if not waiting:
-                del self._waiting[sent.key]
-
-
-class CanReceiver(can.Listener):
-    """Decodes report frames on the Notifier thread into latest-value slots.
-
-    Frames on the gateway's own command IDs are not decoded: an echo of one we sent is dropped,
-    any other is counted as foreign (and handed to the recorder hook, as evidence).
-    """
-
-    def __init__(
-        self,
-        codec: CanCodec,
-        clock: Callable[[], float],
-        wall_clock: Callable[[], float] = time.time,
-    ) -> None:
-        self.codec = codec
-        self.clock = clock
-        self.wall_clock = wall_clock
-        self.command_ids = codec.receive_ids("commands")
-        self.sent = SentFrames()
-        self.horizon = -math.inf  # s, receive time of the newest frame read (any ID)
-        self.own_echoes = 0  # echoes of our own frames received (udp_multicast delivers them)
-        self.foreign_total = 0  # foreign frames on our command IDs since start
-        self._foreign = 0  # … since the last take_foreign()
-        self._foreign_ids: set[int] = set()
-        self.steer: LatestSlot[Stamped[SteerReport]] = LatestSlot()
-        self.long: LatestSlot[Stamped[LongReport]] = LatestSlot()
-        self.system: LatestSlot[Stamped[SystemReport]] = LatestSlot()
-        self.car: dict[str, LatestSlot[Stamped[Any]]] = {}
-        self._lock = threading.Lock()
-        self._good = 0
-        self._bad = 0
-        self.on_frame: Callable[[can.Message, Decoded], None] | None = None  # recorder hook
-
-    def received_at(self, msg: can.Message) -> float:
-        """When ``msg`` arrived, on :attr:`clock`: from its receive timestamp, not from now.
-
-        python-can stamps a frame when the interface receives it (the kernel's timestamp on
-        SocketCAN, the datagram's arrival on ``udp_multicast``), on the wall clock. A Notifier
-        thread that gets to a frame late must not make the ECU's report look stale (issue 17,
-        finding 7), nor the echo of our own frame look foreign after a stall: the frame's age
-        is taken from its timestamp and subtracted from now on the monotonic clock.
-        """
-        now = self.clock()
-        age = self.wall_clock() - msg.timestamp
-        if msg.timestamp > 0.0 and 0.0 <= age <= TIMESTAMP_TRUST:
-            return now - age
-        return now
-
-    def on_message_received(self, msg: can.Message) -> None:
-        now = self.received_at(msg)
-        if now > self.horizon:
-            self.horizon = now
-        if msg.arbitration_id in self.command_ids and not msg.is_extended_id:
-            if self.sent.take(msg, now):
-                self.own_echoes += 1
-                return
-            with self._lock:
-                self._foreign += 1
-                self.foreign_total += 1
-                self._foreign_ids.add(msg.arbitration_id)
-                total = self.foreign_total
-            if total <= FOREIGN_LOGGED or total % 1000 == 0:
-                log.warning(
-                    "foreign frame on our command ID 0x%03X: %s (%d so far)",
-                    msg.arbitration_id,
-                    bytes(msg.data).hex(" "),
-                    total,
-                )
-            if self.on_frame is not None:
-                # not decoded: the codec's alive-counter state belongs to our own frames
-                name = self.codec.name_of(msg.arbitration_id)
-                self.on_frame(msg, Decoded(msg.arbitration_id, name, None, False, None))
-            return
-        decoded = self.codec.decode(msg)
-        if self.on_frame is not None:
-            self.on_frame(msg, decoded)
-        values = decoded.values  # a frame may refresh several messages
-        if decoded.counts_for_reports:
-            with self._lock:
-                if decoded.valid:
-                    self._good += 1
-                else:
-                    self._bad += 1
-        if not decoded.valid:
-            return
-        for value in values:
-            if isinstance(value, SteerReport):
-                self.steer.set(Stamped(value, now))
-            elif isinstance(value, LongReport):
-                self.long.set(Stamped(value, now))
-            elif isinstance(value, SystemReport):
-                self.system.set(Stamped(value, now))
-            else:
-                self.car.setdefault(type(value).__name__, LatestSlot()).set(Stamped(value, now))
-
-    def car_value(self, kind: str) -> Stamped[Any] | None:
-        """The latest CAR-CAN value of a message type (``"WheelSpeeds"`` …), None if none yet."""
-        slot = self.car.get(kind)
-        return slot.get() if slot is not None else None
-
-    def take_counts(self) -> tuple[int, int]:
-        """Good and bad report frames since the last call."""
-        with self._lock:
-            good, bad = self._good, self._bad
-            self._good = self._bad = 0
-        return good, bad
-
-    def take_foreign(self) -> tuple[int, tuple[str, ...]]:
-        """Foreign frames on our command IDs since the last call, and their DBC names."""
-        with self._lock:
-            count, ids = self._foreign, self._foreign_ids
-            self._foreign, self._foreign_ids = 0, set()
-        if not count:
-            return 0, ()
-        return count, tuple(sorted(self.codec.name_of(i) or f"0x{i:03X}" for i in ids))
-
-    def on_error(self, exc: Exception) -> None:
-        log.error("CAN receive error: %s", exc)
 
 
 class InputSource(Protocol):
@@ -465,32 +247,6 @@ def frames_waiting(buses: Sequence[can.BusABC]) -> bool:
     except (OSError, ValueError):
         return False
     return bool(readable)
-
-
-def _watch_ids(bus: can.BusABC, ids: frozenset[int]) -> None:
-    """Widen ``bus``'s receive filter by ``ids`` (no-op when it delivers everything already)."""
-    filters = bus.filters
-    if filters is None or not ids:
-        return
-    extra = [{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(ids)]
-    bus.set_filters([*filters, *extra])  # type: ignore[list-item]
-
-
-def sd_notify(state: str) -> bool:
-    """Tell systemd (Type=notify) about our state; a no-op outside systemd."""
-    address = os.environ.get("NOTIFY_SOCKET")
-    if not address:
-        return False
-    if address.startswith("@"):
-        address = "\0" + address[1:]  # abstract namespace
-    try:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
-            sock.connect(address)
-            sock.sendall(state.encode())
-        return True
-    except OSError as exc:
-        log.warning("sd_notify failed: %s", exc)
-        return False
 
 
 class Runtime:

@@ -42,12 +42,12 @@ from typing import IO, Any, Final, Literal, Protocol
 import can
 import numpy as np
 
+from leafgate.config.recording import CAN_LOG_SUFFIXES, RecordingConfig
 from leafgate.control.base import Controller
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.messages import ControlOutput, Pose, Trajectory
-from leafgate.replay.config import CAN_LOG_SUFFIXES, RecordingConfig
-from leafgate.replay.logs import end_marker, is_end_marker
-from leafgate.replay.session import SessionWriter, epoch_offset
+from leafgate.record.logs import end_marker, is_end_marker
+from leafgate.record.session import SessionWriter, epoch_offset
 from leafgate.settings import LeafgateConfig
 
 __all__ = [
@@ -543,7 +543,7 @@ class CanLogRecorder:
 
 
 class SessionRecorder:
-    """The whole session in one MCAP file (see :mod:`leafgate.replay.session`).
+    """The whole session in one MCAP file (see :mod:`leafgate.record.session`).
 
     :param path: the ``.mcap`` file; its directory is created
     :param config: the configuration the gateway runs with (recorded as metadata; a re-run
