@@ -228,7 +228,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         + ("" if args.realtime else ", trace.csv")
         + ("" if args.no_plots else ", path.png, steering.png, speed.png")
     )
-    if not metrics.get("finished") and not injections:  # an injection is meant to stop it
+    if not metrics.get("finished"):  # an injected fault too: the drive did not finish
         reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
         return EXIT_ERROR

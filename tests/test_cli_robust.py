@@ -25,6 +25,7 @@ pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "leafgate"]
+SWEEP = str(ROOT / "config" / "sweep.yaml")
 SIGINT_AFTER = 4.0  # s: the command is past its imports and at work (two busy cores)
 #: stopping these with Ctrl-C is their normal end (the daemon disengages first): status 0
 STOP_BY_SIGNAL = {"run", "sim-ecu", "publish-trajectory"}
@@ -101,7 +102,7 @@ def commands(f: dict[str, str]) -> dict[str, dict[str, Any]]:
             "pipe": ["compare", "--out", out, "--scenario", "straight", "--plant", "kinematic"],
             "bad": [["compare", "--out", f["bad"]]],
         },
-        "replay check": {"work": ["replay", "check", f["big"]]},
+        "replay check": {"work": ["replay", "check", f["big"], "--profile", "leafgate-dbw"]},
         "replay play": {"work": ["replay", "play", f["blf"], "-i", "virtual", "-c", "robust"]},
         "replay rerun": {"work": ["replay", "rerun", f["mcap"]]},
         "replay plot": {
@@ -112,7 +113,19 @@ def commands(f: dict[str, str]) -> dict[str, dict[str, Any]]:
         "publish-trajectory": {
             "work": ["publish-trajectory", "--scenario", "s-curve", "--config", c, "--wait", "1"]
         },
-        "decode": {"work": ["decode", f["big"]]},
+        "decode": {"work": ["decode", f["big"], "--profile", "leafgate-dbw"]},
+        "batch sim": {
+            "work": ["batch", "sim", SWEEP, "--out", out, "--workers", "2"],
+            "bad": [["batch", "sim", SWEEP, "--out", f["bad"]]],
+        },
+        "batch check": {
+            "work": ["batch", "check", f["tmp"], "--out", out, "--profile", "leafgate-dbw"],
+            "bad": [["batch", "check", f["tmp"], "--out", f["bad"]]],
+        },
+        "batch rerun": {
+            "work": ["batch", "rerun", f["tmp"], "--out", out],
+            "bad": [["batch", "rerun", f["tmp"], "--out", f["bad"]]],
+        },
     }
 
 

@@ -50,7 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="only files whose name matches, e.g. '*.mcap' (default: every file with a "
         "readable suffix: .log .asc .blf .trc .csv .mf4 .mcap)",
     )
-    p.add_argument("--config", help="the deployment config whose limits apply")
+    p.add_argument("--config", help="the deployment config whose limits and profile apply")
+    p.add_argument(
+        "--profile",
+        metavar="NAME|FILE",
+        help="vehicle profile of the logs (a CAN log names none; a session its own)",
+    )
     p.add_argument("--gap-periods", type=float, default=3.0)
     p.add_argument("--timeout", type=float, help="s per log")
     _common(p, "leafgate-batch-check")
@@ -188,7 +193,7 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
         from leafgate.settings import load_config
 
         load_config(config)  # a bad config is one error, not one per log
-    run, rows = _per_file(args, check_case, files, (config, args.gap_periods), "logs")
+    run, rows = _per_file(args, check_case, files, (config, args.gap_periods, args.profile), "logs")
     bad = 0
     for r in rows:
         if r["status"] != "ok":

@@ -287,13 +287,13 @@ def expand(sweep: Sweep) -> list[Case]:
 
 def _case(sweep: Sweep, index: int, width: int, route: str, plant: str, controller: str) -> Case:
     seed = sweep.seed + index
-    kind, model = CONTROLLERS[controller]
     argv: list[str] = []
     if sweep.config is not None:
         argv += ["--config", sweep.config]
     argv += ["--scenario", route] if route in SCENARIOS else ["--trajectory", route]
-    argv += ["--controller", kind, "--plant", plant, "--seed", str(seed)]
-    settings = {"controller.mpc.model": model, **sweep.settings}
+    # `sim --controller` takes compare's names (mpc-steer: the MPC with the lag model)
+    argv += ["--controller", controller, "--plant", plant, "--seed", str(seed)]
+    settings = dict(sweep.settings)
     rng = np.random.default_rng([seed, _DRAW_STREAM])
     for key, (lo, hi) in sweep.disturbances.items():
         settings[key] = float(rng.uniform(lo, hi)) if hi > lo else lo

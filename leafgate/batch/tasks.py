@@ -62,14 +62,16 @@ def sim_case(argv: Sequence[str]) -> dict[str, Any]:
     return row
 
 
-def check_case(path: str, config: str | None, gap_periods: float) -> dict[str, Any]:
+def check_case(
+    path: str, config: str | None, gap_periods: float, profile: str | None = None
+) -> dict[str, Any]:
     """``leafgate replay check PATH``: the summary counts of its report."""
     from leafgate.replay.check import check_log
     from leafgate.settings import load_config
 
     try:
         cfg = load_config(config) if config is not None else None
-        report = check_log(path, cfg, gap_periods=gap_periods).to_dict()
+        report = check_log(path, cfg, profile=profile, gap_periods=gap_periods).to_dict()
     except Exception as exc:
         return _error(exc)
     findings = report.pop("findings")

@@ -73,7 +73,7 @@ def test_ecu_survives_junk_datagrams_and_keeps_its_timing_under_a_flood() -> Non
     flooder = None
     try:
         ecu_thread.start()
-        codec = CanCodec()
+        codec = CanCodec(profile="leafgate-dbw")
         commands = 0
         deadline = time.perf_counter() + 0.5
         while time.perf_counter() < deadline:  # commands before the flood: READY

@@ -31,7 +31,7 @@ class Racer(can.Listener):
     """Sends, right after each genuine command frame, a forged ENABLE=1 frame with counter + 1."""
 
     def __init__(self, bus: can.BusABC, run: FaultRun) -> None:
-        codec = CanCodec()
+        codec = CanCodec(profile="leafgate-dbw")
         self.bus = bus
         self.run = run
         self.sent = 0
