@@ -316,10 +316,9 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_batch_check_checks_every_log_and_records_the_unreadable(
     recordings: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    status = main(
-        ["batch", "check", str(recordings), "--workers", "2", "--out", str(tmp_path)]
-        + ["--profile", "leafgate-dbw"]  # the CAN logs name no profile (the sessions do)
-    )
+    # the CAN logs name no profile (the sessions do)
+    args = ["check", str(recordings), "--workers", "2", "--profile", "leafgate-dbw"]
+    status = main(["batch", *args, "--out", str(tmp_path)])
     out = capsys.readouterr().out
     rows = read_table(tmp_path / "results.parquet")
     recorded = sorted(p for p in recordings.rglob("rec/*") if p.is_file())
