@@ -23,7 +23,14 @@ LATENCY = 0.4  # s, how old every pose's stamp is when it is published
 def test_poses_stamped_400_ms_ago_are_refused_at_engage(
     make_run: Callable[..., FaultRun],
 ) -> None:
-    run = make_run("localization stamped 400 ms ago", localization_design_thresholds=True)
+    # Not about the reports: on a loaded machine a starved receive thread loses udp_multicast
+    # datagrams, and the skipped counters on six report IDs at once can reach DESIGN's error
+    # limit (seen once in CI). Relaxed here, as the harness relaxes what a test is not about.
+    run = make_run(
+        "localization stamped 400 ms ago",
+        localization_design_thresholds=True,
+        watchdog={"max_report_errors": 50},
+    )
     cfg = yaml.safe_load(run.config.read_text())
     cfg["sim"]["localization"]["latency"] = LATENCY
     run.config.write_text(yaml.safe_dump(cfg))
