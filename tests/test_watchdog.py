@@ -520,6 +520,14 @@ def test_report_ages_count_up_to_where_the_bus_was_read() -> None:
     assert "CAN receive thread" in rig.results[-1].diagnostics.fault
 
 
+def test_a_late_receive_thread_at_start_up_latches_no_fault() -> None:
+    # frames queue before the thread first reads them (seen in the README's bench block)
+    rig = Rig()
+    limit = GatewayConfig().watchdog.max_receive_lag
+    rig.step(reports_as_of=rig.now - limit - 0.05)
+    assert rig.state == GatewayState.STANDBY
+
+
 # --- no progress along the plan (issue 13) ------------------------------------------------------
 
 

@@ -454,8 +454,10 @@ class Gateway:
                 causes[name] = check.detail
         if inputs.bus_errors > 0:
             causes["bus"] = f"{inputs.bus_errors} command frame(s) could not be encoded or sent"
+        # Like the reports' own ages, a late receive thread faults only while the gateway
+        # drives: at start-up frames already queue before the thread first reads them.
         lag = self._receive_lag(now, inputs)
-        if lag is not None:
+        if lag is not None and driving:
             causes["receive"] = lag
         if self._cross_check:
             causes["report_cross_check"] = "ECU report implausible: " + "; ".join(self._cross_check)
