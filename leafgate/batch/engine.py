@@ -12,10 +12,13 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
@@ -39,6 +42,24 @@ class EngineRun:
     wall_s: float = 0.0
     workers: int = 0
     scheduler: str = "local"
+
+
+@contextmanager
+def _children_ignore_sigint() -> Iterator[None]:
+    """Worker processes started inside inherit an ignored SIGINT.
+
+    Ctrl-C reaches the whole process group. Only this process should act on it: it closes the
+    cluster, which stops its workers in order. A worker that took the signal itself would die
+    while its heartbeat still ran, and print that as a traceback.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def failed(error: str) -> dict[str, Any]:
@@ -118,14 +139,15 @@ def run_tasks(
     if scheduler is None:
         n = max(1, workers or os.cpu_count() or 1)
         try:
-            cluster = LocalCluster(
-                n_workers=n,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                dashboard_address=None,  # no dashboard; its health endpoint: 8787, else free
-                silence_logs=logging.ERROR,
-            )
+            with _children_ignore_sigint():
+                cluster = LocalCluster(
+                    n_workers=n,
+                    threads_per_worker=1,
+                    processes=True,
+                    host="127.0.0.1",
+                    dashboard_address=None,  # no dashboard; its health endpoint: 8787, else free
+                    silence_logs=logging.ERROR,
+                )
         except (OSError, RuntimeError) as exc:  # ports, processes
             raise BatchError(f"the local Dask cluster did not start: {exc}") from None
         with cluster, Client(cluster) as client:
@@ -223,4 +245,5 @@ def _time_out(
             if future.key in where:
                 restart.add(where[future.key])
     if restart:  # a running call cannot be stopped: restart its worker process
-        client.restart_workers(sorted(restart), raise_for_error=False)
+        with _children_ignore_sigint():
+            client.restart_workers(sorted(restart), raise_for_error=False)
