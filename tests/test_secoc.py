@@ -251,12 +251,25 @@ def test_a_key_file_of_another_user_is_refused(tmp_path: Path) -> None:
         secoc.load_key(path)
 
 
+def auth_config(tmp_path: Path) -> Path:
+    """A config of the authenticated profile naming ``leafgate.key`` next to it."""
+    path = tmp_path / "car.yaml"
+    path.write_text("vehicle: {profile: leafgate-dbw-auth}\ncan: {auth_key_file: leafgate.key}\n")
+    return path
+
+
+def check_config(path: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "leafgate.cli", "check-config", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
 def test_the_key_file_is_found_next_to_the_config(tmp_path: Path) -> None:
     key_file(tmp_path)
-    cfg_path = tmp_path / "car.yaml"
-    cfg_path.write_text(
-        "vehicle: {profile: leafgate-dbw-auth}\ncan: {auth_key_file: leafgate.key}\n"
-    )
+    cfg_path = auth_config(tmp_path)
     cfg = load_config(cfg_path)
     assert cfg.can.auth_key_file == str(tmp_path / "leafgate.key")
     assert CanCodec.for_config(cfg).verifies
@@ -276,16 +289,7 @@ def test_the_authenticated_profile_without_a_key_file_is_refused(tmp_path: Path)
 def test_check_config_refuses_a_bad_key_file_in_one_line(tmp_path: Path, mode: int | None) -> None:
     if mode is not None:
         key_file(tmp_path, mode=mode)
-    cfg_path = tmp_path / "car.yaml"
-    cfg_path.write_text(
-        "vehicle: {profile: leafgate-dbw-auth}\ncan: {auth_key_file: leafgate.key}\n"
-    )
-    result = subprocess.run(
-        [sys.executable, "-m", "leafgate.cli", "check-config", str(cfg_path)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = check_config(auth_config(tmp_path))
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
@@ -295,16 +299,7 @@ def test_check_config_refuses_a_bad_key_file_in_one_line(tmp_path: Path, mode: i
 
 def test_check_config_names_the_key_it_checked(tmp_path: Path) -> None:
     key_file(tmp_path)
-    cfg_path = tmp_path / "car.yaml"
-    cfg_path.write_text(
-        "vehicle: {profile: leafgate-dbw-auth}\ncan: {auth_key_file: leafgate.key}\n"
-    )
-    result = subprocess.run(
-        [sys.executable, "-m", "leafgate.cli", "check-config", str(cfg_path)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = check_config(auth_config(tmp_path))
     assert result.returncode == 0, result.stderr
     assert f"authentication key: {tmp_path / 'leafgate.key'}" in result.stdout
     assert KEY.hex()[:16] not in result.stdout
