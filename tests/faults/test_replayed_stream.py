@@ -18,6 +18,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import can
 import numpy as np
@@ -68,30 +69,44 @@ class Racer(can.Listener):
         self.sent += 1
 
 
+L = TypeVar("L", bound=can.Listener)
+
+
+def attack(run: FaultRun, make: Callable[[can.BusABC], L]) -> tuple[L, float]:
+    """Run the listener ``make(bus)`` makes on the run's bus for ATTACK s; (it, start time)."""
+    dbw = run.cfg["can"]["dbw"]
+    bus = can.Bus(interface="udp_multicast", channel=dbw["channel"], port=dbw["kwargs"]["port"])
+    listener = make(bus)
+    notifier = can.Notifier(bus, [listener], timeout=0.05)
+    started = run.sniffer_time()
+    try:
+        run.wait_for("the attack", lambda: run.sniffer_time() >= started + ATTACK, 30)
+    finally:
+        notifier.stop()
+        bus.shutdown()
+    return listener, started
+
+
+def movement(run: FaultRun, started: float) -> tuple[float, float]:
+    """How far (m) and how fast (m/s) the plant moved from ``started`` on (the ECU's trace)."""
+    rows, _ = read_trace(run.trace)
+    after = rows[rows[:, 6] >= started]
+    moved = float(np.hypot(after[:, 1] - after[0, 1], after[:, 2] - after[0, 2]).max())
+    return moved, float(np.abs(after[:, 4]).max())
+
+
 def test_replayed_stream_racing_the_gateway_never_drives_the_car(
     make_run: Callable[..., FaultRun],
 ) -> None:
     run = make_run("replayed stream races the gateway's counters")
     with run.start():
-        dbw = run.cfg["can"]["dbw"]
         time.sleep(1.0)  # the gateway in STANDBY, sending ENABLE=0
-        bus = can.Bus(interface="udp_multicast", channel=dbw["channel"], port=dbw["kwargs"]["port"])
-        racer = Racer(bus, run)
-        notifier = can.Notifier(bus, [racer], timeout=0.05)
-        started = run.sniffer_time()
-        try:
-            run.wait_for("the attack", lambda: run.sniffer_time() >= started + ATTACK, 30)
-        finally:
-            notifier.stop()
-            bus.shutdown()
+        racer, started = attack(run, lambda bus: Racer(bus, run))
         system = run.sniffer.system if run.sniffer is not None else None
         status = run.status()
         run.shutdown()
 
-    rows, _ = read_trace(run.trace)
-    after = rows[rows[:, 6] >= started]
-    moved = float(np.hypot(after[:, 1] - after[0, 1], after[:, 2] - after[0, 2]).max())
-    top_speed = float(np.abs(after[:, 4]).max())
+    moved, top_speed = movement(run, started)
     outcome = run.outcome(started, status=status)
     outcome.extra.update(
         forged_frames=racer.sent, moved_m=round(moved, 3), top_speed_mps=round(top_speed, 3)
@@ -156,7 +171,6 @@ def test_authenticated_replayed_stream_is_never_accepted(
     run = make_run("replayed stream, authenticated profile")
     authenticate(run)
     with run.start():
-        dbw = run.cfg["can"]["dbw"]
         run.engage()
         engaged = run.wait_engaged(timeout=20)
         run.wait_for("a second of driving", lambda: run.sniffer_time() >= engaged + 1.0, 20)
@@ -169,15 +183,7 @@ def test_authenticated_replayed_stream_is_never_accepted(
         ]
         run.request("disengage")
         run.wait_at_rest(timeout=30)
-        bus = can.Bus(interface="udp_multicast", channel=dbw["channel"], port=dbw["kwargs"]["port"])
-        replayer = Replayer(bus, run, recorded)
-        notifier = can.Notifier(bus, [replayer], timeout=0.05)
-        started = run.sniffer_time()
-        try:
-            run.wait_for("the attack", lambda: run.sniffer_time() >= started + ATTACK, 30)
-        finally:
-            notifier.stop()
-            bus.shutdown()
+        replayer, started = attack(run, lambda bus: Replayer(bus, run, recorded))
         time.sleep(0.3)  # the last replayed frames reach the ECU
         engaged_again = [
             t
@@ -187,11 +193,9 @@ def test_authenticated_replayed_stream_is_never_accepted(
         status = run.status()
         run.shutdown()
 
-    rows, footer = read_trace(run.trace)
+    _, footer = read_trace(run.trace)
     counters = next(r["counters"] for r in footer if "counters" in r)
-    after = rows[rows[:, 6] >= started]
-    moved = float(np.hypot(after[:, 1] - after[0, 1], after[:, 2] - after[0, 2]).max())
-    top_speed = float(np.abs(after[:, 4]).max())
+    moved, top_speed = movement(run, started)
     rejected = counters["bad_mac"] + counters["stale_freshness"]
     outcome = run.outcome(started, status=status)
     outcome.extra.update(
