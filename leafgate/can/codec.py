@@ -16,6 +16,10 @@ converted here.
 * :meth:`CanCodec.decode` never raises: unknown IDs, wrong lengths, bad CRCs, counters that
   did not advance and undecodable content become ``Decoded(valid=False, error=...)`` and are
   counted per ID in :attr:`CanCodec.stats`.
+* Authenticated frames (``e2e: secoc``, :mod:`leafgate.can.secoc`) are sealed and verified with
+  the codec's key on its Unix-time ``clock``: a bad MAC is ``bad_mac``, an old or repeated
+  freshness value ``stale_freshness``. Without a key (a tool reading a log) they decode, and
+  are counted as ``mac_unverified``: never as verified.
 
 Encoding and decoding run for every frame sent and received (and every frame of a replayed
 log), so neither goes through cantools' generic code: at start-up each message is compiled,
