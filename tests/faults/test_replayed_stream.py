@@ -185,11 +185,11 @@ def test_authenticated_replayed_stream_is_never_accepted(
         run.wait_at_rest(timeout=30)
         replayer, started = attack(run, lambda bus: Replayer(bus, run, recorded))
         time.sleep(0.3)  # the last replayed frames reach the ECU
-        engaged_again = [
-            t
-            for t, m in sniffer.snapshot()
-            if t >= started and m.arbitration_id == 0x0B0 and m.data[6] & 0x10  # ENABLED
-        ]
+        after = [(t, m) for t, m in sniffer.snapshot() if t >= started]
+        engaged_again = [t for t, m in after if m.arbitration_id == 0x0B0 and m.data[6] & 0x10]
+        ecu_fault_at = next(  # DBW_SYSTEM_RPT's ECU_STATE (bits 0-3) FAULT
+            (t for t, m in after if m.arbitration_id == 0x0B2 and m.data[0] & 0x0F == 4), None
+        )
         status = run.status()
         run.shutdown()
 
@@ -197,7 +197,10 @@ def test_authenticated_replayed_stream_is_never_accepted(
     counters = next(r["counters"] for r in footer if "counters" in r)
     moved, top_speed = movement(run, started)
     rejected = counters["bad_mac"] + counters["stale_freshness"]
-    outcome = run.outcome(started, status=status)
+    # the gateway was disengaged on purpose before the attack: the ECU's reaction is the one
+    outcome = run.outcome(None, status=status)
+    outcome.detected = ecu_fault_at is not None
+    outcome.reaction_s = None if ecu_fault_at is None else ecu_fault_at - started
     outcome.extra.update(
         replayed_frames=replayer.sent,
         recorded_frames=len(recorded),
