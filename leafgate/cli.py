@@ -88,7 +88,14 @@ def _run_recorded(
     # Simulated time everywhere: frames keep the simulator's timestamps (no wall clock).
     recording = open_recording(rec_cfg, cfg, clock=None, wall_clock=None)
     try:
-        result = run(cfg, scenario, injections=injections, recorder=recording, window=window)
+        result = run(
+            cfg,
+            scenario,
+            injections=injections,
+            recorder=recording,
+            window=window,
+            epoch=recording.epoch,  # the recording's clock: freshness values of MACs match it
+        )
     finally:
         recording.close()
     if recording.fault:

@@ -310,6 +310,13 @@ def test_replay_check_passes_a_recorded_drive_of_each_profile(
     assert ("MAC not verified" in verdict) == authenticated
     assert "MAC verified" not in verdict
     if authenticated:  # the throwaway key the sim wrote next to the recording
+        from leafgate.record.logs import FrameSource
+
+        # sealed on the recording's own clock: each command frame's freshness byte is its
+        # recorded time in 5 ms steps (however long the sim took to start)
+        for msg in FrameSource(log):
+            if msg.arbitration_id in (0x0A0, 0x0A1, 0x0A2) and not msg.is_extended_id:
+                assert msg.data[4] == math.floor(msg.timestamp * 200) & 0xFF, msg
         key = rec / "auth.key"
         assert key.stat().st_mode & 0o777 == 0o600
         assert cli.main(["replay", "check", str(session), "--key-file", str(key)]) == 0

@@ -407,12 +407,15 @@ def run(
     engage_at: float = ENGAGE_AT,
     recorder: Recorder | None = None,
     window: RollingWindow | None = None,
+    epoch: float | None = None,
 ) -> SimResult:
     """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate.
 
     :param recorder: records the drive (``leafgate.record.recorder``): every frame the gateway
         receives and sends, stamped with the simulated time, and every tick's inputs and result
     :param window: send the route as a planner's rolling window instead of whole, once
+    :param epoch: Unix time of t = 0 for authenticated frames' freshness values (the
+        recording's, so a recorded log verifies against its timestamps); None: now
     """
     period = config.gateway.period
     ticks_per_control = max(1, round(period / ECU_TICK))
@@ -426,7 +429,7 @@ def run(
     # Authenticated frames: the configured key, or a throwaway one; their freshness values come
     # from the simulated clock as Unix time from the start (as the recording stamps frames).
     key = sim_key(config)
-    epoch = time.time()
+    epoch = time.time() if epoch is None else epoch
     now = 0.0
 
     def sim_clock() -> float:
