@@ -431,7 +431,11 @@ def run_realtime(
     channel = f"leafgate-realtime-{next(_channels)}"
     cfg = dataclasses.replace(
         cfg,
-        can=CanConfig(dbw=BusConfig(interface="virtual", channel=channel), car=None),
+        can=CanConfig(
+            dbw=BusConfig(interface="virtual", channel=channel),
+            car=None,
+            auth_key_file=cfg.can.auth_key_file,  # an authenticated profile's key
+        ),
         zenoh=dataclasses.replace(cfg.zenoh, listen=(), connect=(), config_file=None, mode="peer"),
     )
     zconf = zenoh.Config()
