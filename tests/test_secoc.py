@@ -303,3 +303,31 @@ def test_check_config_names_the_key_it_checked(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     assert f"authentication key: {tmp_path / 'leafgate.key'}" in result.stdout
     assert KEY.hex()[:16] not in result.stdout
+
+
+def test_the_daemon_refuses_an_open_key_file_before_recording(tmp_path: Path) -> None:
+    key_file(tmp_path, mode=0o644)
+    cfg_path = auth_config(tmp_path)
+    rec = tmp_path / "rec"
+    cfg_path.write_text(cfg_path.read_text() + f"recording: {{enabled: true, directory: {rec}}}\n")
+    result = subprocess.run(
+        [sys.executable, "-m", "leafgate.cli", "run", "--config", str(cfg_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode != 0
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert lines == [lines[-1]] and "accessible by group or others (mode 0644)" in lines[-1]
+    assert not rec.exists()  # refused before any recording file was created
+    assert KEY.hex()[:16] not in result.stderr + result.stdout
+
+
+def test_sim_drives_the_authenticated_profile_with_a_configured_key(tmp_path: Path) -> None:
+    from leafgate import cli
+
+    key = key_file(tmp_path)
+    argv = ["sim", "--profile", "leafgate-dbw-auth", "--scenario", "straight", "--no-plots"]
+    argv += ["--out", str(tmp_path / "out"), "--set", f"can.auth_key_file={key}"]
+    assert cli.main(argv) == 0
+    assert not (tmp_path / "out" / "auth.key").exists()  # no throwaway key: the configured one
