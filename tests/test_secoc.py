@@ -258,13 +258,15 @@ def auth_config(tmp_path: Path) -> Path:
     return path
 
 
-def check_config(path: Path) -> subprocess.CompletedProcess[str]:
+def leafgate(*args: str) -> subprocess.CompletedProcess[str]:
+    """``leafgate ARGS`` in a process of its own (its exit status and stderr as a user sees)."""
     return subprocess.run(
-        [sys.executable, "-m", "leafgate.cli", "check-config", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=60,
+        [sys.executable, "-m", "leafgate.cli", *args], capture_output=True, text=True, timeout=120
     )
+
+
+def check_config(path: Path) -> subprocess.CompletedProcess[str]:
+    return leafgate("check-config", str(path))
 
 
 def test_the_key_file_is_found_next_to_the_config(tmp_path: Path) -> None:
@@ -310,12 +312,7 @@ def test_the_daemon_refuses_an_open_key_file_before_recording(tmp_path: Path) ->
     cfg_path = auth_config(tmp_path)
     rec = tmp_path / "rec"
     cfg_path.write_text(cfg_path.read_text() + f"recording: {{enabled: true, directory: {rec}}}\n")
-    result = subprocess.run(
-        [sys.executable, "-m", "leafgate.cli", "run", "--config", str(cfg_path)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    result = leafgate("run", "--config", str(cfg_path))
     assert result.returncode != 0
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert lines == [lines[-1]] and "accessible by group or others (mode 0644)" in lines[-1]
