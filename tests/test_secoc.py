@@ -328,3 +328,35 @@ def test_sim_drives_the_authenticated_profile_with_a_configured_key(tmp_path: Pa
     argv += ["--out", str(tmp_path / "out"), "--set", f"can.auth_key_file={key}"]
     assert cli.main(argv) == 0
     assert not (tmp_path / "out" / "auth.key").exists()  # no throwaway key: the configured one
+
+
+def test_replay_check_finds_a_replayed_frame_only_with_the_key() -> None:
+    from leafgate.gateway.safety import SafetyLimits
+    from leafgate.replay.check import check_frames
+    from leafgate.settings import LeafgateConfig
+
+    t = [T0]
+    gw, _ = codecs(t)
+    frames = []
+    for i in range(100):  # 2 s of STANDBY commands, as recorded
+        t[0] = T0 + i * PERIOD
+        for value in (SteerCommand(0.0), LongCommand()):
+            msg = gw.encode(value, timestamp=t[0])
+            msg.timestamp = t[0]
+            frames.append(msg)
+    replayed = frames[10].__copy__()  # a frame of 1.8 s before, sent again at the end
+    replayed.timestamp = t[0] + 0.001
+    frames.append(replayed)
+    cfg = LeafgateConfig()
+    limits = SafetyLimits.from_config(cfg.gateway.safety, cfg.vehicle, cfg.gateway.period)
+    with_key = check_frames(frames, limits, "leafgate-dbw-auth", key=KEY)
+    e2e = [f for f in with_key.findings if f.kind == "e2e"]
+    assert [(f.name, f.detail) for f in e2e] in (
+        [("DBW_STEER_CMD", "bad_mac")],
+        [("DBW_STEER_CMD", "stale_freshness")],
+    )
+    assert "MAC verified with the key on 201 authenticated frames" in with_key.authentication
+    without = check_frames(frames, limits, "leafgate-dbw-auth")
+    assert not [f for f in without.findings if f.kind == "e2e"]
+    assert without.authentication.startswith("MAC not verified")
+    assert "MAC not verified" in without.format()[-1]
