@@ -88,7 +88,14 @@ def _run_recorded(
     # Simulated time everywhere: frames keep the simulator's timestamps (no wall clock).
     recording = open_recording(rec_cfg, cfg, clock=None, wall_clock=None)
     try:
-        result = run(cfg, scenario, injections=injections, recorder=recording, window=window)
+        result = run(
+            cfg,
+            scenario,
+            injections=injections,
+            recorder=recording,
+            window=window,
+            epoch=recording.epoch,  # the recording's clock: freshness values of MACs match it
+        )
     finally:
         recording.close()
     if recording.fault:
@@ -161,6 +168,8 @@ def cmd_sim(args: argparse.Namespace) -> int:
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.record or args.realtime:
+        cfg = _sim_key_file(cfg, Path(args.record) if args.record else out)
     if args.realtime:
         from leafgate.progress import Progress
         from leafgate.sim.realtime import run_realtime
@@ -432,6 +441,8 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     can_do = [n for n in ("lateral", "longitudinal", "gear") if getattr(caps, n)]
     print(f"vehicle profile {profile.name} ({profile.where}): commands {', '.join(can_do)}")
     print(f"frame protection: {' '.join(profile.protection.split())}")
+    if profile.authenticated:  # for_config above loaded it: mode, owner, length checked
+        print(f"authentication key: {cfg.can.auth_key_file} (mode, owner and length checked)")
     print(f"profile adjustments: {len(cfg.adjustments) or 'none'}")
     for line in cfg.adjustments:
         print(f"  {line}")
@@ -500,6 +511,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 profile=args.profile,
                 as_json=args.json,
                 gap_periods=args.gap_periods,
+                key_file=args.key_file,
             )
             for log in args.log
         )
@@ -517,6 +529,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
+    from leafgate.can.secoc import tool_key
     from leafgate.record.logs import recording_context
     from leafgate.replay.decode import decode_log
 
@@ -527,15 +540,44 @@ def cmd_decode(args: argparse.Namespace) -> int:
         profile=context.profile,
         dbw_dbc=context.config.can.dbw_dbc,
         car_dbc=context.config.can.car_dbc,
+        key=tool_key(args.key_file, context.config if args.config else None),
     )
+
+
+def cmd_keygen(args: argparse.Namespace) -> int:
+    from leafgate.can.secoc import write_key
+
+    path = write_key(args.path)
+    print(f"wrote a new 256-bit key to {path} (mode 0600); set can.auth_key_file: {path}")
+    return 0
+
+
+def _sim_key_file(cfg: LeafgateConfig, directory: Path) -> LeafgateConfig:
+    """For a recorded or real-time drive of a profile that authenticates its frames and has no
+    key configured: a throwaway key in ``directory/auth.key`` (mode 0600; an earlier run's is
+    reused), so the processes share it and `replay check --key-file` can verify the log."""
+    from leafgate.can.secoc import write_key
+
+    if not cfg.profile.authenticated or cfg.can.auth_key_file is not None:
+        return cfg
+    path = directory / "auth.key"
+    directory.mkdir(parents=True, exist_ok=True)
+    if not path.exists():
+        write_key(path)
+    print(f"authenticated frames: throwaway key {path}")
+    return dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, auth_key_file=str(path)))
 
 
 # --- the command line -------------------------------------------------------------------------
 
 
 PROFILE_HELP = (
-    "vehicle profile NAME (leafgate-dbw, sze-hlc, leaf-ze1-lkas) or FILE; default: the "
-    "--config's, or the one a session recorded"
+    "vehicle profile NAME (leafgate-dbw, leafgate-dbw-auth, sze-hlc, leaf-ze1-lkas) or FILE; "
+    "default: the --config's, or the one a session recorded"
+)
+KEY_FILE_HELP = (
+    "key file verifying authenticated frames (leafgate-dbw-auth); default: the --config's "
+    "can.auth_key_file; without a key their MACs are reported as not verified"
 )
 
 
@@ -623,7 +665,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
         "--profile",
-        help="vehicle profile: leafgate-dbw (default), sze-hlc, leaf-ze1-lkas, or a .yaml file",
+        help="vehicle profile: leafgate-dbw (default), leafgate-dbw-auth, sze-hlc, "
+        "leaf-ze1-lkas, or a .yaml file",
     )
     p.add_argument(
         "--out", default="leafgate-sim", help="output directory (default: ./leafgate-sim/)"
@@ -753,6 +796,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--gap-periods", type=float, default=3.0, help="a gap is this many periods of silence"
     )
+    r.add_argument("--key-file", metavar="FILE", help=KEY_FILE_HELP)
     r = rsub.add_parser(
         "play",
         help="timed playback of a log onto a bus (the gateway's command IDs left out by default)",
@@ -801,7 +845,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="the deployment config naming the vehicle profile and DBCs")
     p.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
     p.add_argument("--no-summary", action="store_true")
+    p.add_argument("--key-file", metavar="FILE", help=KEY_FILE_HELP)
     p.set_defaults(func=cmd_decode)
+
+    p = sub.add_parser(
+        "keygen", help="write a new key for authenticated frames (hex, mode 0600, never overwrites)"
+    )
+    p.add_argument("path", help="the key file to create (then set can.auth_key_file to it)")
+    p.set_defaults(func=cmd_keygen)
     return parser
 
 

@@ -67,6 +67,7 @@ def load_config(
     data = {} if path is None else apply_bench(load_yaml(path), str(path))
     source = "defaults" if path is None else str(path)
     explicit = dict.fromkeys(explicit_keys(data), source)
+    file_source = source
     if overrides:
         data = {} if data is None else data
         if not isinstance(data, dict):
@@ -74,7 +75,17 @@ def load_config(
         source += " with command-line overrides"
         apply_overrides(data, overrides, source)
         explicit.update(dict.fromkeys(explicit_keys(_nested(overrides)), "command line"))
-    return apply_profile(from_mapping(LeafgateConfig, data, source), source, explicit)
+    cfg = from_mapping(LeafgateConfig, data, source)
+    key_file = cfg.can.auth_key_file
+    if (
+        path is not None
+        and key_file is not None
+        and explicit.get("can.auth_key_file") == file_source
+    ):
+        # a key file named in the config file is found next to it, as the file's author means
+        key = Path(path).parent / Path(key_file).expanduser()
+        cfg = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, auth_key_file=str(key)))
+    return apply_profile(cfg, source, explicit)
 
 
 def _nested(overrides: Mapping[str, Any]) -> dict[str, Any]:

@@ -110,6 +110,7 @@ def commands(f: dict[str, str]) -> dict[str, dict[str, Any]]:
             "bad": [["replay", "plot", f["mcap"], "--out", f["bad"]]],
         },
         "check-config": {"work": ["check-config", c]},
+        "keygen": {"work": ["keygen", f"{f['tmp']}/key-{random.randint(0, 10**9)}"]},
         "publish-trajectory": {
             "work": ["publish-trajectory", "--scenario", "s-curve", "--config", c, "--wait", "1"]
         },

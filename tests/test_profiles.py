@@ -18,6 +18,8 @@ Worked examples are derived by hand from the layouts in the issue (and the DBC c
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import math
 import subprocess
 import sys
@@ -71,6 +73,41 @@ def test_leafgate_dbw_steer_frame_is_byte_exact_and_decodes_back() -> None:
     assert bytes(frame.data) == body + bytes((e2e.crc8_j1850(bytes((0xA0,)) + body),))
     assert frame.arbitration_id == 0x0A0
     assert ecu.decode(frame).value == cmd
+
+
+def test_leafgate_dbw_auth_steer_frame_is_byte_exact_and_decodes_back() -> None:
+    # 0.1 rad → E8 03; 0.5 rad/s → 500 in 13 bits from bit 16 → F4 01; ENABLE at bit 29 → byte 3
+    # 0x01 | 0x20 = 21; byte 4 the freshness value's low byte; bytes 5-7 the first 3 bytes of
+    # HMAC-SHA256(key, 00 A0 ‖ bytes 0-3 ‖ freshness as 8 bytes big-endian)
+    key, t = bytes(range(32)), 1_790_000_000.0
+    gw = CanCodec(profile="leafgate-dbw-auth", key=key, clock=lambda: t)
+    ecu = CanCodec(profile="leafgate-dbw-auth", key=key, clock=lambda: t)
+    cmd = SteerCommand(angle=0.1, rate_limit=0.5, enable=True)
+    frame = gw.encode(cmd)
+    body = bytes.fromhex("E8 03 F4 21")
+    freshness = round(t * 200)  # 5 ms steps of Unix time
+    tag = hmac.digest(key, b"\x00\xa0" + body + freshness.to_bytes(8, "big"), hashlib.sha256)
+    assert bytes(frame.data) == body + bytes((freshness & 0xFF,)) + tag[:3]
+    assert frame.arbitration_id == 0x0A0
+    assert ecu.decode(frame).value == cmd
+
+
+def test_the_authenticated_dbc_keeps_the_reports_of_the_plain_one() -> None:
+    """One truth for the report layouts: leafgate_dbw_auth.dbc changes the commands only."""
+    plain = cantools.database.load_file(ROOT / "dbc" / "leafgate_dbw.dbc")
+    auth = cantools.database.load_file(ROOT / "dbc" / "leafgate_dbw_auth.dbc")
+
+    def layout(db: object, name: str) -> list[tuple[object, ...]]:
+        message = db.get_message_by_name(name)  # type: ignore[attr-defined]
+        return [
+            (s.name, s.start, s.length, s.byte_order, s.is_signed, s.scale, s.offset)
+            for s in message.signals
+        ] + [message.frame_id, message.length]
+
+    for name in ("DBW_STEER_RPT", "DBW_LONG_RPT", "DBW_SYSTEM_RPT"):
+        assert layout(auth, name) == layout(plain, name)
+    for name in ("DBW_STEER_CMD", "DBW_LONG_CMD", "DBW_SYSTEM_CMD"):
+        assert auth.get_message_by_name(name).frame_id == plain.get_message_by_name(name).frame_id
 
 
 def test_sze_hlc_frames_are_byte_exact_and_decode_back() -> None:
@@ -242,8 +279,54 @@ def test_s_curve_closed_loop_through_each_profile(profile: str) -> None:
     assert m["solver_not_converged"] == 0
     assert m["can_frames_rejected"] == 0 and m["ecu_frames_rejected"] == 0
     per_second = m["can_frames_sent"] / m["duration_s"]
-    expected = {"leafgate-dbw": 50 * 2 + 10, "sze-hlc": 50 * 2, "leaf-ze1-lkas": 100}[profile]
+    expected = {
+        "leafgate-dbw": 50 * 2 + 10,
+        "leafgate-dbw-auth": 50 * 2 + 10,
+        "sze-hlc": 50 * 2,
+        "leaf-ze1-lkas": 100,
+    }[profile]
     assert per_second == pytest.approx(expected, rel=0.05)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("profile", PROFILE_NAMES)
+def test_replay_check_passes_a_recorded_drive_of_each_profile(
+    profile: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`replay check` on `sim --profile P --record DIR`; an authenticated profile's MACs are
+    said to be unverified without the key, and verified with it."""
+    from leafgate import cli
+
+    rec = tmp_path / "rec"
+    argv = ["sim", "--profile", profile, "--record", str(rec), "--no-plots"]
+    assert cli.main([*argv, "--out", str(tmp_path / "out")]) == 0
+    (log,) = rec.glob("*.blf")
+    (session,) = rec.glob("*.mcap")
+    capsys.readouterr()
+    assert cli.main(["replay", "check", str(log), "--profile", profile]) == 0
+    verdict = capsys.readouterr().out.splitlines()[-1]
+    assert verdict.startswith("OK: ")
+    authenticated = load_profile(profile).authenticated
+    assert ("MAC not verified" in verdict) == authenticated
+    assert "MAC verified" not in verdict
+    if authenticated:  # the throwaway key the sim wrote next to the recording
+        from leafgate.record.logs import FrameSource
+
+        # sealed on the recording's own clock: each command frame's freshness byte is its
+        # recorded time in 5 ms steps (however long the sim took to start)
+        for msg in FrameSource(log):
+            if msg.arbitration_id in (0x0A0, 0x0A1, 0x0A2) and not msg.is_extended_id:
+                assert msg.data[4] == math.floor(msg.timestamp * 200) & 0xFF, msg
+        key = rec / "auth.key"
+        assert key.stat().st_mode & 0o777 == 0o600
+        assert cli.main(["replay", "check", str(session), "--key-file", str(key)]) == 0
+        verdict = capsys.readouterr().out.splitlines()[-1]
+        assert verdict.startswith("OK: ") and "0 bad MAC, 0 stale freshness" in verdict
+        other = tmp_path / "other.key"  # another key: every MAC fails, and says so
+        cli.main(["keygen", str(other)])
+        assert cli.main(["replay", "check", str(session), "--key-file", str(other)]) == 1
+        verdict = capsys.readouterr().out.splitlines()[-1]
+        assert verdict.startswith("FAILED: ") and " 0 bad MAC" not in verdict
 
 
 @pytest.mark.slow

@@ -16,6 +16,10 @@ converted here.
 * :meth:`CanCodec.decode` never raises: unknown IDs, wrong lengths, bad CRCs, counters that
   did not advance and undecodable content become ``Decoded(valid=False, error=...)`` and are
   counted per ID in :attr:`CanCodec.stats`.
+* Authenticated frames (``e2e: secoc``, :mod:`leafgate.can.secoc`) are sealed and verified with
+  the codec's key on its Unix-time ``clock``: a bad MAC is ``bad_mac``, an old or repeated
+  freshness value ``stale_freshness``. Without a key (a tool reading a log) they decode, and
+  are counted as ``mac_unverified``: never as verified.
 
 Encoding and decoding run for every frame sent and received (and every frame of a replayed
 log), so neither goes through cantools' generic code: at start-up each message is compiled,
@@ -43,6 +47,7 @@ import dataclasses
 import enum
 import math
 import numbers
+import time
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -61,7 +66,7 @@ from cantools.database.conversion import (
     LinearIntegerConversion,
 )
 
-from leafgate.can import e2e
+from leafgate.can import e2e, secoc
 from leafgate.can.profile import (
     COMMAND_SOURCES,
     COUNTER_CHECKED,
@@ -73,7 +78,7 @@ from leafgate.can.profile import (
     base_values,
     load_profile,
 )
-from leafgate.errors import CanCodecError
+from leafgate.errors import CanCodecError, ConfigError
 from leafgate.messages import (
     GearPosition,
     LongCommand,
@@ -111,10 +116,20 @@ EncodableMessage = (
 )
 
 _E2E_SIGNALS: Final = {"ALIVE_COUNTER": (48, 4), "CRC": (56, 8)}  # start bit, length (e2e.py)
+_SECOC_SIGNALS: Final = {"FRESHNESS": (32, 8), "MAC": (40, 24)}  # start bit, length (secoc.py)
+_FIXED_SIGNALS: Final = {"leafgate": _E2E_SIGNALS, "secoc": _SECOC_SIGNALS}
 EXTENDED_KEY: Final = 1 << 31  # added to a 29-bit ID's key in :attr:`CanCodec.stats`
 _MAX_TRACKED_UNKNOWN_IDS: Final = 1024  # beyond this, unknown IDs are only counted globally
 
-ErrorKind = Literal["bad_crc", "bad_counter", "wrong_length", "unknown_id", "decode_error"]
+ErrorKind = Literal[
+    "bad_crc",
+    "bad_counter",
+    "wrong_length",
+    "unknown_id",
+    "decode_error",
+    "bad_mac",  # an authenticated frame whose MAC does not verify (forged, or another key)
+    "stale_freshness",  # … whose freshness is outside the window or not above the last: replay
+]
 
 
 class EncodeError(CanCodecError, cantools.database.EncodeError):
@@ -125,7 +140,17 @@ class EncodeError(CanCodecError, cantools.database.EncodeError):
     """
 
 
-_STATS_FIELDS = ("frames", "bad_crc", "bad_counter", "wrong_length", "unknown_id", "decode_error")
+_STATS_FIELDS = (
+    "frames",
+    "bad_crc",
+    "bad_counter",
+    "wrong_length",
+    "unknown_id",
+    "decode_error",
+    "bad_mac",
+    "stale_freshness",
+    "mac_unverified",
+)
 
 
 @dataclass(frozen=True)  # no slots: diagnostics serialise it with vars()
@@ -138,6 +163,9 @@ class FrameStats:
     wrong_length: int = 0
     unknown_id: int = 0  # frames of an ID no database describes
     decode_error: int = 0  # content that maps to no message value (e.g. gear 6)
+    bad_mac: int = 0  # authenticated frames whose MAC did not verify
+    stale_freshness: int = 0  # … whose freshness was old or repeated (a replay)
+    mac_unverified: int = 0  # … decoded without the key: their MAC was NOT checked (tools only)
 
     def __add__(self, other: FrameStats) -> FrameStats:
         """Counters summed field by field (e.g. one ID over several channels or logs)."""
@@ -152,6 +180,8 @@ class FrameStats:
             + self.wrong_length
             + self.unknown_id
             + self.decode_error
+            + self.bad_mac
+            + self.stale_freshness
         )
 
 
@@ -187,7 +217,16 @@ _COUNTER_OK: Final = e2e.CounterStatus.OK
 _COUNTER_FIRST: Final = e2e.CounterStatus.FIRST
 
 # Indices into the per-ID counter lists (a list is cheaper to bump than a frozen dataclass).
+_STATS_LEN: Final = len(_STATS_FIELDS)
 _FRAMES, _BAD_CRC, _BAD_COUNTER, _WRONG_LENGTH, _UNKNOWN, _DECODE_ERROR = range(6)
+_ERROR_INDEX: Final = {
+    "bad_crc": _BAD_CRC,
+    "bad_counter": _BAD_COUNTER,
+    "bad_mac": _STATS_FIELDS.index("bad_mac"),
+    "stale_freshness": _STATS_FIELDS.index("stale_freshness"),
+}
+_UNVERIFIED: Final = _STATS_FIELDS.index("mac_unverified")
+_SECOC_ERRORS: Final[Mapping[str, ErrorKind]] = {"stale": "stale_freshness", "bad_mac": "bad_mac"}
 
 _Decode = Callable[[bytes | bytearray, dict[str, dict[str, Any]]], tuple[object, ...]]
 _Getter = Callable[[Mapping[str, object]], tuple[object, ...]]
@@ -641,10 +680,23 @@ def _load_database(path: str | Path) -> tuple[Database, str]:
 
 def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
     """A protected frame's DBC must place the counter and checksum where the scheme puts them."""
-    if spec.e2e == "leafgate":
+    fixed = _FIXED_SIGNALS.get(spec.e2e)
+    if fixed is not None:
         if message.length != e2e.FRAME_LENGTH:
             raise CanCodecError(f"{where}: {message.name} must be {e2e.FRAME_LENGTH} bytes")
-        for sig_name, (start, length) in _E2E_SIGNALS.items():
+        if spec.e2e == "secoc":  # the MAC covers bytes 0-3 only: every signal must lie there
+            outside = sorted(
+                sig.name
+                for sig in message.signals
+                if sig.name not in fixed
+                and max(_bits(message, sig.name)) >= 8 * secoc.PAYLOAD_BYTES
+            )
+            if outside:
+                raise CanCodecError(
+                    f"{where}: {message.name}.{outside[0]} must lie in bytes 0-3, which the MAC "
+                    "covers"
+                )
+        for sig_name, (start, length) in fixed.items():
             try:
                 sig = message.get_signal_by_name(sig_name)
             except KeyError:
@@ -652,7 +704,7 @@ def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
             if (sig.start, sig.length, sig.byte_order) != (start, length, "little_endian"):
                 raise CanCodecError(
                     f"{where}: {message.name}.{sig_name} must be {length} bits little-endian at "
-                    f"bit {start}, as leafgate.can.e2e computes it"
+                    f"bit {start}, as leafgate.can.{spec.e2e.replace('leafgate', 'e2e')} computes it"
                 )
     for protection in (spec.counter_signal, spec.checksum_signal):
         if protection is not None and protection not in {s.name for s in message.signals}:
@@ -784,7 +836,7 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
             rx[message.frame_id] = _RxEntry(
                 name=spec.name,
                 length=message.length,
-                exact=spec.e2e in ("leafgate", "nissan-lkas"),
+                exact=spec.e2e in ("leafgate", "secoc", "nissan-lkas"),
                 e2e=spec.e2e,
                 decode=_compile_decoder(message, spec, profile, shared[spec.direction]),
                 counter=(
@@ -833,8 +885,7 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
     modulo = _counter_modulo(message, spec)
     counter = (spec.counter_signal,) if modulo and spec.e2e != "leafgate" else ()
     filled = set(names) | set(counter)
-    if spec.e2e == "leafgate":
-        filled |= set(_E2E_SIGNALS)
+    filled |= set(_FIXED_SIGNALS.get(spec.e2e, ()))
     if spec.checksum_signal is not None:
         filled.add(spec.checksum_signal)
     unknown = sorted(sig.name for sig in message.signals if sig.name not in filled)
@@ -879,6 +930,13 @@ class CanCodec:
     :param profile: the vehicle profile (a :class:`~leafgate.can.profile.Profile` or a
         name/path for :func:`~leafgate.can.profile.load_profile`); required, there is no
         default
+    :param key: the key of a profile with authenticated frames (``secoc``,
+        :mod:`leafgate.can.secoc`): the codec seals the frames it encodes and verifies the
+        ones it decodes. Without it such frames cannot be encoded, and are decoded *unverified*
+        (counted in ``mac_unverified``; for tools reading a log, never for a sender or an ECU)
+    :param clock: the Unix-time clock of the freshness values (s); None takes each received
+        frame's own timestamp as the receive time (a recorded log) and the ``timestamp`` given
+        to encode as the send time
     :raises CanCodecError: a DBC is unreadable, invalid, or lacks a frame or signal the
         profile maps (the message names the file and the frame)
     :raises ConfigError: the profile is missing or invalid
@@ -894,6 +952,9 @@ class CanCodec:
         dbw_dbc: str | Path | None = None,
         car_dbc: str | Path | None = None,
         profile: Profile | str | None = None,
+        *,
+        key: bytes | None = None,
+        clock: Callable[[], float] | None = time.time,
     ) -> None:
         if profile is None:  # no default: a log of one car read as another's is all unknown
             raise CanCodecError(
@@ -916,7 +977,7 @@ class CanCodec:
         self._encoders = tables.encoders
         self._tx_counters: dict[int, int] = {}  # next alive counter per sent ID
         self._rx_counters = e2e.CounterChecker()
-        self._counts: dict[int, list[int]] = {frame_id: [0] * 6 for frame_id in self._rx}
+        self._counts: dict[int, list[int]] = {frame_id: [0] * _STATS_LEN for frame_id in self._rx}
         self._unknown_total = 0
         # fields of each source seen so far, for sources several frames fill (per direction)
         self._latest: dict[str, dict[str, dict[str, Any]]] = {
@@ -930,11 +991,42 @@ class CanCodec:
             spec.name for spec in profile.frames_of("command")
         )
         self.last_errors: list[str] = []  # why frames were left out of the last encode_commands
+        #: the profile authenticates frames (secoc); :attr:`verifies`: with the key to check them
+        self.authenticated = profile.authenticated
+        self.clock = clock
+        self._sealer = secoc.Sealer(key) if key is not None else None
+        self._verifier = secoc.Verifier(key) if key is not None else None
+
+    def authenticates(self, frame_id: int) -> bool:
+        """Whether frames of ``frame_id`` carry a MAC (``e2e: secoc``)."""
+        entry = self._rx.get(frame_id)
+        return entry is not None and entry.e2e == "secoc"
+
+    @property
+    def verifies(self) -> bool:
+        """Whether authenticated frames are sealed and verified (the codec has the key)."""
+        return self._verifier is not None
 
     @classmethod
-    def for_config(cls, cfg: Any) -> CanCodec:
-        """The codec of a deployment config (a ``LeafgateConfig``): its profile and DBCs."""
-        return cls(cfg.can.dbw_dbc, cfg.can.car_dbc, cfg.profile)
+    def for_config(
+        cls, cfg: Any, clock: Callable[[], float] | None = time.time, key: bytes | None = None
+    ) -> CanCodec:
+        """The codec of a deployment config (a ``LeafgateConfig``): its profile and DBCs, and
+        for a profile with authenticated frames the key of ``can.auth_key_file`` (or ``key``,
+        a simulation's throwaway one).
+
+        :raises ConfigError: the profile authenticates its frames and no key file is
+            configured, or the key file is refused (:func:`leafgate.can.secoc.load_key`)
+        """
+        profile = cfg.profile
+        if profile.authenticated and key is None:
+            if cfg.can.auth_key_file is None:
+                raise ConfigError(
+                    f"profile {profile.name} authenticates its command frames: set "
+                    "can.auth_key_file to a key file (make one with `leafgate keygen PATH`)"
+                )
+            key = secoc.load_key(cfg.can.auth_key_file)
+        return cls(cfg.can.dbw_dbc, cfg.can.car_dbc, profile, key=key, clock=clock)
 
     # --- encode ---------------------------------------------------------------------------
 
@@ -1019,6 +1111,13 @@ class CanCodec:
         counter = self._tx_counters.get(frame_id, 0)
         if scheme == "leafgate":
             data = e2e.apply(frame_id, entry.encode(*physical), counter)
+        elif scheme == "secoc":
+            if self._sealer is None:
+                raise EncodeError(
+                    f"{name}: profile {self.profile.name} authenticates it: no key to seal it with"
+                )
+            now = self.clock() if self.clock is not None else timestamp
+            data = self._sealer.seal(frame_id, entry.encode(*physical), now)
         elif entry.modulo:  # the counter is a DBC signal, the encoder's last value
             data = entry.encode(*physical, counter)
             if scheme in e2e.SEALS:
@@ -1039,7 +1138,8 @@ class CanCodec:
         """The payload :meth:`encode` makes, computed by cantools' strict ``Message.encode``.
 
         The reference the compiled encoder is tested and benchmarked against; it does not
-        touch the alive counters.
+        touch the alive counters. An authenticated frame's FRESHNESS and MAC stay 0 (sealing
+        is :mod:`leafgate.can.secoc`'s, with the codec's state).
 
         :raises EncodeError: cantools rejects a value
         """
@@ -1051,8 +1151,8 @@ class CanCodec:
             raise EncodeError(f"{name}: {exc}") from None
         signals: dict[str, Any] = dict(zip(entry.names, physical, strict=False))
         counter %= entry.modulo or 1  # the frame's own counter width (8 bits on 0x284)
-        if entry.e2e == "leafgate":
-            signals.update(ALIVE_COUNTER=0, CRC=0)  # set with the CRC by e2e.apply below
+        if entry.e2e in _FIXED_SIGNALS:  # set below (leafgate), or left to the sealer (secoc)
+            signals.update(dict.fromkeys(_FIXED_SIGNALS[entry.e2e], 0))
         elif entry.modulo:
             signals[entry.names[-1]] = counter
         spec = self.profile.frame(name)
@@ -1103,6 +1203,15 @@ class CanCodec:
                     status = self._rx_counters.check(frame_id, data[e2e.COUNTER_BYTE] & 0x0F)
                     if status is not _COUNTER_OK and status is not _COUNTER_FIRST:
                         error = "bad_counter"
+            elif scheme == "secoc":
+                verifier = self._verifier
+                if verifier is None:
+                    counts[_UNVERIFIED] += 1
+                else:
+                    now = self.clock() if self.clock is not None else msg.timestamp
+                    verdict = verifier.verify(frame_id, data, now)
+                    if verdict != "ok":
+                        error = _SECOC_ERRORS[verdict]
             elif entry.counter is not None:  # a checked counter, maybe a checksum
                 if scheme in e2e.SEALS and not e2e.sealed_ok(scheme, frame_id, data, entry.params):
                     error = "bad_crc"
@@ -1123,7 +1232,7 @@ class CanCodec:
             value = values[0] if values else None
             if error is None:
                 return Decoded(frame_id, entry.name, value, True, None, values)
-            counts[_BAD_CRC if error == "bad_crc" else _BAD_COUNTER] += 1
+            counts[_ERROR_INDEX[error]] += 1
             return Decoded(frame_id, entry.name, value, False, error, values)
         except Exception:  # never let a malformed frame escape into the loop
             counts[_DECODE_ERROR] += 1
@@ -1135,7 +1244,7 @@ class CanCodec:
         if counts is None:
             if len(self._counts) - len(self._rx) >= _MAX_TRACKED_UNKNOWN_IDS:
                 return
-            counts = self._counts[frame_id] = [0] * 6
+            counts = self._counts[frame_id] = [0] * _STATS_LEN
         counts[_FRAMES] += 1
         counts[_UNKNOWN] += 1
 

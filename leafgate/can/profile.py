@@ -7,11 +7,14 @@ the send periods and the capabilities of the interface (lateral, longitudinal, g
 that reports its own state). :class:`~leafgate.can.codec.CanCodec` and the simulated ECU work
 from it, so a new vehicle needs a DBC and a profile file, not new code.
 
-Three profiles ship with leafgate (``leafgate/data/profiles``):
+Four profiles ship with leafgate (``leafgate/data/profiles``):
 
 ``leafgate-dbw``
     leafgate's own drive-by-wire protocol (DESIGN.md) with E2E protection on every frame, and
     the 2011–17 Leaf's CAR-CAN feedback.
+``leafgate-dbw-auth``
+    the same with authenticated command frames (freshness value and truncated HMAC-SHA256,
+    :mod:`leafgate.can.secoc`); it needs a key file (``can.auth_key_file``).
 ``sze-hlc``
     the Széchenyi István University research Leaf's high-level-controller frames. They carry
     **no counter and no checksum**: the gateway's own freshness watchdogs are the only
@@ -31,7 +34,8 @@ Signal mappings, in a frame's ``signals``::
 A frame's protection is ``e2e: NAME`` or, with parameters, ``e2e: {scheme: NAME, ...}``
 (:data:`E2E_SCHEMES`; the checksums are computed in :mod:`leafgate.can.e2e`, where a new
 scheme is one function and one table entry): ``leafgate`` (alive counter + CRC over the data
-ID), ``nissan-lkas`` (counter + CRC-8 in byte 7), ``nissan-nibble`` (the AZE0's 0x002: counter
+ID), ``secoc`` (freshness value + truncated MAC under a key, :mod:`leafgate.can.secoc`),
+``nissan-lkas`` (counter + CRC-8 in byte 7), ``nissan-nibble`` (the AZE0's 0x002: counter
 and XOR-of-nibbles checksum in byte 4), ``counter-sum`` (the AZE0's 0x284/0x285: 8-bit counter
 in byte 6, byte 7 = byte 6 + ``offset``), ``counter`` (a checked counter alone), ``rolling`` (a
 counter filled when sending, not checked) or ``none``. ``on_change: true`` marks a frame the
@@ -91,15 +95,17 @@ __all__ = [
 ]
 
 DEFAULT_PROFILE: Final = "leafgate-dbw"
-PROFILE_NAMES: Final = ("leafgate-dbw", "sze-hlc", "leaf-ze1-lkas")  # shipped in the package
+# shipped in the package
+PROFILE_NAMES: Final = ("leafgate-dbw", "leafgate-dbw-auth", "sze-hlc", "leaf-ze1-lkas")
 
 Direction = Literal["command", "report"]
 E2eScheme = Literal[
-    "none", "leafgate", "rolling", "counter", "nissan-lkas", "nissan-nibble", "counter-sum"
+    "none", "leafgate", "secoc", "rolling", "counter", "nissan-lkas", "nissan-nibble", "counter-sum"
 ]
 E2E_SCHEMES: Final = (
     "none",
     "leafgate",  # leafgate's own: alive counter + CRC-8 over the data ID (e2e.py)
+    "secoc",  # freshness value + truncated HMAC-SHA256 under a key (secoc.py)
     "rolling",  # a counter the sender fills; not checked (its behaviour is not known)
     "counter",  # a counter the sender fills and the receiver checks (+1 per frame)
     "nissan-lkas",  # counter + CRC-8 in byte 7 (the ZE1's 0x169)
@@ -111,12 +117,16 @@ E2E_SCHEMES: Final = (
 E2E_SIGNALS: Final[Mapping[str, tuple[str | None, str | None]]] = {
     "none": (None, None),
     "leafgate": ("ALIVE_COUNTER", "CRC"),
+    "secoc": ("FRESHNESS", "MAC"),
     "rolling": ("COUNTER", None),
     "counter": ("COUNTER", None),
     "nissan-lkas": ("COUNTER", "CHECKSUM"),
     "nissan-nibble": ("COUNTER", "CHECKSUM"),
     "counter-sum": ("COUNTER", "CHECKSUM"),
 }
+# Schemes whose signals sit at fixed places of an 8-byte frame (leafgate.can.codec checks them)
+# and are filled and checked by the codec itself, not as counter/checksum signals.
+FIXED_PLACES: Final = frozenset({"leafgate", "secoc"})
 # Schemes whose received counter is checked (leafgate's own one is checked by e2e.py).
 COUNTER_CHECKED: Final = frozenset({"counter", "nissan-lkas", "nissan-nibble", "counter-sum"})
 # Parameters a scheme takes in ``e2e: {scheme: NAME, PARAM: VALUE}`` (integers).
@@ -248,6 +258,11 @@ class Profile:
         """Period of the fastest report frame that refreshes ``source``, s (None: none does)."""
         periods = [f.period for f in self.frames_of("report") if source in f.refreshes]
         return min(periods) if periods else None
+
+    @property
+    def authenticated(self) -> bool:
+        """Whether frames carry a MAC (``e2e: secoc``): encoding and verifying need a key."""
+        return any(f.e2e == "secoc" for f in self.frames)
 
     @property
     def command_period(self) -> float:
@@ -446,8 +461,9 @@ def _frame(
     if on_change and e2e != "none":
         raise r.fail(f"{key}.on_change", "an event frame cannot carry a counter")
     defaults = E2E_SIGNALS[e2e]
-    counter = spec.get("counter", defaults[0] if e2e != "leafgate" else None)
-    checksum = spec.get("checksum", defaults[1] if e2e != "leafgate" else None)
+    fixed = e2e in FIXED_PLACES  # the scheme's own signals, at fixed places (codec checks)
+    counter = spec.get("counter", None if fixed else defaults[0])
+    checksum = spec.get("checksum", None if fixed else defaults[1])
     sources = COMMAND_SOURCES if direction == "command" else REPORT_SOURCES
     signals_raw = r.mapping(spec.get("signals"), f"{key}.signals")
     signals = tuple(

@@ -55,8 +55,8 @@ class VehicleConfig:
     cg_to_front: float = 1.20  # m, centre of gravity to front axle
     cornering_stiffness_front: float = 60000.0  # N/rad, per axle
     cornering_stiffness_rear: float = 70000.0  # N/rad, per axle
-    # The CAN interface: a packaged profile (leafgate-dbw, sze-hlc, leaf-ze1-lkas) or the path
-    # of a profile YAML file (leafgate.can.profile).
+    # The CAN interface: a packaged profile (leafgate-dbw, leafgate-dbw-auth, sze-hlc,
+    # leaf-ze1-lkas) or the path of a profile YAML file (leafgate.can.profile).
     profile: str = "leafgate-dbw"
 
     def __post_init__(self) -> None:

@@ -6,6 +6,11 @@
       dbw: {interface: socketcan, channel: can0}
       car: {interface: socketcan, channel: can1}   # null: CAR-CAN frames arrive on dbw
 
+A vehicle profile that authenticates its command frames (``leafgate-dbw-auth``) needs a key
+file, ``auth_key_file``; a relative path is taken from the config file's directory::
+
+      auth_key_file: leafgate.key    # hex text, mode 0600, owned by the service user
+
 On a machine without kernel CAN, two processes share a bus with python-can's
 ``udp_multicast`` interface, whose channel is a multicast group address::
 
@@ -65,9 +70,12 @@ class CanConfig:
     """The two channels of the research Leaf; ``car: null`` means CAR-CAN shares the dbw bus.
 
     ``dbw_dbc`` / ``car_dbc`` name other DBC files than the packaged ones (None: packaged).
+    ``auth_key_file``: the key of a profile with authenticated frames
+    (:func:`leafgate.can.secoc.load_key`; relative to the config file's directory).
     """
 
     dbw: BusConfig = field(default_factory=BusConfig)
     car: BusConfig | None = None
     dbw_dbc: str | None = None
     car_dbc: str | None = None
+    auth_key_file: str | None = None

@@ -706,8 +706,11 @@ _AnyRecorder = CanLogRecorder | SessionRecorder
 class Recording:
     """The configured recorders behind one set of hooks (what the runtime is given)."""
 
-    def __init__(self, recorders: Sequence[_AnyRecorder] = ()) -> None:
+    def __init__(self, recorders: Sequence[_AnyRecorder] = (), epoch: float | None = None) -> None:
         self.recorders = tuple(recorders)
+        #: a simulated drive's Unix time of t = 0 (its frames are stamped epoch + simulated
+        #: time); None for the daemon's, on Unix time already
+        self.epoch = epoch
 
     def wrap_controller(self, controller: Controller) -> Controller:
         """Wrap the controller so the session records its predicted path (unchanged output)."""
@@ -814,4 +817,4 @@ def open_recording(
                 epoch=sim_epoch,
             )
         )
-    return Recording(recorders)
+    return Recording(recorders, epoch=sim_epoch)

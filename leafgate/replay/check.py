@@ -36,6 +36,12 @@ session's ``/can`` topic):
    or session): without it the recording stopped early (a crash, a full disk, a write error),
    and an ``incomplete`` finding says after which frame and at what time it stops.
 
+6. authenticated command frames (profile ``leafgate-dbw-auth``) are verified only with the key
+   (``--key-file``, or the ``--config``'s ``can.auth_key_file``): a bad MAC or a stale or
+   repeated freshness value (judged against the recorded timestamps) is an ``e2e`` finding.
+   Without the key the frames are decoded and checked as above, and the report says "MAC not
+   verified": it never claims a MAC it did not check.
+
 An empty log, a log with no frame of the profile (another vehicle's?) and a log whose
 command frames could none be checked are findings, never "OK". Timestamps that go backwards
 are warned about.
@@ -63,6 +69,7 @@ import numpy as np
 
 from leafgate.can.codec import CanCodec, FrameStats
 from leafgate.can.profile import Profile
+from leafgate.can.secoc import tool_key
 from leafgate.config import VehicleConfig
 from leafgate.gateway.plausibility import MAX_SKEW, cross_check, report_range_error
 from leafgate.gateway.safety import Measured, SafetyLimits, Violation, apply_limits, check
@@ -76,6 +83,7 @@ from leafgate.messages import (
     WheelSpeeds,
 )
 from leafgate.record.logs import FrameSource, is_end_marker, recording_context
+from leafgate.replay.decode import authentication_summary
 from leafgate.settings import LeafgateConfig
 
 __all__ = ["CheckReport", "Finding", "IdStats", "check_frames", "check_log", "main_check"]
@@ -170,6 +178,7 @@ class CheckReport:
     findings: list[Finding] = field(default_factory=list)
     truncated: bool = False  # a session file that ended before its footer
     elapsed: float = 0.0  # s of wall time spent checking
+    authentication: str = ""  # what was checked of the MACs ("" for a profile without any)
 
     @property
     def ok(self) -> bool:
@@ -197,6 +206,7 @@ class CheckReport:
             "backwards_timestamps": self.backwards,
             "worst_backwards_s": self.worst_backwards,
             "truncated": self.truncated,
+            "authentication": self.authentication or None,
             "ids": [s.to_dict() for s in self.ids],
             "findings": [f.to_dict() for f in self.findings],
             "elapsed_s": self.elapsed,
@@ -238,6 +248,7 @@ class CheckReport:
             f"violations, {self.count('e2e')} E2E errors, {self.count('gap')} gaps, "
             f"{self.count('silence')} bus silences, {self.count('period')} period findings"
             + (f", {self.count('coverage')} coverage findings" if self.count("coverage") else "")
+            + (f"; {self.authentication}" if self.authentication else "")
         )
         return lines
 
@@ -396,6 +407,7 @@ def check_frames(
     progress: _Progress | None = None,
     vehicle: VehicleConfig | None = None,
     require_end: bool = False,
+    key: bytes | None = None,
 ) -> CheckReport:
     """Check a sequence of frames (the core of :func:`check_log`; see the module notes).
 
@@ -405,9 +417,11 @@ def check_frames(
     :param gap_periods: an interval longer than this many nominal periods is a gap
     :param require_end: the frames include the recorder's end-of-recording markers (a file read
         with ``FrameSource(markers=True)``): a recording without one is ``incomplete``
+    :param key: verifies authenticated frames' MACs, freshness judged against the recorded
+        timestamps (None: decoded, "MAC not verified")
     """
     t_start = time.perf_counter()
-    template = CanCodec(dbw_dbc, car_dbc, profile)
+    template = CanCodec(dbw_dbc, car_dbc, profile, key=key, clock=None)
     codecs: dict[object, CanCodec] = {}
     angle_tol, long_tol = _tolerances(template)
     command_ids = template.receive_ids("commands")
@@ -449,7 +463,9 @@ def check_frames(
         codec = codecs.get(msg.channel)
         if codec is None:
             codec = codecs[msg.channel] = (
-                template if not codecs else CanCodec(dbw_dbc, car_dbc, template.profile)
+                template
+                if not codecs
+                else CanCodec(dbw_dbc, car_dbc, template.profile, key=key, clock=None)
             )
         decoded = codec.decode(msg)
         if frame_id in command_ids and not msg.is_extended_id:
@@ -529,6 +545,7 @@ def check_frames(
         ids=ids,
         findings=findings,
         elapsed=time.perf_counter() - t_start,
+        authentication=authentication_summary(template, merged),
     )
 
 
@@ -844,6 +861,7 @@ def check_log(
     profile: str | None = None,
     gap_periods: float = DEFAULT_GAP_PERIODS,
     progress: TextIO | None = None,
+    key_file: str | None = None,
 ) -> CheckReport:
     """Check a recorded log or session (see the module notes).
 
@@ -852,6 +870,8 @@ def check_log(
         apply; a session's recorded configuration when None
     :param profile: the vehicle profile (``--profile NAME|FILE``), over the configuration's
     :param progress: a stream for the progress bar (drawn only when it is a terminal)
+    :param key_file: the key verifying authenticated frames; None: the ``config``'s
+        ``can.auth_key_file`` when a config is given (a session's recorded one is not used)
     :raises ReplayError: the file is missing, of an unknown format or unreadable, or nothing
         names the vehicle profile (a python-can log without ``config`` or ``profile``)
     :raises ConfigError: the configuration or profile does not load
@@ -872,6 +892,7 @@ def check_log(
         progress=_Progress(progress, source),
         vehicle=cfg.vehicle,
         require_end=True,
+        key=tool_key(key_file, cfg if config is not None else None),
     )
     report.truncated = source.truncated
     return report
@@ -886,6 +907,7 @@ def main_check(
     gap_periods: float = DEFAULT_GAP_PERIODS,
     out: TextIO | None = None,
     err: TextIO | None = None,
+    key_file: str | None = None,
 ) -> int:
     """``leafgate replay check LOG [--config FILE] [--profile NAME|FILE] [--json] …``.
 
@@ -894,7 +916,9 @@ def main_check(
     """
     out = out or sys.stdout
     err = err or sys.stderr
-    report = check_log(log, config, profile=profile, gap_periods=gap_periods, progress=err)
+    report = check_log(
+        log, config, profile=profile, gap_periods=gap_periods, progress=err, key_file=key_file
+    )
     if report.backwards:
         err.write(
             f"leafgate: warning: {log}: timestamps go backwards at {report.backwards} frames "

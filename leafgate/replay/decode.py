@@ -16,6 +16,11 @@ A line reads::
 
 i.e. timestamp (s), channel, ID, length, then the signals in the style of ``cantools decode
 --single-line`` (value-table names for enums), then ``ok`` or the error.
+
+Authenticated frames (profile ``leafgate-dbw-auth``) are verified only with the key
+(``--key-file``, or the ``--config``'s ``can.auth_key_file``): a bad MAC or a stale freshness
+value is the frame's error. Without the key they are decoded and marked ``ok (MAC not
+verified)``, and the summary says that no MAC was checked.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import can
 from leafgate.can.codec import CanCodec, Decoded, FrameStats
 from leafgate.can.profile import Profile
 
-__all__ = ["decode_log", "format_frame", "format_summary"]
+__all__ = ["authentication_summary", "decode_log", "format_frame", "format_summary"]
 
 
 def _value_text(value: object, unit: str | None) -> str:
@@ -91,6 +96,24 @@ def format_summary(stats: dict[int, FrameStats], names: dict[int, str | None]) -
     return lines
 
 
+def authentication_summary(codec: CanCodec, stats: dict[int, FrameStats]) -> str:
+    """One line on the MACs of a log's authenticated frames ("" for a profile without any):
+    how many were verified and failed, or that none was verified (no key)."""
+    if not codec.authenticated:
+        return ""
+    if not codec.verifies:
+        unverified = sum(s.mac_unverified for s in stats.values())
+        return f"MAC not verified: no key (--key-file) for {unverified} authenticated frames"
+    ids = {i for i in stats if codec.authenticates(i)}
+    frames = sum(stats[i].frames for i in ids)
+    bad_mac = sum(stats[i].bad_mac for i in ids)
+    stale = sum(stats[i].stale_freshness for i in ids)
+    return (
+        f"MAC verified with the key on {frames} authenticated frames: {bad_mac} bad MAC, "
+        f"{stale} stale freshness"
+    )
+
+
 def decode_log(
     path: str | Path,
     out: TextIO | None = None,
@@ -100,6 +123,7 @@ def decode_log(
     dbw_dbc: str | Path | None = None,
     car_dbc: str | Path | None = None,
     err: TextIO | None = None,
+    key: bytes | None = None,
 ) -> int:
     """Decode a CAN log, one line per frame, then a per-ID summary.
 
@@ -111,6 +135,7 @@ def decode_log(
     :param dbw_dbc: another drive-by-wire DBC than the profile's first
     :param car_dbc: another CAR-CAN DBC than the profile's second
     :param err: where a warning about timestamps going backwards goes (standard error)
+    :param key: the key verifying authenticated frames (None: decoded, MAC not verified)
     :return: the exit status, 0 (bad frames are reported, not failures)
     :raises ReplayError: the file is missing, of an unknown format or unreadable
     :raises CanCodecError: a given DBC is unreadable or invalid
@@ -118,14 +143,17 @@ def decode_log(
     out = out if out is not None else sys.stdout
     err = err if err is not None else sys.stderr
     path = Path(path)
-    template = CanCodec(dbw_dbc, car_dbc, profile)  # fails early on a bad DBC
+    # fails early on a bad DBC; freshness is judged against the recorded timestamps
+    template = CanCodec(dbw_dbc, car_dbc, profile, key=key, clock=None)
     codecs: dict[object, CanCodec] = {}  # one per recorded channel: separate counter state
 
     def codec_for(channel: object) -> CanCodec:
         codec = codecs.get(channel)
         if codec is None:
             codec = codecs[channel] = (
-                CanCodec(dbw_dbc, car_dbc, template.profile) if codecs else template
+                CanCodec(dbw_dbc, car_dbc, template.profile, key=key, clock=None)
+                if codecs
+                else template
             )
         return codec
 
@@ -136,7 +164,10 @@ def decode_log(
 
     for msg in FrameSource(path):
         codec = codec_for(msg.channel)
-        line = format_frame(codec, msg, codec.decode(msg))
+        decoded = codec.decode(msg)
+        line = format_frame(codec, msg, decoded)
+        if decoded.valid and not codec.verifies and codec.authenticates(msg.arbitration_id):
+            line += " (MAC not verified)"
         if msg.timestamp < latest:
             backwards += 1
             worst = max(worst, latest - msg.timestamp)
@@ -163,4 +194,7 @@ def decode_log(
         )
         for line in format_summary(merged, names):
             out.write("# " + line + "\n")
+        auth = authentication_summary(template, merged)
+        if auth:
+            out.write(f"# {auth}\n")
     return 0

@@ -14,9 +14,11 @@ Semantics (defaults from :class:`~leafgate.config.sim.EcuConfig`):
   frames after a timeout, does not engage. ENABLE back to 0 disengages (READY).
 - A frame with a bad CRC, a counter that does not advance or a wrong length is dropped and
   counted by kind; the kinds seen are also latched as fault bits on DBW_SYSTEM_RPT until a
-  DBW_SYSTEM_CMD with CLEAR_FAULTS.
-- Counter race: more than ``race_drops`` command frames dropped for their alive counter within
-  ``race_window`` → FAULT (disengage, brake to rest at ``timeout_decel``), latched until a
+  DBW_SYSTEM_CMD with CLEAR_FAULTS. With authenticated frames (``leafgate-dbw-auth``), a bad
+  MAC (latched as FAULT_BAD_CRC) or a stale or repeated freshness value (FAULT_BAD_COUNTER)
+  is dropped and counted the same way.
+- Counter race: more than ``race_drops`` command frames dropped for their alive counter, their
+  freshness or their MAC within ``race_window`` → FAULT (disengage, brake to rest at ``timeout_decel``), latched until a
   CLEAR_FAULTS once no counter drop has been seen for a window. Two senders on the command IDs
   (a second gateway, a replayed stream) make exactly this pattern; whichever wins the race, it
   can stop the car but not drive it.
@@ -61,7 +63,7 @@ from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.config import VehicleConfig
 from leafgate.config.sim import EcuConfig
-from leafgate.errors import InjectionError, LeafgateError
+from leafgate.errors import ConfigError, InjectionError, LeafgateError
 from leafgate.geometry import clip_abs as _clip
 from leafgate.messages import (
     EcuState,
@@ -114,6 +116,9 @@ _SENSOR_SPEED = 40.0  # m/s
 _SENSOR_TORQUE = 40.0  # N·m
 _RX_ERROR_COUNT_MAX = 0xFFFF  # the DBC field is 16 bits
 _EPS = 1e-9  # s, tolerance of "due at now" against float sums
+# Command drops that count toward a race (a second sender): a counter that did not advance,
+# and an authenticated frame replayed (stale freshness) or forged (bad MAC).
+_RACE_ERRORS = frozenset({"bad_counter", "stale_freshness", "bad_mac"})
 
 
 @dataclass(frozen=True)
@@ -144,13 +149,22 @@ class EcuCounters:
     gear_changes: int = 0
     gear_refused: int = 0  # gear requests refused while moving (once per request)
     encode_errors: int = 0  # report frames that could not be encoded (a bug if non-zero)
-    counter_races: int = 0  # counter-race faults (two senders on the command IDs)
+    counter_races: int = 0  # race faults (a second sender: counter, freshness or MAC drops)
     malformed: int = 0  # datagrams the bus could not parse as a CAN frame (real-time loop)
+    bad_mac: int = 0  # authenticated command frames dropped for their MAC (forged)
+    stale_freshness: int = 0  # … for an old or repeated freshness value (replayed)
 
     @property
     def rx_errors(self) -> int:
         """All dropped command frames."""
-        return self.bad_crc + self.bad_counter + self.wrong_length + self.other_invalid
+        return (
+            self.bad_crc
+            + self.bad_counter
+            + self.wrong_length
+            + self.other_invalid
+            + self.bad_mac
+            + self.stale_freshness
+        )
 
 
 class SimulatedEcu:
@@ -180,6 +194,11 @@ class SimulatedEcu:
         self.vehicle = vehicle
         self.plant = plant
         self.codec = codec if codec is not None else CanCodec(profile=vehicle.profile)
+        if self.codec.authenticated and not self.codec.verifies:
+            raise ConfigError(
+                f"profile {self.codec.profile.name} authenticates its command frames: the "
+                "simulated ECU needs the key (can.auth_key_file) to verify them"
+            )
         self.counters = EcuCounters()
         profile = self.codec.profile
         self._command_ids = self.codec.receive_ids("commands")
@@ -243,7 +262,7 @@ class SimulatedEcu:
             return
         if not decoded.valid:
             self._count_invalid(decoded.error)
-            if decoded.error == "bad_counter":
+            if decoded.error in _RACE_ERRORS:
                 self._counter_drop(now)
             return
         for value in decoded.values:  # a frame may carry steering and speed together
@@ -267,7 +286,11 @@ class SimulatedEcu:
         return decoded
 
     def _counter_drop(self, now: float) -> None:
-        """Count a command frame dropped for its counter; too many in a window is a race."""
+        """Count a command frame dropped for its counter, freshness or MAC: a second sender.
+
+        More than ``race_drops`` in ``race_window`` is a race: FAULT, brake to rest. One rule
+        for a counter race (CRC + counter) and for replayed or forged authenticated frames.
+        """
         drops = self._counter_drops
         drops.append(now)
         while drops and now - drops[0] > self.config.race_window:
@@ -284,6 +307,12 @@ class SimulatedEcu:
             self._fault_bits["bad_crc"] = True
         elif error == "bad_counter":
             self.counters.bad_counter += 1
+            self._fault_bits["bad_counter"] = True
+        elif error == "bad_mac":  # latched as the integrity bit, as a bad CRC
+            self.counters.bad_mac += 1
+            self._fault_bits["bad_crc"] = True
+        elif error == "stale_freshness":  # latched as the sequence bit, as a bad counter
+            self.counters.stale_freshness += 1
             self._fault_bits["bad_counter"] = True
         elif error == "wrong_length":
             self.counters.wrong_length += 1
@@ -401,30 +430,50 @@ class SimulatedEcu:
     # -- the step ----------------------------------------------------------------------------
 
     def step(self, now: float, dt: float) -> None:
-        """Apply the ECU semantics at ``now`` and actuate the plant for ``dt`` seconds."""
-        cfg = self.config
+        """Apply the ECU semantics at ``now`` and actuate the plant for ``dt`` seconds.
+
+        In order: command freshness (timeout), driver override, latched faults, engagement,
+        then the plant follows the commands (engaged) or the driver (not engaged).
+        """
         speed = self.plant.speed
+        fresh = self._check_freshness(now)
+        self._check_override(now)
+        self._check_faults(now)
+        self._update_engagement(fresh)
+        self._actuate(dt, speed)
 
-        # Command freshness; a command kind never seen ages from the first command of any kind.
-        fresh = False
-        if self._first_rx is not None:
-            steer_age = now - (self._steer_rx if self._steer is not None else self._first_rx)
-            long_age = now - (self._long_rx if self._long is not None else self._first_rx)
-            if not self._needs_long:
-                long_age = 0.0
-            timed_out = max(steer_age, long_age) > cfg.cmd_timeout
-            fresh = not timed_out and self._steer is not None and self._long_ok
-            if timed_out and not self._cmd_timeout:
-                self.counters.timeouts += 1
-                self._fault_bits["cmd_timeout"] = True
-                self._timeout_stop = True
-                self._disengage()
-                # The sender may restart: accept its next counter instead of dropping one frame.
-                for frame_id in self._command_ids:
-                    self.codec.reset_counters(frame_id)
-            self._cmd_timeout = timed_out
+    def _check_freshness(self, now: float) -> bool:
+        """Whether the commands are fresh at ``now``; a command timeout disengages and brakes.
 
-        # Driver override: torque above the threshold long enough, or the brake pedal.
+        A command kind never seen ages from the first command of any kind.
+        """
+        if self._first_rx is None:
+            return False
+        cfg = self.config
+        steer_age = now - (self._steer_rx if self._steer is not None else self._first_rx)
+        long_age = now - (self._long_rx if self._long is not None else self._first_rx)
+        if not self._needs_long:
+            long_age = 0.0
+        timed_out = max(steer_age, long_age) > cfg.cmd_timeout
+        fresh = not timed_out and self._steer is not None and self._long_ok
+        if timed_out and not self._cmd_timeout:
+            self.counters.timeouts += 1
+            self._fault_bits["cmd_timeout"] = True
+            self._timeout_stop = True
+            self._disengage()
+            # The sender may restart: accept its next counter instead of dropping one frame.
+            for frame_id in self._command_ids:
+                self.codec.reset_counters(frame_id)
+        self._cmd_timeout = timed_out
+        return fresh
+
+    def _check_override(self, now: float) -> None:
+        """Driver override: torque above the threshold long enough, or the brake pedal.
+
+        Latches OVERRIDE while engaged; a CLEAR_OVERRIDE request clears it once the driver has
+        let go.
+        """
+        cfg = self.config
         torque = self.driver_torque(now)
         if abs(torque) > cfg.override_torque:
             if self._torque_since is None:
@@ -445,7 +494,8 @@ class SimulatedEcu:
                 self._override = False
         self._clear_override_req = False
 
-        # Actuator fault: latched until CLEAR_FAULTS once the fault is gone.
+    def _check_faults(self, now: float) -> None:
+        """Actuator fault and the rejection race: latched until CLEAR_FAULTS once gone."""
         actuator_fault = self._active(now, "actuator-fault") is not None
         if actuator_fault:
             self._fault = True
@@ -460,7 +510,8 @@ class SimulatedEcu:
             self._fault_bits = dict.fromkeys(self._fault_bits, False)
         self._clear_faults_req = False
 
-        # Engagement: an edge of ENABLE while the commands are fresh.
+    def _update_engagement(self, fresh: bool) -> None:
+        """Engage on a 0→1 edge of ENABLE while the commands are fresh; ENABLE=0 disengages."""
         steer, long = self._steer, self._long
         long_enable = long.enable if long is not None else not self._needs_long
         enable = fresh and steer is not None and steer.enable and long_enable
@@ -474,6 +525,10 @@ class SimulatedEcu:
             self._mode = None
             self.counters.engagements += 1
 
+    def _actuate(self, dt: float, speed: float) -> None:
+        """Step the plant ``dt`` s: toward the commands when engaged, else the driver's hold."""
+        cfg = self.config
+        steer, long = self._steer, self._long
         if self._engaged and steer is not None and (long is not None or not self._needs_long):
             steer_target = min(
                 max(steer.angle, -self.vehicle.max_steer_angle), self.vehicle.max_steer_angle

@@ -361,7 +361,8 @@ def run_sim_ecu(
             c = stats.counters
             log.info(
                 "simulated ECU stopped: %d ticks, %d frames sent, %d received, %d overruns; "
-                "%d command frames rejected (bad CRC %d, bad counter %d, length %d); "
+                "%d command frames rejected (bad CRC %d, bad counter %d, length %d, "
+                "bad MAC %d, stale freshness %d); "
                 "%d timeouts, %d overrides; %d poses published, %d suppressed",
                 stats.ticks,
                 stats.frames_sent,
@@ -371,6 +372,8 @@ def run_sim_ecu(
                 c.bad_crc,
                 c.bad_counter,
                 c.wrong_length,
+                c.bad_mac,
+                c.stale_freshness,
                 c.timeouts,
                 c.overrides,
                 feed.published,
@@ -428,7 +431,11 @@ def run_realtime(
     channel = f"leafgate-realtime-{next(_channels)}"
     cfg = dataclasses.replace(
         cfg,
-        can=CanConfig(dbw=BusConfig(interface="virtual", channel=channel), car=None),
+        can=CanConfig(
+            dbw=BusConfig(interface="virtual", channel=channel),
+            car=None,
+            auth_key_file=cfg.can.auth_key_file,  # an authenticated profile's key
+        ),
         zenoh=dataclasses.replace(cfg.zenoh, listen=(), connect=(), config_file=None, mode="peer"),
     )
     zconf = zenoh.Config()

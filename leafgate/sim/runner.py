@@ -17,6 +17,7 @@ import dataclasses
 import itertools
 import math
 import re
+import secrets
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +27,7 @@ import can
 import numpy as np
 
 from leafgate.can.codec import CanCodec, EncodeError
+from leafgate.can.secoc import KEY_BYTES
 from leafgate.config.sim import SimConfig
 from leafgate.control import make_controller
 from leafgate.control.reference import MIN_POINTS
@@ -388,6 +390,15 @@ class _Slots:
         return counts
 
 
+def sim_key(config: LeafgateConfig) -> bytes | None:
+    """A throwaway random key for a simulated drive whose profile authenticates its frames and
+    whose config names no key file (None: the codecs read ``can.auth_key_file``, or need none).
+    It lives in memory only; ``leafgate sim --record`` writes one to a file instead."""
+    if config.profile.authenticated and config.can.auth_key_file is None:
+        return secrets.token_bytes(KEY_BYTES)
+    return None
+
+
 def run(
     config: LeafgateConfig,
     scenario: Scenario,
@@ -396,12 +407,15 @@ def run(
     engage_at: float = ENGAGE_AT,
     recorder: Recorder | None = None,
     window: RollingWindow | None = None,
+    epoch: float | None = None,
 ) -> SimResult:
     """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate.
 
     :param recorder: records the drive (``leafgate.record.recorder``): every frame the gateway
         receives and sends, stamped with the simulated time, and every tick's inputs and result
     :param window: send the route as a planner's rolling window instead of whole, once
+    :param epoch: Unix time of t = 0 for authenticated frames' freshness values (the
+        recording's, so a recorded log verifies against its timestamps); None: now
     """
     period = config.gateway.period
     ticks_per_control = max(1, round(period / ECU_TICK))
@@ -412,9 +426,19 @@ def run(
         controller = recorder.wrap_controller(controller)
     gateway = Gateway(config.gateway, config.vehicle, controller, config.long_mode)
     plant = make_plant(config.sim.plant, config.vehicle, start_pose(scenario, config.sim))
-    ecu = SimulatedEcu(config.sim.ecu, plant, config.vehicle, CanCodec.for_config(config))
+    # Authenticated frames: the configured key, or a throwaway one; their freshness values come
+    # from the simulated clock as Unix time from the start (as the recording stamps frames).
+    key = sim_key(config)
+    epoch = time.time() if epoch is None else epoch
+    now = 0.0
+
+    def sim_clock() -> float:
+        return epoch + now
+
+    ecu_codec = CanCodec.for_config(config, clock=sim_clock, key=key)
+    ecu = SimulatedEcu(config.sim.ecu, plant, config.vehicle, ecu_codec)
     ecu.set_driver_path(traj)  # lateral-only vehicles: the driver holds the planned speed
-    gw_codec = CanCodec.for_config(config)
+    gw_codec = CanCodec.for_config(config, clock=sim_clock, key=key)
     report_ids = gw_codec.receive_ids("reports") | gw_codec.receive_ids("car")
     channel = f"leafgate-sim-{next(_channel_ids)}"
     gw_bus = can.Bus(
@@ -457,7 +481,6 @@ def run(
     rest_since: float | None = None
     steer_target = 0.0
     wall0 = time.perf_counter()
-    now = 0.0
     steps = round(scenario.duration / ecu_dt)
     try:
         for k in range(steps):
