@@ -17,8 +17,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
@@ -44,22 +43,38 @@ class EngineRun:
     scheduler: str = "local"
 
 
-@contextmanager
-def _children_ignore_sigint() -> Iterator[None]:
-    """Worker processes started inside inherit an ignored SIGINT.
+class _DeferredInterrupt:
+    """Ctrl-C during a batch is noted, and acted on where the cluster can close in order.
 
-    Ctrl-C reaches the whole process group. Only this process should act on it: it closes the
-    cluster, which stops its workers in order. A worker that took the signal itself would die
-    while its heartbeat still ran, and print that as a traceback.
+    A KeyboardInterrupt raised wherever the main thread happens to be (inside Dask's start-up,
+    a submit, or its close) leaves the cluster half open: a task recorded as failed, or a
+    traceback from Dask's exit handler. Here the signal only sets a flag; :meth:`check` raises
+    between polls, so the ``with`` blocks close the client and the cluster, and the caller
+    reports the interrupt. Only the main thread can own a signal handler; elsewhere this does
+    nothing.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
+
+    def __init__(self) -> None:
+        self._set = threading.Event()
+        self._owned = False
+        self._previous: Any = signal.SIG_DFL
+
+    def __enter__(self) -> _DeferredInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGINT, lambda *_: self._set.set())
+            self._owned, self._previous = True, previous if previous is not None else signal.SIG_DFL
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._owned:
+            signal.signal(signal.SIGINT, self._previous)
+        if exc[0] is None:
+            self.check()  # a Ctrl-C that came during the close
+
+    def check(self) -> None:
+        """Raise KeyboardInterrupt if Ctrl-C came since the start."""
+        if self._set.is_set():
+            raise KeyboardInterrupt
 
 
 def failed(error: str) -> dict[str, Any]:
@@ -136,33 +151,36 @@ def run_tasks(
     run = EngineRun()
     t0 = time.perf_counter()
     logging.getLogger("distributed").setLevel(logging.WARNING)  # not every start and stop
-    if scheduler is None:
-        n = max(1, workers or os.cpu_count() or 1)
-        try:
-            with _children_ignore_sigint():
+    with _DeferredInterrupt() as interrupt:
+        if scheduler is None:
+            n = max(1, workers or os.cpu_count() or 1)
+            try:
                 cluster = LocalCluster(
                     n_workers=n,
                     threads_per_worker=1,
                     processes=True,
                     host="127.0.0.1",
                     dashboard_address=None,  # no dashboard; its health endpoint: 8787, else free
-                    silence_logs=logging.ERROR,
+                    # Workers log only what is critical: a task's error comes back in its row,
+                    # and a closing cluster races their heartbeats, which log the closed
+                    # stream as an ERROR with a traceback.
+                    silence_logs=logging.CRITICAL,
                 )
-        except (OSError, RuntimeError) as exc:  # ports, processes
-            raise BatchError(f"the local Dask cluster did not start: {exc}") from None
-        with cluster, Client(cluster) as client:
-            run.workers, run.scheduler = n, f"local cluster ({n} worker processes)"
-            _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
-    else:
-        try:
-            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
-        except (OSError, TimeoutError, ValueError) as exc:
-            reason = " ".join(str(exc).split()) or type(exc).__name__
-            raise BatchError(f"--scheduler {scheduler}: cannot connect: {reason}") from None
-        with client:
-            run.workers = len(client.scheduler_info().get("workers", {}))
-            run.scheduler = scheduler
-            _submit_and_wait(client, fn, tasks, timeout, progress, what, run)
+            except (OSError, RuntimeError) as exc:  # ports, processes
+                raise BatchError(f"the local Dask cluster did not start: {exc}") from None
+            with cluster, Client(cluster) as client:
+                run.workers, run.scheduler = n, f"local cluster ({n} worker processes)"
+                _submit_and_wait(client, fn, tasks, timeout, progress, what, run, interrupt)
+        else:
+            try:
+                client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+            except (OSError, TimeoutError, ValueError) as exc:
+                reason = " ".join(str(exc).split()) or type(exc).__name__
+                raise BatchError(f"--scheduler {scheduler}: cannot connect: {reason}") from None
+            with client:
+                run.workers = len(client.scheduler_info().get("workers", {}))
+                run.scheduler = scheduler
+                _submit_and_wait(client, fn, tasks, timeout, progress, what, run, interrupt)
     run.wall_s = time.perf_counter() - t0
     return run
 
@@ -175,6 +193,7 @@ def _submit_and_wait(
     progress: TextIO | None,
     what: str,
     run: EngineRun,
+    interrupt: _DeferredInterrupt,
 ) -> None:
     from distributed import as_completed
 
@@ -193,6 +212,7 @@ def _submit_and_wait(
     next_look = time.monotonic() + POLL_S
     try:
         while pending:
+            interrupt.check()
             batch = done.next_batch(block=False) if done.has_ready() else []
             for future in batch:
                 key = pending.pop(future, None)
@@ -245,5 +265,4 @@ def _time_out(
             if future.key in where:
                 restart.add(where[future.key])
     if restart:  # a running call cannot be stopped: restart its worker process
-        with _children_ignore_sigint():
-            client.restart_workers(sorted(restart), raise_for_error=False)
+        client.restart_workers(sorted(restart), raise_for_error=False)
