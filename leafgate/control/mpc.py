@@ -59,11 +59,13 @@ segment's end point it brakes to rest (status ``stopping``) and never creeps on 
 heading; the next segment (or the finish) starts from where it stopped. While finished or
 aligning the wheel holds or ramps monotonically: no chatter at standstill.
 
-**Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed over the
-horizon plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit): in acceleration
-mode the command is governed so that the jerk-limited ramp-down ends at the bound (status
-``speed-limited``), in velocity mode the target is clamped. A path the car cannot follow (a
-hairpin tighter than its turning circle) is driven at the plan's speed, never sprinted through.
+**Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed at its
+own place on the path plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit).
+Where the plan slows down, the bound is the plan's speed where the car will be one governor time
+constant later, so that the car is slowed in time. In acceleration mode the command is governed
+so that the jerk-limited ramp-down ends at the bound (status ``speed-limited``), in velocity mode
+the target is clamped. A path the car cannot follow (a hairpin tighter than its turning circle,
+the car far off it) is driven at the plan's speed at the car's place, never sprinted through.
 
 **Offset-free.** A constant steering misalignment and a constant drag are estimated from the
 measured increments (:mod:`leafgate.control.disturbance`) and the model predicts with them.
@@ -241,11 +243,12 @@ class MpcController:
         )
 
     def _set_trajectory(self, trajectory: Trajectory) -> None:
+        """A new plan; one that continues the last (a rolling window) keeps the progress."""
         self._traj = trajectory
         self._finished = False
         self._lam = None
         self._path, self._progress, self._bad_trajectory = prepare_plan(
-            trajectory, self.cfg.creep_speed, self.cfg.search_window
+            trajectory, self.cfg.creep_speed, self.cfg.search_window, self._progress
         )
 
     def _where(self) -> dict[str, Any]:
@@ -292,7 +295,7 @@ class MpcController:
             return aligning
         # the model acts with the effective inputs: the commands plus the disturbances
         a_eff, t_eff = a_prev + drag, t_prev + bias
-        pts, ref, ref_speed, kin = self._reference(seg, s0, start, a_eff, t_eff)
+        pts, ref, kin = self._reference(seg, s0, start, a_eff, t_eff)
 
         # 2. model: Jacobians along the plan (step 0 at the current state), augment, predict
         ST, free = self._prediction(kin, start[4] + bias, a_eff, t_eff, ref)
@@ -316,8 +319,9 @@ class MpcController:
         if not isfinite(np.add.reduce(dU)):
             self._lam = None
             return self._hold("non-finite", direction, t0)
+        v_cap = self._speed_bound(seg, s0, kin[2])
         return self._apply_first_move(
-            result, ST, err, free, y0, pts, ref_speed, kin[2], a_prev, t_prev, direction, t0
+            result, ST, err, free, y0, pts, v_cap, kin[2], a_prev, t_prev, direction, t0
         )
 
     def _observe(self, pose: Pose, steer_angle: float) -> FloatArray:
@@ -420,10 +424,10 @@ class MpcController:
         start: tuple[float, float, float, float, float],
         a_eff: float,
         t_eff: float,
-    ) -> tuple[FloatArray, FloatArray, FloatArray, list[float]]:
+    ) -> tuple[FloatArray, FloatArray, list[float]]:
         """Step 1, reference: the horizon's points (rows x, y, heading; ``Np + 1`` points from
         the projection ``s0``), the reference outputs ``Rs`` in the path-aligned frame at
-        ``s0`` (4, Np; row 2 the signed planned speed), that speed, and the state ``[along, lateral, v,
+        ``s0`` (4, Np; row 2 the signed planned speed), and the state ``[along, lateral, v,
         heading error]`` in that frame.
 
         The prediction's rows are grouped by output (all Np along-track positions, then lateral
@@ -446,7 +450,7 @@ class MpcController:
         to_path[1, 0] = -s
         ref = to_path @ (pts[:, 1:] - pts[:, :1])  # (4, Np) in the path frame
         ref[2] = ref_speed
-        return pts, ref, ref_speed, kin
+        return pts, ref, kin
 
     def _prediction(
         self,
@@ -480,6 +484,18 @@ class MpcController:
         u_eff = np.array([a_eff, t_eff])
         return self._predict_steer_lag(kin, tan_actual, u_eff, v_op, heading_op)
 
+    def _speed_bound(self, seg: Segment, s0: float, speed: float) -> float:
+        """The speed bound, m/s: the plan's speed at the car's place ``s0`` plus the margin, and
+        the plan's speed where the car will be in ``_GOVERN_TIME`` at ``speed`` when that is lower
+        (the governor slows the car with that time constant: looking ahead by it, the car is
+        slowed in time where the plan slows down); never above the maneuver limit.
+        """
+        path = self._path
+        assert path is not None
+        here = abs(path.speed_at(seg, s0))
+        ahead = abs(path.speed_at(seg, s0 + abs(speed) * _GOVERN_TIME))
+        return min(min(here, ahead) + self.cfg.speed_margin, self.cfg.max_speed)
+
     def _qp_terms(self, ST: FloatArray, err: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Step 3: ``E = 2(SᵀQS + R̄)`` and ``f = −2 SᵀQ (Rs − F x)``."""
         SQ = ST * self._q2  # 2 SᵀQ
@@ -497,7 +513,7 @@ class MpcController:
         free: FloatArray,
         y0: FloatArray,
         pts: FloatArray,
-        ref_speed: FloatArray,
+        v_cap: float,
         v0: float,
         a_prev: float,
         t_prev: float,
@@ -505,8 +521,8 @@ class MpcController:
         t0: float,
     ) -> ControlOutput:
         """Step 4: the first move within the amplitude and per-tick rate limits whatever the
-        solver said, governed to the speed bound; applied, and reported with its prediction."""
-        cfg = self.cfg
+        solver said, governed to the speed bound ``v_cap`` (m/s); applied, and reported with its
+        prediction."""
         _, _, _, (a_min, a_max) = self._limits[direction]
         dU = result.x
         d_a, d_t = dU[:2].tolist()
@@ -523,8 +539,6 @@ class MpcController:
             min(self.tan_max, t_prev + self._du_first[1]),
         )
         clips = int(abs(a_cmd - a_new) > _EPS_CLIP) + int(abs(tan_cmd - tan_new) > _EPS_CLIP)
-        # speed bound: never faster than the plan's speed plus the margin, nor the maneuver limit
-        v_cap = min(float(np.abs(ref_speed).max()) + cfg.speed_margin, cfg.max_speed)
         a_free = a_cmd
         a_cmd = self._govern(a_cmd, a_prev, direction * v0, v_cap, direction)
         limited = a_cmd != a_free
