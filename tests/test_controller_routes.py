@@ -16,7 +16,7 @@ from leafgate.config.control import ControllerConfig, MpcConfig
 from leafgate.config.sim import PlantConfig, SimConfig
 from leafgate.control.baselines import PurePursuit, PurePursuitConfig, Stanley, StanleyConfig
 from leafgate.control.mpc import MpcController
-from leafgate.control.reference import Progress, ReferencePath
+from leafgate.control.reference import Progress, ReferencePath, split_segments
 from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.plant import STANDSTILL_SPEED, KinematicPlant, gear_direction, make_plant
@@ -100,6 +100,95 @@ def test_progress_does_not_jump_to_a_later_pass_over_the_same_place() -> None:
         assert abs(prog.index - i) <= 1, (i, prog.index)
 
 
+def test_engaged_beside_a_crossing_the_first_search_takes_the_first_pass() -> None:
+    """Old code: 0.9 m beside the figure-eight's start, turned 25°, the first search took the
+    later pass through the crossing (nearer in space: 65° off, but within 90°), ≈ 52 m on, and
+    the car was sent the wrong way round the figure."""
+    from leafgate.sim.scenarios import get_scenario, offset_start
+
+    sc = get_scenario("figure-eight")
+    for lateral, heading_deg in [(0.9, 25.0), (-0.9, -25.0), (0.9, -25.0), (-0.9, 25.0)]:
+        start = offset_start(sc, lateral, math.radians(heading_deg)).start
+        prog = Progress(ReferencePath(sc.trajectory), window=20)
+        prog.update(start.x, start.y, start.heading)
+        assert prog.s < 2.0, (lateral, heading_deg, prog.s)
+        out = _mpc().step(start, 0.0, sc.trajectory)
+        assert out.progress < 2.0 and out.gear == Gear.D
+
+
+def test_a_closed_loop_still_starts_at_its_start_not_its_end() -> None:
+    traj = routes.closed_loop()
+    prog = Progress(ReferencePath(traj), window=20)
+    prog.update(float(traj.x[-1]) - 0.3, float(traj.y[-1]) + 0.4, float(traj.heading[-1]))
+    assert prog.index <= 1
+
+
+def _window(route: Trajectory, first: int, last: int) -> Trajectory:
+    """Waypoints ``first … last − 1`` of ``route``, as a new object (a planner's message)."""
+    cut = slice(first, last)
+    return Trajectory(
+        x=route.x[cut].copy(),
+        y=route.y[cut].copy(),
+        heading=route.heading[cut].copy(),
+        speed=route.speed[cut].copy(),
+    )
+
+
+def test_a_plan_that_continues_the_last_keeps_the_progress_and_the_segment() -> None:
+    route = routes.switch_back()
+    cusp = split_segments(route.speed)[0].end
+    old = ReferencePath(_window(route, cusp - 40, cusp + 20))
+    prog = Progress(old, window=20)
+    for i in range(0, 41):  # drive the old window up to the cusp, stop there, change segment
+        prog.update(float(old.traj.x[i]), float(old.traj.y[i]), float(old.traj.heading[i]))
+    assert prog.ended(float(old.traj.x[40]), float(old.traj.y[40]), 0.15) and prog.next_segment()
+    prog.update(float(old.traj.x[40]), float(old.traj.y[40]), float(old.traj.heading[40]))
+    # the next window starts 3 waypoints before the cusp (where the car last passed) and reaches
+    # farther: the same points over the overlap
+    new = ReferencePath(_window(route, cusp - 3, cusp + 40))
+    carried = prog.continued_on(new)
+    assert carried is not None
+    assert carried.segment.direction == -1 and carried.segment.start == 3
+    assert carried.s == pytest.approx(prog.s - float(old.s[37]), abs=1e-9)
+    assert carried.index == 3
+    # a plan over other points, or one that starts ahead of the car, starts afresh
+    part = _window(route, cusp - 3, cusp + 40)
+    y = part.y.copy()
+    y[5] += 0.05
+    moved = Trajectory(x=part.x, y=y, heading=part.heading, speed=part.speed)
+    assert prog.continued_on(ReferencePath(moved)) is None
+    assert prog.continued_on(ReferencePath(_window(route, cusp + 5, cusp + 40))) is None
+    # prepare_plan carries it, or starts afresh
+    from leafgate.control.reference import prepare_plan
+
+    _, same, _ = prepare_plan(new.traj, 0.3, 20, previous=prog)
+    assert same is not None and same.segment.direction == -1
+    _, fresh, _ = prepare_plan(moved, 0.3, 20, previous=prog)
+    assert fresh is not None and fresh.segment.direction == 1 and fresh.s == 0.0
+
+
+def test_a_rolling_window_resent_at_a_cusp_does_not_restart_the_brake_release() -> None:
+    """Old code: every re-sent window (a new object) made a fresh progress: at the cusp the MPC
+    changed segment again and restored the brake hold, so with windows every 0.5 s the release
+    (≈ 0.5 s at the jerk limit) never finished and the car stood until the no-progress watchdog
+    stopped it."""
+    route = routes.switch_back()
+    cusp = split_segments(route.speed)[0].end
+    pose = Pose(float(route.x[cusp]), float(route.y[cusp]), float(route.heading[cusp]), 0.0)
+    ctrl = _mpc()
+    steer, statuses = 0.0, []
+    for k in range(150):  # 3 s at rest on the cusp, a new window every 0.5 s
+        if k % 25 == 0:
+            window = _window(route, cusp - 3, cusp + 60)
+        out = ctrl.step(pose, steer, window)
+        steer = out.steer_angle  # an ideal steering actuator
+        statuses.append(out.status)
+        assert out.gear == Gear.R
+    drive = [i for i, s in enumerate(statuses) if s not in ("aligning", "releasing")]
+    assert drive, statuses[-5:]
+    assert out.accel < 0.0  # driving off backwards: d(v)/dt < 0 in reverse
+
+
 # --- closed loop: every feasible route is driven to its end ------------------------------------
 
 
@@ -137,12 +226,17 @@ def test_feasible_route_on_plants_with_steering_lag(name: str, plant: str) -> No
 
 
 @pytest.mark.slow
-def test_infeasible_hairpin_is_driven_slowly_and_never_reported_finished() -> None:
-    """Old code: 6.6 m/s on a 1 m/s plan while 15 m off the path, and then ``finished``."""
+@pytest.mark.parametrize("plant", ["kinematic", "steer-lag"])
+def test_infeasible_hairpin_is_driven_slowly_and_never_reported_finished(plant: str) -> None:
+    """Old code: 6.6 m/s on a 1 m/s plan while 15 m off the path, and then ``finished``. Then
+    (bound by the plan's speed over the horizon): 0.74 m/s (kinematic) and 0.79 m/s
+    (steer-lag) faster than the plan at the car's place, braking late where the plan stops."""
     traj = routes.infeasible_hairpin()
-    result = _run(traj)
+    model = "kinematic" if plant == "kinematic" else "kinematic_steer_lag"
+    result = _run(traj, plant=plant, model=model)
     assert not result.metrics["finished"]
     assert float(np.abs(result.trace.speed).max()) <= float(np.abs(traj.speed).max()) + 0.2
+    assert result.metrics["overspeed_max_mps"] <= 0.2  # judged at the car's place on the plan
 
 
 # --- a planner's rolling window -----------------------------------------------------------------

@@ -59,11 +59,13 @@ segment's end point it brakes to rest (status ``stopping``) and never creeps on 
 heading; the next segment (or the finish) starts from where it stopped. While finished or
 aligning the wheel holds or ramps monotonically: no chatter at standstill.
 
-**Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed over the
-horizon plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit): in acceleration
-mode the command is governed so that the jerk-limited ramp-down ends at the bound (status
-``speed-limited``), in velocity mode the target is clamped. A path the car cannot follow (a
-hairpin tighter than its turning circle) is driven at the plan's speed, never sprinted through.
+**Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed at its
+own place on the path plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit).
+Where the plan slows down, the bound is the plan's speed where the car will be one governor time
+constant later, so that the car is slowed in time. In acceleration mode the command is governed
+so that the jerk-limited ramp-down ends at the bound (status ``speed-limited``), in velocity mode
+the target is clamped. A path the car cannot follow (a hairpin tighter than its turning circle,
+the car far off it) is driven at the plan's speed at the car's place, never sprinted through.
 
 **Offset-free.** A constant steering misalignment and a constant drag are estimated from the
 measured increments (:mod:`leafgate.control.disturbance`) and the model predicts with them.
@@ -241,11 +243,12 @@ class MpcController:
         )
 
     def _set_trajectory(self, trajectory: Trajectory) -> None:
+        """A new plan; one that continues the last (a rolling window) keeps the progress."""
         self._traj = trajectory
         self._finished = False
         self._lam = None
         self._path, self._progress, self._bad_trajectory = prepare_plan(
-            trajectory, self.cfg.creep_speed, self.cfg.search_window
+            trajectory, self.cfg.creep_speed, self.cfg.search_window, self._progress
         )
 
     def _where(self) -> dict[str, Any]:
@@ -255,13 +258,12 @@ class MpcController:
     def _step(
         self, pose: Pose, steer_angle: float, trajectory: Trajectory, t0: float
     ) -> ControlOutput:
-        cfg = self.cfg
+        """One control tick: the checks, then the paper's steps 1–4 (module notes)."""
         if trajectory is not self._traj:
             self._set_trajectory(trajectory)
         path, prog = self._path, self._progress
         if path is None or prog is None:
             return self._hold(f"bad-trajectory: {self._bad_trajectory}", 1, t0)
-        seg = prog.segment
         isfinite = math.isfinite  # a chain of calls: no generator on the hot path
         if not (
             isfinite(pose.x)
@@ -270,18 +272,86 @@ class MpcController:
             and isfinite(pose.heading)
             and isfinite(steer_angle)
         ):
-            return self._hold("non-finite", seg.direction, t0)
-        if self._u_prev is None:
-            self._u_prev = np.array([0.0, math.tan(_clip(steer_angle, cfg.steer_max))])
-        dist = self._disturbance  # measured increments → steering bias and drag estimates
-        dist.update(
-            pose.heading,
-            pose.speed,
-            math.tan(_clip(steer_angle, cfg.steer_max)),
-            float(self._u_prev[0]),
+            return self._hold("non-finite", prog.segment.direction, t0)
+        u_prev = self._observe(pose, steer_angle)  # the last applied input, kept in place
+
+        # 1. reference: progress along the segment and its bookkeeping (cusp, finish), then
+        #    the path-aligned frame and the horizon's reference points
+        done, passed = self._track_segment(pose, t0)
+        if done is not None:
+            return done
+        seg = prog.segment
+        direction = seg.direction
+        a_prev, t_prev = self._limit_previous(direction)
+        if passed:
+            return self._brake_to_rest(direction, t0)
+        dist = self._disturbance
+        bias = dist.bias  # tan δ: the car turns as with tan δ + bias
+        drag = direction * dist.accel  # signed d(v)/dt added to the command
+        start = self._start_state(pose, steer_angle, direction, bias, drag)
+        s0 = path.project(seg, prog.index, start[0], start[1])
+        aligning = self._align_at_start(seg, s0, abs(pose.speed), steer_angle, t0, bias)
+        if aligning is not None:
+            return aligning
+        # the model acts with the effective inputs: the commands plus the disturbances
+        a_eff, t_eff = a_prev + drag, t_prev + bias
+        pts, ref, kin = self._reference(seg, s0, start, a_eff, t_eff)
+
+        # 2. model: Jacobians along the plan (step 0 at the current state), augment, predict
+        ST, free = self._prediction(kin, start[4] + bias, a_eff, t_eff, ref)
+
+        # 3. QP (eq. 31 with Q): E = 2(SᵀQS + R̄), f = −2 SᵀQ (Rs − F x)
+        y0 = np.array(kin)[:, None]
+        ref -= y0
+        err = ref.ravel() - free  # Rs − F x
+        E, f = self._qp_terms(ST, err)
+        _, _, gamma0, _ = self._limits[direction]
+        gamma = gamma0 + self._gamma_u @ u_prev
+        # f is finite only if S and the errors are (a non-finite entry of S reaches every f
+        # it touches, even times a zero weight or error), and then so is E. (np.add.reduce is
+        # what f.sum() calls, without its Python wrapper; np.float64 is a float.)
+        if not isfinite(np.add.reduce(f)):
+            return self._hold("non-finite", direction, t0)
+
+        # 4. solve and apply the first move within the hard limits and the speed bound
+        result = self._solve(E, f, gamma)
+        dU = result.x
+        if not isfinite(np.add.reduce(dU)):
+            self._lam = None
+            return self._hold("non-finite", direction, t0)
+        v_cap = self._speed_bound(seg, s0, kin[2])
+        return self._apply_first_move(
+            result, ST, err, free, y0, pts, v_cap, kin[2], a_prev, t_prev, direction, t0
         )
 
-        # 1. reference: progress along the segment, and segment bookkeeping
+    def _observe(self, pose: Pose, steer_angle: float) -> FloatArray:
+        """The measured increments of this tick → the steering-bias and drag estimates.
+
+        :returns: the last applied input ``[a, tan δ]`` (the wheel's angle before the first tick)
+        """
+        u_prev = self._u_prev
+        if u_prev is None:
+            u_prev = self._u_prev = np.array(
+                [0.0, math.tan(_clip(steer_angle, self.cfg.steer_max))]
+            )
+        self._disturbance.update(
+            pose.heading,
+            pose.speed,
+            math.tan(_clip(steer_angle, self.cfg.steer_max)),
+            float(u_prev[0]),
+        )
+        return u_prev
+
+    def _track_segment(self, pose: Pose, t0: float) -> tuple[ControlOutput | None, bool]:
+        """Step 1, bookkeeping: advance the progress; at rest at a segment's end move on to the
+        next segment (a cusp) or finish.
+
+        :returns: the command when this tick ends here (finished, or stopped past the end off
+            the goal), else None; and whether the progress has passed the segment's end
+        """
+        cfg, prog = self.cfg, self._progress
+        assert prog is not None and self._u_prev is not None
+        seg = prog.segment
         if not self._finished:
             prog.update(pose.x, pose.y, pose.heading)
         at_rest = abs(pose.speed) <= cfg.stop_speed
@@ -300,7 +370,7 @@ class MpcController:
             else:
                 self._finished = True
         if self._finished:
-            return self._finish(seg, t0)
+            return self._finish(seg, t0), passed
         if at_rest and passed:  # stopped past the end, farther than the goal tolerance
             distance = prog.to_end(pose.x, pose.y)
             return replace(
@@ -308,67 +378,100 @@ class MpcController:
                 converged=False,
                 status=f"off-goal: stopped {distance:.2f} m from the end "
                 f"(tolerance {cfg.goal_tolerance:g} m)",
-            )
+            ), passed
+        return None, passed
 
-        direction = seg.direction
-        _, _, gamma0, (a_min, a_max) = self._limits[direction]
+    def _limit_previous(self, direction: int) -> tuple[float, float]:
+        """The last applied input ``(a, tan δ)`` within this direction's limits (they flip)."""
         u_prev = self._u_prev
+        assert u_prev is not None
+        _, _, _, (a_min, a_max) = self._limits[direction]
         a_prev, t_prev = u_prev.tolist()
         a_prev = min(max(a_prev, a_min), a_max)  # limits flip with the direction
         t_prev = min(max(t_prev, -self.tan_max), self.tan_max)
         u_prev[0], u_prev[1] = a_prev, t_prev
-        if passed:
-            return self._brake_to_rest(direction, t0)
+        return a_prev, t_prev
 
-        # dead time: the state when the command computed now starts to act
-        bias = dist.bias  # tan δ: the car turns as with tan δ + bias
-        drag = direction * dist.accel  # signed d(v)/dt added to the command
+    def _start_state(
+        self, pose: Pose, steer_angle: float, direction: int, bias: float, drag: float
+    ) -> tuple[float, float, float, float, float]:
+        """``(x, y, v, θ, tan δ)`` when the command computed now starts to act (dead time);
+        the kinematic model has no actuator state: the measured pose (no call, no tan)."""
         if self.steer_model:
-            gx, gy, gv, gth, gt = self._predict_dead_time(pose, steer_angle, direction, bias, drag)
-        else:  # the kinematic model has no actuator state: the measured pose (no call, no tan)
-            gx, gy, gv, gth, gt = pose.x, pose.y, pose.speed, pose.heading, math.nan
+            return self._predict_dead_time(pose, steer_angle, direction, bias, drag)
+        return pose.x, pose.y, pose.speed, pose.heading, math.nan
 
-        # path-aligned frame at the (predicted) vehicle's projection
-        s0 = path.project(seg, prog.index, gx, gy)
+    def _align_at_start(
+        self, seg: Segment, s0: float, speed: float, steer_angle: float, t0: float, bias: float
+    ) -> ControlOutput | None:
+        """At rest at the segment's start, the aligning (or releasing) command; else None."""
+        at_rest = speed <= self.cfg.stop_speed
         if at_rest and not self._aligned:
-            if s0 - path.s[seg.start] <= cfg.goal_tolerance:
-                out = self._align(seg, s0, steer_angle, direction, t0, bias)
+            assert self._path is not None
+            if s0 - self._path.s[seg.start] <= self.cfg.goal_tolerance:
+                out = self._align(seg, s0, steer_angle, seg.direction, t0, bias)
                 if out is not None:
                     return out
             self._aligned = True
         elif not at_rest:
             self._aligned = True  # moving: the segment's start is behind us
-        pts, ref_speed = path.horizon(seg, s0, self.steps)  # rows x, y, heading; Np+1 points
+        return None
+
+    def _reference(
+        self,
+        seg: Segment,
+        s0: float,
+        start: tuple[float, float, float, float, float],
+        a_eff: float,
+        t_eff: float,
+    ) -> tuple[FloatArray, FloatArray, list[float]]:
+        """Step 1, reference: the horizon's points (rows x, y, heading; ``Np + 1`` points from
+        the projection ``s0``), the reference outputs ``Rs`` in the path-aligned frame at
+        ``s0`` (4, Np; row 2 the signed planned speed), and the state ``[along, lateral, v,
+        heading error]`` in that frame.
+
+        The prediction's rows are grouped by output (all Np along-track positions, then lateral
+        offsets, speeds, heading errors): contiguous rows make every numpy call here cheap, and
+        E and f do not depend on the order of the rows.
+        """
+        assert self._path is not None
+        pts, ref_speed = self._path.horizon(seg, s0, self.steps)
         ox, oy, psi0 = pts[:, 0].tolist()
         c, s = math.cos(psi0), math.sin(psi0)
+        gx, gy, gv, gth, _ = start
         dx, dy = gx - ox, gy - oy
         kin = [c * dx + s * dy, -s * dx + c * dy, gv, _wrap(gth - psi0)]
-        # the model acts with the effective inputs: the commands plus the disturbances
-        a_eff, t_eff = a_prev + drag, t_prev + bias
-        if cfg.delay_compensation > 0.0 and not self.steer_model:
+        if self.cfg.delay_compensation > 0.0 and not self.steer_model:
             u_eff = np.array([a_eff, t_eff])
-            kin = rk4_step(np.array(kin), u_eff, cfg.delay_compensation, self.L).tolist()
-        v0, th0 = kin[2], kin[3]
-
-        # The prediction's rows are grouped by output (all Np along-track positions, then
-        # lateral offsets, speeds, heading errors): contiguous rows make every numpy call here
-        # cheap, and E and f do not depend on the order of the rows.
+            kin = rk4_step(np.array(kin), u_eff, self.cfg.delay_compensation, self.L).tolist()
         to_path = self._to_path  # global → path frame; row 2 (speed) stays zero
         to_path[0, 0] = to_path[1, 1] = c
         to_path[0, 1] = s
         to_path[1, 0] = -s
         ref = to_path @ (pts[:, 1:] - pts[:, :1])  # (4, Np) in the path frame
         ref[2] = ref_speed
+        return pts, ref, kin
 
-        # 2. model: Jacobians along the plan (step 0 at the current state), augment, predict
+    def _prediction(
+        self,
+        kin: list[float],
+        tan_actual: float,
+        a_eff: float,
+        t_eff: float,
+        ref: FloatArray,
+    ) -> tuple[FloatArray, FloatArray]:
+        """Step 2: ``Sᵀ`` and the free response ``F x − y₀`` (rows by output), the model
+        linearised at the current state for the first step and along the plan for the later
+        ones (speed and heading of each step's operating point)."""
+        v0, th0 = kin[2], kin[3]
         op = np.empty((2, self.Np))  # speed and heading of each step's operating point
         op[:, 1:] = ref[2:, :-1]
         v_op, heading_op = op[0], op[1]  # indexing: cheaper than unpacking the array
         v_op[0] = v0
         heading_op[0] = th0
-        Ts, L = self.Ts, self.L
         if self._kinematic is not None:
             # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
+            Ts, L = self.Ts, self.L
             increment = (
                 Ts * (v0 * math.cos(th0)),
                 Ts * (v0 * math.sin(th0)),
@@ -376,34 +479,52 @@ class MpcController:
                 Ts * (v0 * t_eff / L),
             )
             dx_k = kinematic_first_increment(increment, v0, th0, t_eff, Ts, L)
-            ST, free = self._kinematic(v_op, heading_op, t_eff, dx_k)
-        else:  # the lag acts on tan δ + bias alike: shift the actual and the commanded angle
-            u_eff = np.array([a_eff, t_eff])
-            ST, free = self._predict_steer_lag(kin, gt + bias, u_eff, v_op, heading_op)
-        y0 = np.array(kin)[:, None]
-        ref -= y0
-        err = ref.ravel() - free  # Rs − F x
+            return self._kinematic(v_op, heading_op, t_eff, dx_k)
+        # the lag acts on tan δ + bias alike: shift the actual and the commanded angle
+        u_eff = np.array([a_eff, t_eff])
+        return self._predict_steer_lag(kin, tan_actual, u_eff, v_op, heading_op)
 
-        # 3. QP (eq. 31 with Q): E = 2(SᵀQS + R̄), f = −2 SᵀQ (Rs − F x)
+    def _speed_bound(self, seg: Segment, s0: float, speed: float) -> float:
+        """The speed bound, m/s: the plan's speed at the car's place ``s0`` plus the margin, and
+        the plan's speed where the car will be in ``_GOVERN_TIME`` at ``speed`` when that is lower
+        (the governor slows the car with that time constant: looking ahead by it, the car is
+        slowed in time where the plan slows down); never above the maneuver limit.
+        """
+        path = self._path
+        assert path is not None
+        here = abs(path.speed_at(seg, s0))
+        ahead = abs(path.speed_at(seg, s0 + abs(speed) * _GOVERN_TIME))
+        return min(min(here, ahead) + self.cfg.speed_margin, self.cfg.max_speed)
+
+    def _qp_terms(self, ST: FloatArray, err: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Step 3: ``E = 2(SᵀQS + R̄)`` and ``f = −2 SᵀQ (Rs − F x)``."""
         SQ = ST * self._q2  # 2 SᵀQ
         E = SQ @ ST.T
         E += self._R2
         f = SQ @ err
         np.negative(f, out=f)
-        gamma = gamma0 + self._gamma_u @ u_prev
-        # f is finite only if S and the errors are (a non-finite entry of S reaches every f
-        # it touches, even times a zero weight or error), and then so is E. (np.add.reduce is
-        # what f.sum() calls, without its Python wrapper; np.float64 is a float.)
-        if not isfinite(np.add.reduce(f)):
-            return self._hold("non-finite", direction, t0)
+        return E, f
 
-        # 4. solve and apply the first move within the hard limits
-        result = self._solve(E, f, gamma)
+    def _apply_first_move(
+        self,
+        result: QpResult,
+        ST: FloatArray,
+        err: FloatArray,
+        free: FloatArray,
+        y0: FloatArray,
+        pts: FloatArray,
+        v_cap: float,
+        v0: float,
+        a_prev: float,
+        t_prev: float,
+        direction: int,
+        t0: float,
+    ) -> ControlOutput:
+        """Step 4: the first move within the amplitude and per-tick rate limits whatever the
+        solver said, governed to the speed bound ``v_cap`` (m/s); applied, and reported with its
+        prediction."""
+        _, _, _, (a_min, a_max) = self._limits[direction]
         dU = result.x
-        if not isfinite(np.add.reduce(dU)):
-            self._lam = None
-            return self._hold("non-finite", direction, t0)
-        # the first move, within amplitude and per-tick rate limits whatever the solver said
         d_a, d_t = dU[:2].tolist()
         a_new = a_prev + d_a
         tan_new = t_prev + d_t
@@ -418,8 +539,6 @@ class MpcController:
             min(self.tan_max, t_prev + self._du_first[1]),
         )
         clips = int(abs(a_cmd - a_new) > _EPS_CLIP) + int(abs(tan_cmd - tan_new) > _EPS_CLIP)
-        # speed bound: never faster than the plan's speed plus the margin, nor the maneuver limit
-        v_cap = min(float(np.abs(ref_speed).max()) + cfg.speed_margin, cfg.max_speed)
         a_free = a_cmd
         a_cmd = self._govern(a_cmd, a_prev, direction * v0, v_cap, direction)
         limited = a_cmd != a_free
@@ -431,7 +550,7 @@ class MpcController:
         SdU += free  # Y − y₀, rows by output (in place: SdU is not used again)
         Y = SdU.reshape(self.ny, self.Np)
         Y += y0
-        predicted_xy = Y[:2].T @ to_path[:2, :2]  # back to the global frame
+        predicted_xy = Y[:2].T @ self._to_path[:2, :2]  # back to the global frame
         predicted_xy += pts[:2, 0]
         # velocity mode: the planned speed one speed-loop time constant ahead, so that the
         # vehicle's proportional speed controller reproduces the planned acceleration

@@ -374,8 +374,9 @@ class _SegmentArrays:
     speed: FloatArray  # m/s, signed reference speed at them
     coefs: FloatArray  # (4, 3, intervals): cubic coefficients, power first
     starts: FloatArray  # m, ``s`` without the last waypoint: where each interval starts
-    s_list: list[float]  # ``s`` and ``time`` as Python floats, for the scalar interpolation
-    time_list: list[float]
+    s_list: list[float]  # ``s``, ``time`` and ``speed`` as Python floats, for the scalar
+    time_list: list[float]  # interpolation
+    speed_list: list[float]
 
 
 class ReferencePath:
@@ -462,9 +463,7 @@ class ReferencePath:
             shape (3, len(steps) + 1) — the transpose of :meth:`sample`'s — and the signed
             reference speed at the horizon points
         """
-        arrays = self._horizon_cache.get((seg.start, seg.end))
-        if arrays is None:
-            arrays = self._horizon_cache[(seg.start, seg.end)] = self._segment_arrays(seg)
+        arrays = self._arrays(seg)
         s_seg, t_seg = arrays.s, arrays.time
         sq = np.empty(steps.shape[0] + 1)
         sq[0] = s0
@@ -486,6 +485,19 @@ class ReferencePath:
         pts += c[0]
         return pts, _interp(sq[1:], s_seg, arrays.speed)
 
+    def speed_at(self, seg: Segment, s: float) -> float:
+        """The signed reference speed at arc length ``s`` of ``seg`` (clamped to it), m/s:
+        linear in s, as :meth:`horizon`'s."""
+        arrays = self._arrays(seg)
+        return _interp_scalar(s, arrays.s_list, arrays.speed_list)
+
+    def _arrays(self, seg: Segment) -> _SegmentArrays:
+        """The segment's slices, made once per segment."""
+        arrays = self._horizon_cache.get((seg.start, seg.end))
+        if arrays is None:
+            arrays = self._horizon_cache[(seg.start, seg.end)] = self._segment_arrays(seg)
+        return arrays
+
     def _segment_arrays(self, seg: Segment) -> _SegmentArrays:
         coefs = self._coefs.get((seg.start, seg.end))
         if coefs is None:
@@ -499,6 +511,7 @@ class ReferencePath:
             self.s[seg.start : seg.end],
             self._s[sl],
             self.time[sl].tolist(),
+            self.speed[sl].tolist(),
         )
 
     def _cubic_coefficients(self, seg: Segment) -> FloatArray:
@@ -586,10 +599,16 @@ class Progress:
     with or beyond its end point (:attr:`beyond` ≥ 0), or has come within ``goal_tolerance`` of
     the end with the progress there (:meth:`at_end`).
 
-    On a new plan the first segment is searched in full for the nearest waypoint whose heading
-    is within 90° of the car's; the earliest waypoint within :attr:`TIE` m of that distance, moved
-    on to the nearest of its neighbourhood, is taken: a closed loop starts at its start, not at
-    its end.
+    On a new plan the first segment is searched in full for the waypoints whose heading is within
+    90° of the car's; the earliest one within :attr:`REACH` m of the car (or within :attr:`TIE` m
+    of the nearest distance, when none is that close), moved on to the nearest of its
+    neighbourhood, is taken: the pass nearest in progress to the plan's start, not merely the
+    nearest in space. A closed loop starts at its start, not at its end, and a car engaged beside
+    a figure-eight's crossing starts on the first pass through it, not the later one.
+
+    A plan that continues the previous one (a planner's rolling window re-sent with the same
+    waypoints over the overlap) keeps the progress, mapped onto the new plan
+    (:meth:`continued_on`): the segment the car is on and how far along it.
 
     :param path: the plan
     :param window: waypoints examined ahead of the progress per update
@@ -597,6 +616,9 @@ class Progress:
 
     BASIN = 2.0  # m, the search stops once the path is this much farther than the best point
     TIE = 0.5  # m, on a new plan the earliest waypoint this close to the nearest distance wins
+    REACH = 1.5  # m, on a new plan the earliest waypoint this close to the car wins (the engage
+    # envelope is 1 m from the path: a car engaged there is on the earliest pass within reach)
+    MATCH_HEADING = 0.01  # rad, a continued plan's waypoints match the previous plan's this well
 
     def __init__(self, path: ReferencePath, window: int) -> None:
         self.path = path
@@ -690,6 +712,54 @@ class Progress:
             self.s = s0
         return s0
 
+    def continued_on(self, path: ReferencePath) -> Progress | None:
+        """This progress carried over to ``path`` when that plan continues this one, else None.
+
+        ``path`` continues the plan when its first waypoint is one of this plan's, from which on
+        the two agree waypoint by waypoint (within :data:`OVERLAP_DISTANCE` and
+        :attr:`MATCH_HEADING`, in the same driving direction) for as long as both last, and the
+        car's progress lies inside that overlap. The carried progress is on the new plan's
+        segment of the same direction there, at the same place: a rolling window re-sent while
+        the car stands at a cusp does not start the cusp over.
+        """
+        if not self._started:
+            return None
+        old, new = self.path.traj, path.traj
+        seg = self.segment
+        near = np.hypot(old.x - new.x[0], old.y - new.y[0]) < OVERLAP_DISTANCE
+        old_dirs, new_dirs = directions(self.path.speed), directions(path.speed)
+        for j in np.flatnonzero(near).tolist():
+            m = min(len(old) - j, len(new))
+            if m < 2 or not (self.path.s[j] <= self.s <= self.path.s[j + m - 1]):
+                continue
+            if not self._same_points(path, j, m, old_dirs, new_dirs):
+                continue
+            s = self.s - float(self.path.s[j])  # the same place, in the new plan's arc length
+            for k, new_seg in enumerate(path.segments):
+                inside = path.s[new_seg.start] - 1e-9 <= s <= path.s[new_seg.end] + 1e-9
+                if new_seg.direction == seg.direction and inside:
+                    carried = Progress(path, self.window)
+                    carried.seg_index = k
+                    carried.s = min(
+                        max(s, float(path.s[new_seg.start])), float(path.s[new_seg.end])
+                    )
+                    carried.index = min(max(self.index - j, new_seg.start), new_seg.end)
+                    carried._started = True
+                    return carried
+        return None
+
+    def _same_points(
+        self, path: ReferencePath, j: int, m: int, old_dirs: FloatArray, new_dirs: FloatArray
+    ) -> bool:
+        """Waypoints ``j … j + m − 1`` of this plan are waypoints ``0 … m − 1`` of ``path``."""
+        old, new = self.path.traj, path.traj
+        sl = slice(j, j + m)
+        close = np.hypot(old.x[sl] - new.x[:m], old.y[sl] - new.y[:m]) < OVERLAP_DISTANCE
+        turn = np.abs(np.angle(np.exp(1j * (old.heading[sl] - new.heading[:m]))))
+        # each waypoint interval is driven the way its end point's speed says (Segment)
+        same_way = old_dirs[j + 1 : j + m] == new_dirs[1:m]
+        return bool(close.all() and (turn < self.MATCH_HEADING).all() and same_way.all())
+
     def fields(self, finished: bool) -> dict[str, Any]:
         """The :class:`~leafgate.messages.ControlOutput` fields of the progress:
         ``nearest_index``, ``progress`` (the route length once finished) and ``route_length``."""
@@ -709,20 +779,25 @@ class Progress:
         if aligned.any():
             d = np.where(aligned, d, np.inf)
         best = float(d.min())
-        k = int(np.argmax(d <= best + self.TIE))
+        k = int(np.argmax(d <= max(best + self.TIE, self.REACH)))
         while k + 1 < d.shape[0] and d[k + 1] < d[k]:
             k += 1  # down to the bottom of that waypoint's basin
         return seg.start + k
 
 
 def prepare_plan(
-    trajectory: Trajectory, creep_speed: float, window: int
+    trajectory: Trajectory, creep_speed: float, window: int, previous: Progress | None = None
 ) -> tuple[ReferencePath | None, Progress | None, str]:
     """A controller's view of a new plan: the path without overlapping points, its progress
     tracker and ``""``; or ``None, None`` and why the plan cannot be driven
-    (:func:`trajectory_problem`)."""
+    (:func:`trajectory_problem`).
+
+    :param previous: the progress on the plan driven so far; carried over when the new plan
+        continues it (:meth:`Progress.continued_on`), else the new plan starts afresh
+    """
     problem = trajectory_problem(trajectory)
     if problem is not None:
         return None, None, problem
     path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
-    return path, Progress(path, window), ""
+    carried = previous.continued_on(path) if previous is not None else None
+    return path, carried or Progress(path, window), ""
