@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import time
 from pathlib import Path
@@ -421,3 +422,85 @@ def test_progress_bar_only_on_a_terminal() -> None:
         bar.close()
     assert "2/4 cases, 1 failed" in tty.getvalue()
     assert pipe.getvalue() == ""
+
+
+def _spawned_workers(pid: int) -> list[int]:
+    """The multiprocessing-spawned children of ``pid`` (any thread may have started them)."""
+    found = []
+    for children in Path(f"/proc/{pid}/task").glob("*/children"):
+        for child in children.read_text().split():
+            cmdline = Path(f"/proc/{child}/cmdline")
+            if cmdline.exists() and b"spawn_main" in cmdline.read_bytes():
+                found.append(int(child))
+    return found
+
+
+def _ignores_sigint(pid: int) -> bool:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigIgn:"):
+            return bool(int(line.split()[1], 16) & (1 << (2 - 1)))  # SIGINT is signal 2
+    return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, IndexError):
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+def test_ctrl_c_at_the_terminal_stops_the_batch_and_its_workers_in_one_line(
+    tmp_path: Path,
+) -> None:
+    """Ctrl-C reaches the batch and its worker processes (one process group): one line, 130.
+
+    Before, each worker printed a KeyboardInterrupt traceback, or a heartbeat to a closed
+    scheduler, or Dask's exit handler its own; a Ctrl-C during the cluster's start could end
+    in a silent exit 1.
+    """
+    import signal
+    import subprocess
+    import sys
+
+    sweep = write(tmp_path, SMALL_SWEEP.replace("samples: 2", "samples: 40"))
+    argv = [sys.executable, "-m", "leafgate", "batch", "sim", str(sweep), "--workers", "2"]
+    with (tmp_path / "err").open("w+") as err:
+        process = subprocess.Popen(
+            [*argv, "--out", str(tmp_path / "out")],
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            cwd=tmp_path,
+            start_new_session=True,  # its own process group, as a shell job has
+        )
+        deadline = time.monotonic() + 120
+        workers: list[int] = []
+        while time.monotonic() < deadline and process.poll() is None:
+            try:  # up: both workers have started and run their set-up
+                workers = _spawned_workers(process.pid)
+                if len(workers) == 2 and all(_ignores_sigint(p) for p in workers):
+                    break
+            except (FileNotFoundError, ProcessLookupError):  # a process came or went
+                pass
+            time.sleep(0.2)
+        assert process.poll() is None, "the batch ended before its workers were up"
+        assert len(workers) == 2 and all(_ignores_sigint(p) for p in workers), (
+            "the workers did not set Ctrl-C aside for the batch process"
+        )
+        os.killpg(process.pid, signal.SIGINT)  # what the terminal does on Ctrl-C
+        try:
+            status = process.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            raise
+        err.seek(0)
+        text = err.read()
+    lines = [line for line in text.replace("\r", "\n").splitlines() if line.strip()]
+    lines = [line for line in lines if not line.startswith("[")]  # the progress bar
+    assert status == 130, text
+    assert lines == ["leafgate: interrupted"], text
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and any(_alive(p) for p in workers):
+        time.sleep(0.2)
+    assert not any(_alive(p) for p in workers), "worker processes outlived the batch"

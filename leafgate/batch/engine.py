@@ -43,6 +43,17 @@ class EngineRun:
     scheduler: str = "local"
 
 
+def dask_setup(worker: object) -> None:
+    """Run by each local worker process at start (a Dask preload): it ignores SIGINT.
+
+    A Ctrl-C at the terminal reaches the whole process group. The batch process handles it
+    and closes the cluster, which stops the workers in order; a worker taking it itself would
+    end in a KeyboardInterrupt traceback on the terminal.
+    """
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class _DeferredInterrupt:
     """Ctrl-C during a batch is noted, and acted on where the cluster can close in order.
 
@@ -160,11 +171,14 @@ def run_tasks(
                     threads_per_worker=1,
                     processes=True,
                     host="127.0.0.1",
-                    dashboard_address=None,  # no dashboard; its health endpoint: 8787, else free
+                    # its HTTP server (health, no dashboard without bokeh) on a free loopback
+                    # port: on 8787 it would warn whenever another cluster holds that port
+                    dashboard_address="127.0.0.1:0",
                     # Workers log only what is critical: a task's error comes back in its row,
                     # and a closing cluster races their heartbeats, which log the closed
                     # stream as an ERROR with a traceback.
                     silence_logs=logging.CRITICAL,
+                    preload=[__name__],  # dask_setup below: Ctrl-C is this process's to handle
                 )
             except (OSError, RuntimeError) as exc:  # ports, processes
                 raise BatchError(f"the local Dask cluster did not start: {exc}") from None
