@@ -14,7 +14,7 @@ from typing import Any
 import can
 import pytest
 
-from leafgate.can.codec import CanCodec
+from leafgate.can.codec import CanCodec, EncodeError
 from leafgate.messages import GatewayState
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import WALL_CLOCK_METRICS, Injection, run
@@ -128,3 +128,22 @@ def test_two_runs_give_identical_results() -> None:
     for key, series in a.series.items():
         assert series.tobytes() == b.series[key].tobytes(), key
     assert all(math.isfinite(v) for v in a.series["x"])
+
+
+def test_an_encode_error_in_the_simulator_stops_the_drive_loudly(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The daemon's loop counts an encode error and faults; in the simulator the safety gate
+    keeps every value in range, so one is a bug and the drive raises, naming the frame."""
+    encode = CanCodec.encode_commands
+
+    def broken(self: CanCodec, commands: Any, timestamp: float = 0.0) -> list[can.Message]:
+        frames = encode(self, commands, timestamp)
+        if timestamp >= 2.0:
+            self.last_errors.append("DBW_STEER_CMD: STEER_ANGLE_CMD out of range (planted)")
+            return frames[1:]
+        return frames
+
+    monkeypatch.setattr(CanCodec, "encode_commands", broken)
+    with pytest.raises(EncodeError, match="STEER_ANGLE_CMD out of range"):
+        run(LeafgateConfig(), get_scenario("s-curve"))
