@@ -20,6 +20,8 @@ from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import WALL_CLOCK_METRICS, Injection, run
 from leafgate.sim.scenarios import get_scenario
 
+pytestmark = pytest.mark.slow  # closed-loop drives
+
 STEER_CMD = 0x0A0  # DBW_STEER_CMD of the leafgate-dbw profile
 FOREIGN_AT = 5.0  # s, engaged and driving by then
 
