@@ -30,6 +30,7 @@ EXPECTED = {
     "corrupt-crc@5s": ("FAULT", ("ENGAGED", "FAULT")),
     "stuck-counter@5s": ("FAULT", ("ENGAGED", "FAULT")),
     "command-dropout@9s": ("FAULT", ("ENGAGED", "FAULT")),
+    "foreign-command@5s": ("FAULT", ("ENGAGED", "FAULT")),  # another node on our IDs
     "localization-dropout@8s+0.3": ("STANDBY", ("ENGAGED", "STOPPING")),
 }
 

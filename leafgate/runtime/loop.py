@@ -14,6 +14,10 @@ Threads and what they own:
 - A publisher thread sends vehicle status, the sent command and diagnostics over Zenoh, so a slow
   network never delays a tick; when it falls behind, publications are dropped and counted.
 
+The simulator (:func:`leafgate.sim.runner.run`) runs this same :meth:`Runtime.tick` and
+:class:`~leafgate.runtime.receiver.CanReceiver` without the threads: it hands the receiver each
+frame itself and ticks on its simulated clock (``clock=``, ``receive_buses=()``).
+
 Faults in the loop are state, never exceptions: a bus send error is counted and reported to the
 gateway, which latches FAULT; an encode error (a value the safety gate should have clamped) drops
 that frame, is counted and likewise faults.

@@ -4,10 +4,12 @@ One thread, one simulated clock: a 30 s maneuver runs in well under a second of 
 gives the same numbers every run.
 
 :func:`run` is the full loop of the real system: plant → simulated ECU → CAN report frames →
-gateway codec → ``Gateway.step`` (watchdogs, state machine, controller, safety gate) → CAN command
-frames → ECU, over a python-can ``virtual`` bus, with localization from the plant and the
-trajectory from the scenario, engaged by a scripted operator request. :func:`run_direct` is the
-paper's Simulink check: the controller drives the plant with nothing in between.
+the daemon's runtime (its ``CanReceiver``: decode, echo filter, foreign-frame and error counts;
+``Runtime.tick``: ``Gateway.step`` with watchdogs, state machine, controller, safety gate, then
+encode and send) → CAN command frames → ECU, over a python-can ``virtual`` bus, with
+localization from the plant and the trajectory from the scenario, engaged by a scripted
+operator request. :func:`run_direct` is the paper's Simulink check: the controller drives the
+plant with nothing in between.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import math
 import re
 import secrets
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -26,23 +29,25 @@ from typing import TYPE_CHECKING, Any, Literal
 import can
 import numpy as np
 
-from leafgate.can.codec import CanCodec, EncodeError
+from leafgate.can.codec import CanCodec, Decoded, EncodeError
 from leafgate.can.secoc import KEY_BYTES
 from leafgate.config.sim import SimConfig
 from leafgate.control import make_controller
 from leafgate.control.reference import MIN_POINTS
 from leafgate.errors import ConfigError
-from leafgate.gateway.core import END_REACHED, Gateway, GatewayInputs
+from leafgate.gateway.core import END_REACHED, Gateway, GatewayInputs, StepResult
 from leafgate.messages import (
     GatewayState,
+    Gear,
     LongReport,
     OperatorRequest,
     Pose,
     Stamped,
-    SteerReport,
     SystemReport,
     Trajectory,
 )
+from leafgate.runtime.loop import Runtime
+from leafgate.runtime.receiver import CanReceiver
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.ecu import SimulatedEcu
 from leafgate.sim.metrics import Projector, path_errors, tracking_metrics
@@ -60,8 +65,11 @@ ENGAGE_AT = 0.5  # s, when the scripted operator asks to engage (reports are fre
 REST_BEFORE_END = 1.0  # s at rest, disengaged, before the run ends
 _channel_ids = itertools.count()
 
-# Injections the gateway side handles (localization faults); the rest go to the simulated ECU.
-GATEWAY_INJECTIONS = {"localization-dropout", "position-jump", "command-dropout"}
+# Injections the gateway's inputs perform (localization faults) …
+LOCALIZATION_INJECTIONS = {"localization-dropout", "position-jump"}
+# … and the bus: the gateway's frames stop reaching the ECU; another node sends on its IDs.
+BUS_INJECTIONS = {"command-dropout", "foreign-command"}
+GATEWAY_INJECTIONS = LOCALIZATION_INJECTIONS | BUS_INJECTIONS  # the rest: the simulated ECU
 ECU_INJECTIONS = {
     "override": (
         "override-torque",
@@ -374,20 +382,297 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
     return _finish(config, scenario, rec, solve_times, extra, timeline, label, why_not)
 
 
-class _Slots:
-    """The gateway's latest-value inputs, filled from decoded CAN frames on the simulated clock."""
+class _SimClock:
+    """Simulated time, s: the clock of the runtime and its receiver, and of every stamp."""
 
     def __init__(self) -> None:
-        self.steer: Stamped[SteerReport] | None = None
-        self.long: Stamped[LongReport] | None = None
-        self.system: Stamped[SystemReport] | None = None
-        self.good = 0
-        self.bad = 0
+        self.now = 0.0
 
-    def take_counts(self) -> tuple[int, int]:
-        counts = (self.good, self.bad)
-        self.good = self.bad = 0
-        return counts
+    def __call__(self) -> float:
+        return self.now
+
+
+class _SimBus:
+    """The simulated CAN bus: one python-can ``virtual`` channel, with the gateway's end, the
+    ECU's end and, for ``foreign-command``, a third node's.
+
+    The gateway's end hears its own frames back, as the daemon's ``udp_multicast`` bus does:
+    the receiver's echo filter works on every drive as it does on the bench.
+    """
+
+    def __init__(self, codec: CanCodec) -> None:
+        self.channel = f"leafgate-sim-{next(_channel_ids)}"
+        report_ids = codec.receive_ids("reports") | codec.receive_ids("car")
+        self.gateway = can.Bus(  # the runtime widens the filter by its command IDs
+            interface="virtual",
+            channel=self.channel,
+            preserve_timestamps=True,
+            receive_own_messages=True,
+            can_filters=[{"can_id": i, "can_mask": 0x7FF} for i in sorted(report_ids)],
+        )
+        self.ecu = can.Bus(interface="virtual", channel=self.channel, preserve_timestamps=True)
+        self.command_ids = sorted(codec.receive_ids("commands"))
+        self._foreign: can.BusABC | None = None  # opened at the first foreign frame
+
+    def send_foreign(self, now: float) -> None:
+        """Another node commands the ECU: one all-zero frame on each of our command IDs."""
+        if self._foreign is None:
+            self._foreign = can.Bus(
+                interface="virtual", channel=self.channel, preserve_timestamps=True
+            )
+        while self._foreign.recv(timeout=0.0) is not None:
+            pass  # it hears the whole bus; nobody reads it
+        for frame_id in self.command_ids:
+            frame = can.Message(
+                arbitration_id=frame_id, is_extended_id=False, data=bytes(8), timestamp=now
+            )
+            self._foreign.send(frame)
+
+    def close(self) -> None:
+        for bus in (self.gateway, self.ecu, self._foreign):
+            if bus is not None:
+                bus.shutdown()
+
+
+class _Vehicle:
+    """The car's side of the bus: the plant, driven by the simulated ECU, which sends its
+    reports and takes the command frames (the ECU's own injections armed)."""
+
+    def __init__(
+        self,
+        config: LeafgateConfig,
+        scenario: Scenario,
+        injections: tuple[Injection, ...],
+        bus: can.BusABC,
+        codec: CanCodec,
+    ) -> None:
+        self.plant = make_plant(config.sim.plant, config.vehicle, start_pose(scenario, config.sim))
+        ecu = SimulatedEcu(config.sim.ecu, self.plant, config.vehicle, codec)
+        ecu.set_driver_path(scenario.trajectory)  # lateral-only: the driver holds the speed
+        for inj in injections:
+            if inj.kind in ECU_INJECTIONS:
+                ecu_kind, kwargs, default_duration = ECU_INJECTIONS[inj.kind]
+                ecu.inject(ecu_kind, at=inj.at, duration=inj.duration or default_duration, **kwargs)
+        self.ecu = ecu
+        self.bus = bus
+
+    def step(self, now: float, dt: float) -> None:
+        """Actuate the plant for one ECU tick and send the reports due now."""
+        self.ecu.step(now, dt)
+        for msg in self.ecu.reports(now):
+            self.bus.send(msg)
+
+    def take_commands(self, now: float, lost: bool) -> None:
+        """Hand the frames on the bus to the ECU; ``lost``: none reach it (command-dropout)."""
+        while (frame := self.bus.recv(timeout=0.0)) is not None:
+            if not lost:
+                self.ecu.receive_frame(now, frame)
+
+
+class _SimInputs:
+    """Localization and trajectory as the runtime reads them (its ``InputSource``).
+
+    Localization is the plant's pose each tick, or, with noise or latency configured
+    (``sim.localization``; the seed makes it repeatable), the newest sample of the same feed as
+    sim-ecu's, on the simulated clock. The trajectory is the scenario's route, whole or as a
+    planner's rolling window. ``localization-dropout`` and ``position-jump`` act here.
+    """
+
+    def __init__(
+        self,
+        config: LeafgateConfig,
+        route: Trajectory,
+        injections: tuple[Injection, ...],
+        window: RollingWindow | None,
+    ) -> None:
+        loc = config.sim.localization
+        self._samples: list[Pose] = []  # published by the feed since the last control tick
+        self.feed = None
+        if loc.position_noise > 0 or loc.heading_noise > 0 or loc.latency > 0:
+            self.feed = LocalizationFeed(self._samples.append, loc, wall_clock=False)
+        self._planner = None if window is None else _Planner(route, window)
+        self._whole = Stamped(route, 0.0)
+        self._injections = [i for i in injections if i.kind in LOCALIZATION_INJECTIONS]
+        self._pose: Stamped[Pose] | None = None
+        self._plan: Stamped[Trajectory] | None = None
+
+    def latest_pose(self) -> Stamped[Pose] | None:
+        return self._pose
+
+    def latest_trajectory(self) -> Stamped[Trajectory] | None:
+        return self._plan
+
+    def on_ecu_tick(self, now: float, ecu: SimulatedEcu) -> None:
+        if self.feed is not None:
+            self.feed.on_tick(now, ecu)
+
+    def update(self, now: float, truth: Pose) -> None:
+        """The inputs of the control tick at ``now``; ``truth`` is the plant's pose."""
+        pose: Pose | None
+        if self.feed is None:
+            pose = dataclasses.replace(truth, stamp=now)
+        else:  # the newest sample published since the last tick, if any
+            pose = self._samples[-1] if self._samples else None
+            self._samples.clear()
+        active = {i.kind for i in self._injections if i.active(now)}
+        if pose is not None and "position-jump" in active:
+            pose = dataclasses.replace(pose, x=pose.x + 2.0)
+        if pose is not None and "localization-dropout" not in active:
+            self._pose = Stamped(pose, now)
+        self._plan = self._whole if self._planner is None else self._planner.plan_at(now, truth)
+
+
+class _GatewaySide:
+    """The gateway as the daemon runs it: ``Runtime.tick`` with its ``CanReceiver``, on the
+    simulated clock, and what the drive's metrics and timeline need from each frame and tick.
+
+    No Notifier thread: :meth:`receive` feeds the receiver each frame the gateway's end of the
+    bus holds, synchronously, so the drive stays deterministic. The frames carry simulated
+    timestamps and the receiver's wall clock is the simulated one, so a frame is received at
+    the time it was sent.
+    """
+
+    def __init__(
+        self,
+        config: LeafgateConfig,
+        codec: CanCodec,
+        bus: can.BusABC,
+        inputs: _SimInputs,
+        recorder: Recorder | None,
+        timeline: list[tuple[float, str]],
+        clock: _SimClock,
+    ) -> None:
+        period = config.gateway.period
+        controller = make_controller(config.controller, config.vehicle, period)
+        if recorder is not None:  # recording: a transparent wrapper lets it see the predicted path
+            controller = recorder.wrap_controller(controller)
+        self.gateway = Gateway(config.gateway, config.vehicle, controller, config.long_mode)
+        self.codec = codec
+        self.clock = clock
+        self.receiver = CanReceiver(self.codec, self.clock, wall_clock=self.clock)
+        self.receiver.on_frame = self._on_frame
+        self.runtime = Runtime(
+            self.gateway,
+            self.codec,
+            bus,
+            self.receiver,
+            inputs,
+            period,
+            clock=self.clock,
+            on_tick=self._on_tick,
+            receive_buses=(),  # fed synchronously: no frame ever waits unread
+        )
+        self.bus = bus
+        self.recorder = recorder
+        self.timeline = timeline
+        self.transitions: list[dict[str, Any]] = []
+        self.solve_times: list[float] = []
+        self.not_converged = self.clips = 0
+        self.frames_sent = self.frames_received = self.frames_rejected = 0
+        self.engaged_once = False
+        self.commands_lost = False  # command-dropout: the tick's frames do not reach the ECU
+        self._state = self.gateway.state  # before the tick
+        self._gear: Gear | None = None
+        self._ecu_state: str | None = None
+
+    @property
+    def state(self) -> GatewayState:
+        return self.gateway.state
+
+    def receive(self, now: float) -> None:
+        """The receiver reads what arrived on the gateway's end of the bus."""
+        self.clock.now = now
+        while (msg := self.bus.recv(timeout=0.0)) is not None:
+            self.receiver.on_message_received(msg)
+
+    def tick(self, now: float, request: OperatorRequest | None) -> StepResult:
+        self.clock.now = now
+        return self.runtime.tick(now, request=request)
+
+    def _on_frame(self, msg: can.Message, decoded: Decoded) -> None:
+        """Every frame received but our own echoes (the daemon's recorder hook, too)."""
+        self.frames_received += 1
+        if self.recorder is not None:
+            self.recorder.on_can_frame(msg, "rx")
+        if decoded.counts_for_reports and not decoded.valid:
+            self.frames_rejected += 1
+        if not decoded.valid:
+            return
+        now = self.clock.now
+        for value in decoded.values:
+            if isinstance(value, LongReport) and value.gear != self._gear:
+                self._gear = value.gear
+                self.timeline.append((now, f"gear {value.gear.name}"))
+            elif isinstance(value, SystemReport) and value.state.name != self._ecu_state:
+                self._ecu_state = value.state.name
+                self.timeline.append((now, f"ECU {self._ecu_state}"))
+
+    def _on_tick(
+        self, now: float, inputs: GatewayInputs, result: StepResult, frames: Sequence[can.Message]
+    ) -> None:
+        """After each tick: its figures, its transitions, its frames to the recorder."""
+        if self.runtime.stats.encode_errors:  # the gate keeps values in range: a bug, say so
+            raise EncodeError(next(iter(self.codec.last_errors), "see the log"))
+        if result.reply is not None:
+            verdict = "accepted" if result.reply.accepted else "refused"
+            self.timeline.append((now, f"operator engage: {verdict} ({result.reply.reason})"))
+        ctl = result.diagnostics.controller
+        # Every tick the controller ran while engaged, including the one whose failure moved
+        # the gateway to STOPPING.
+        if ctl is not None and self._state == GatewayState.ENGAGED:
+            self.solve_times.append(ctl.solve_time)
+            self.not_converged += 0 if ctl.converged else 1
+            self.clips += ctl.clips
+        for tr in result.diagnostics.transitions:  # an engagement may begin and end in one tick
+            self.transitions.append(
+                {
+                    "t": round(now, 6),
+                    "from": tr.source.name,
+                    "to": tr.target.name,
+                    "reason": tr.reason,
+                }
+            )
+            self.timeline.append((now, f"gateway {tr.source.name} → {tr.target.name}: {tr.reason}"))
+            self.engaged_once |= tr.target == GatewayState.ENGAGED
+        self._state = self.gateway.state
+        self.frames_sent += len(frames)
+        if self.recorder is not None:  # the tick's inputs, result and the frames on the bus
+            self.recorder.on_tick(now, inputs, result, [] if self.commands_lost else frames)
+
+    def figures(self) -> dict[str, Any]:
+        """The gateway's part of the drive's metrics."""
+        last = self.runtime.last_result
+        clamps = {} if last is None else last.diagnostics.clamps
+        return {
+            "solver_not_converged": self.not_converged,
+            "input_clips": self.clips,
+            "final_state": self.gateway.state.name,
+            "transitions": self.transitions,
+            "safety_clamps": {name: int(count) for name, count in clamps.items()},
+            "can_frames_sent": self.frames_sent,
+            "can_frames_received": self.frames_received,
+            "can_frames_rejected": self.frames_rejected,
+            # the receiver's echo filter: our own frames heard back, others' on our IDs
+            "can_own_echoes": self.receiver.own_echoes,
+            "can_foreign_frames": self.receiver.foreign_total,
+        }
+
+
+class _EndCondition:
+    """A drive is done once the gateway has engaged and let go again, and the car has been at
+    rest for :data:`REST_BEFORE_END`."""
+
+    def __init__(self) -> None:
+        self.rest_since: float | None = None
+
+    def reached(self, now: float, gateway: _GatewaySide, speed: float) -> bool:
+        at_rest = abs(speed) <= STANDSTILL_SPEED
+        idle = gateway.state in (GatewayState.STANDBY, GatewayState.FAULT)
+        if not (gateway.engaged_once and idle and at_rest):
+            self.rest_since = None
+            return False
+        self.rest_since = now if self.rest_since is None else self.rest_since
+        return now - self.rest_since >= REST_BEFORE_END
 
 
 def sim_key(config: LeafgateConfig) -> bytes | None:
@@ -411,234 +696,118 @@ def run(
 ) -> SimResult:
     """Drive ``scenario`` through the whole gateway: CAN codec, ECU, watchdogs, safety gate.
 
+    The gateway runs as in the daemon (``Runtime.tick`` and its ``CanReceiver`` with the echo
+    filter and the foreign-frame and error counts), on the simulated clock.
+
     :param recorder: records the drive (``leafgate.record.recorder``): every frame the gateway
         receives and sends, stamped with the simulated time, and every tick's inputs and result
     :param window: send the route as a planner's rolling window instead of whole, once
     :param epoch: Unix time of t = 0 for authenticated frames' freshness values (the
         recording's, so a recorded log verifies against its timestamps); None: now
+    :raises EncodeError: a command frame could not be encoded (the safety gate keeps every
+        value in range, so this is a bug)
     """
     period = config.gateway.period
     ticks_per_control = max(1, round(period / ECU_TICK))
     ecu_dt = period / ticks_per_control
-    traj = scenario.trajectory
-    controller = make_controller(config.controller, config.vehicle, period)
-    if recorder is not None:  # recording: a transparent wrapper lets it see the predicted path
-        controller = recorder.wrap_controller(controller)
-    gateway = Gateway(config.gateway, config.vehicle, controller, config.long_mode)
-    plant = make_plant(config.sim.plant, config.vehicle, start_pose(scenario, config.sim))
-    # Authenticated frames: the configured key, or a throwaway one; their freshness values come
-    # from the simulated clock as Unix time from the start (as the recording stamps frames).
-    key = sim_key(config)
-    epoch = time.time() if epoch is None else epoch
-    now = 0.0
-
-    def sim_clock() -> float:
-        return epoch + now
-
-    ecu_codec = CanCodec.for_config(config, clock=sim_clock, key=key)
-    ecu = SimulatedEcu(config.sim.ecu, plant, config.vehicle, ecu_codec)
-    ecu.set_driver_path(traj)  # lateral-only vehicles: the driver holds the planned speed
-    gw_codec = CanCodec.for_config(config, clock=sim_clock, key=key)
-    report_ids = gw_codec.receive_ids("reports") | gw_codec.receive_ids("car")
-    channel = f"leafgate-sim-{next(_channel_ids)}"
-    gw_bus = can.Bus(
-        interface="virtual",
-        channel=channel,
-        preserve_timestamps=True,
-        can_filters=[{"can_id": i, "can_mask": 0x7FF} for i in sorted(report_ids)],
-    )
-    ecu_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
-
-    for inj in injections:
-        if inj.kind in ECU_INJECTIONS:
-            ecu_kind, kwargs, default_duration = ECU_INJECTIONS[inj.kind]
-            ecu.inject(ecu_kind, at=inj.at, duration=inj.duration or default_duration, **kwargs)
-    gw_injections = [i for i in injections if i.kind in GATEWAY_INJECTIONS]
-    # Localization with noise or latency (sim.localization; the seed makes it repeatable): the
-    # same feed as sim-ecu's, on the simulated clock; without either, the plant's pose each tick.
-    loc = config.sim.localization
-    localized: list[Pose] = []  # samples the feed published since the last control tick
-    feed = None
-    if loc.position_noise > 0 or loc.heading_noise > 0 or loc.latency > 0:
-        feed = LocalizationFeed(localized.append, loc, wall_clock=False)
-    planner = None if window is None else _Planner(traj, window)
-    whole_plan = Stamped(traj, 0.0)
-
-    slots = _Slots()
-    rec = _Recorder()
-    solve_times: list[float] = []
     timeline: list[tuple[float, str]] = [
         (0.0, f"start {scenario.name}: gateway {GatewayState.STANDBY.name}")
     ]
-    transitions: list[dict[str, Any]] = []
-    frames_sent = frames_received = frames_rejected = 0
-    not_converged = clips = 0
-    clamps: dict[str, int] = {}
-    last_pose: Stamped[Pose] | None = None
-    last_state = gateway.state
-    ecu_state_seen: str | None = None
-    engaged_once = False
-    rest_since: float | None = None
-    steer_target = 0.0
-    wall0 = time.perf_counter()
-    steps = round(scenario.duration / ecu_dt)
+    inputs = _SimInputs(config, scenario.trajectory, injections, window)
+    # Authenticated frames: the configured key, or a throwaway one; their freshness values come
+    # from the simulated clock as Unix time from the start (as the recording stamps frames).
+    key = sim_key(config)
+    start = time.time() if epoch is None else epoch
+    clock = _SimClock()
+
+    def unix_time() -> float:
+        return start + clock.now
+
+    codec = CanCodec.for_config(config, clock=unix_time, key=key)  # the gateway's
+    bus = _SimBus(codec)
     try:
-        for k in range(steps):
+        ecu_codec = CanCodec.for_config(config, clock=unix_time, key=key)
+        vehicle = _Vehicle(config, scenario, injections, bus.ecu, ecu_codec)
+        gateway = _GatewaySide(config, codec, bus.gateway, inputs, recorder, timeline, clock)
+        end = _EndCondition()
+        trace = _Recorder()
+        plant = vehicle.plant
+        wall0 = time.perf_counter()
+        now = 0.0
+        for k in range(round(scenario.duration / ecu_dt)):
             now = k * ecu_dt
-            # 1. The ECU actuates the plant for one ECU tick and sends the reports due now.
-            ecu.step(now, ecu_dt)
-            if feed is not None:
-                feed.on_tick(now, ecu)
-            for msg in ecu.reports(now):
-                ecu_bus.send(msg)
-            # 2. The gateway's receive side decodes what arrived.
-            while (rx := gw_bus.recv(timeout=0.0)) is not None:
-                frames_received += 1
-                if recorder is not None:  # recording: every frame the gateway receives
-                    recorder.on_can_frame(rx, "rx")
-                decoded = gw_codec.decode(rx)
-                if decoded.counts_for_reports:
-                    if decoded.valid:
-                        slots.good += 1
-                    else:
-                        slots.bad += 1
-                        frames_rejected += 1
-                if not decoded.valid:
-                    continue
-                for value in decoded.values:
-                    if isinstance(value, SteerReport):
-                        slots.steer = Stamped(value, now)
-                    elif isinstance(value, LongReport):
-                        if slots.long is None or slots.long.value.gear != value.gear:
-                            timeline.append((now, f"gear {value.gear.name}"))
-                        slots.long = Stamped(value, now)
-                    elif isinstance(value, SystemReport):
-                        slots.system = Stamped(value, now)
-                        if value.state.name != ecu_state_seen:
-                            ecu_state_seen = value.state.name
-                            timeline.append((now, f"ECU {ecu_state_seen}"))
-            if k % ticks_per_control:
+            clock.now = now
+            control = k % ticks_per_control == 0
+            active = {i.kind for i in injections if i.active(now)}
+            vehicle.step(now, ecu_dt)
+            inputs.on_ecu_tick(now, vehicle.ecu)
+            if control and "foreign-command" in active:
+                bus.send_foreign(now)
+            gateway.receive(now)
+            if not control:
                 continue
-            # 3. Localization from the plant (unless a fault is injected), the scripted operator.
-            pose: Pose | None
-            if feed is None:
-                pose = plant.pose()
-                pose = Pose(pose.x, pose.y, pose.heading, pose.speed, pose.yaw_rate, stamp=now)
-            else:  # the newest sample published since the last tick, if any
-                pose = localized[-1] if localized else None
-                localized.clear()
-            dropout = pose is None
-            jump = command_dropout = False
-            for inj in gw_injections:
-                if inj.active(now):
-                    dropout |= inj.kind == "localization-dropout"
-                    jump |= inj.kind == "position-jump"
-                    command_dropout |= inj.kind == "command-dropout"
-            if jump and pose is not None:
-                pose = dataclasses.replace(pose, x=pose.x + 2.0)
-            if not dropout and pose is not None:
-                last_pose = Stamped(pose, now)
+            inputs.update(now, plant.pose())
+            gateway.commands_lost = "command-dropout" in active
             request = OperatorRequest.ENGAGE if abs(now - engage_at) < ecu_dt / 2 else None
-            good, bad = slots.take_counts()
-            plan = whole_plan if planner is None else planner.plan_at(now, plant.pose())
-            inputs = GatewayInputs(
-                pose=last_pose,
-                trajectory=plan,
-                steer_report=slots.steer,
-                long_report=slots.long,
-                system_report=slots.system,
-                good_report_frames=good,
-                bad_report_frames=bad,
-                report_error_cause=gw_codec.second_senders() if bad else "",
-                request=request,
-            )
-            result = gateway.step(now, inputs)
-            if result.reply is not None:
-                verdict = "accepted" if result.reply.accepted else "refused"
-                timeline.append((now, f"operator engage: {verdict} ({result.reply.reason})"))
-            diag = result.diagnostics
-            ctl = diag.controller
-            # Count every tick the controller ran while engaged, including the one whose
-            # failure moved the gateway to STOPPING.
-            if ctl is not None and last_state == GatewayState.ENGAGED:
-                solve_times.append(ctl.solve_time)
-                not_converged += 0 if ctl.converged else 1
-                clips += ctl.clips
-            # Every transition of the tick: an engagement may begin and end within one.
-            for tr in diag.transitions:
-                transitions.append(
-                    {
-                        "t": round(now, 6),
-                        "from": tr.source.name,
-                        "to": tr.target.name,
-                        "reason": tr.reason,
-                    }
-                )
-                timeline.append((now, f"gateway {tr.source.name} → {tr.target.name}: {tr.reason}"))
-                engaged_once |= tr.target == GatewayState.ENGAGED
-            last_state = gateway.state
-            # 4. Command frames out, through the codec, to the ECU.
-            cmds = result.commands
-            steer_target = cmds.steer.angle
-            sent: list[can.Message] = []  # recording: the frames that went onto the bus
-            frames = gw_codec.encode_commands(cmds, timestamp=now)
-            if gw_codec.last_errors:  # the gate keeps values in range: this is a bug, say so
-                raise EncodeError(gw_codec.last_errors[0])
-            for frame in frames:
-                frames_sent += 1
-                if not command_dropout:
-                    gw_bus.send(frame)
-                    sent.append(frame)
-            if recorder is not None:  # recording: the tick's inputs, result and sent frames
-                recorder.on_tick(now, inputs, result, sent)
-            while (cmd_frame := ecu_bus.recv(timeout=0.0)) is not None:
-                ecu.receive_frame(now, cmd_frame)
+            cmds = gateway.tick(now, request).commands
+            vehicle.take_commands(now, lost=gateway.commands_lost)
             accel_target = cmds.long.accel if cmds.long.enable else 0.0
-            rec.add(
-                now, plant.pose(), plant.steer_angle, steer_target, accel_target, gateway.state.name
-            )
-            # 5. Done once the gateway has let go and the car has been at rest for a while.
-            at_rest = abs(plant.speed) <= STANDSTILL_SPEED
-            idle = gateway.state in (GatewayState.STANDBY, GatewayState.FAULT)
-            if engaged_once and idle and at_rest:
-                rest_since = now if rest_since is None else rest_since
-                if now - rest_since >= REST_BEFORE_END:
-                    break
-            else:
-                rest_since = None
-        for name, count in diag.clamps.items():
-            clamps[name] = int(count)
+            state = gateway.state.name
+            trace.add(now, plant.pose(), plant.steer_angle, cmds.steer.angle, accel_target, state)
+            if end.reached(now, gateway, plant.speed):
+                break
+        wall_time = time.perf_counter() - wall0
     finally:
-        gw_bus.shutdown()
-        ecu_bus.shutdown()
+        bus.close()
+    ecu_rejected = vehicle.ecu.rejected_frames
+    return _result(config, scenario, label, window, gateway, trace, ecu_rejected, now, wall_time)
+
+
+def _result(
+    config: LeafgateConfig,
+    scenario: Scenario,
+    label: str,
+    window: RollingWindow | None,
+    gateway: _GatewaySide,
+    trace: _Recorder,
+    ecu_rejected: int,
+    duration: float,
+    wall_time: float,
+) -> SimResult:
+    """The drive's metrics, trace and timeline, and whether it finished (and why not)."""
+    figures = gateway.figures()
     extra = {
-        "solver_not_converged": not_converged,
-        "input_clips": clips,
-        "duration_s": float(now),
-        "wall_time_s": time.perf_counter() - wall0,
+        "solver_not_converged": figures.pop("solver_not_converged"),
+        "input_clips": figures.pop("input_clips"),
+        "duration_s": float(duration),
+        "wall_time_s": wall_time,
         "finished": False,  # decided below
         "rolling_window": None
         if window is None
         else {"length_m": window.length, "period_s": window.period},
-        "final_state": gateway.state.name,
-        "transitions": transitions,
-        "safety_clamps": clamps,
-        "can_frames_sent": frames_sent,
-        "can_frames_received": frames_received,
-        "can_frames_rejected": frames_rejected,
-        "ecu_frames_rejected": ecu.rejected_frames,
+        **figures,
+        "ecu_frames_rejected": ecu_rejected,
     }
-    why_not = ""
-    ended = [tr for tr in transitions if tr["to"] in ("FAULT", "STOPPING", "STANDBY")]
-    if not engaged_once:
-        why_not = "the gateway never engaged" + (f": {r}" if (r := _refusal(timeline)) else "")
-    elif ended and (ended[0]["to"] != "STANDBY" or ended[0]["reason"] != END_REACHED):
-        first = ended[0]
-        why_not = f"{first['to']} at t = {first['t']:.2f} s: {first['reason']}"
-    elif gateway.state != GatewayState.STANDBY:
-        why_not = f"time limit {scenario.duration:.0f} s reached in {gateway.state.name}"
+    why_not = _why_not(gateway, scenario)
     extra["finished"] = not why_not
-    return _finish(config, scenario, rec, solve_times, extra, timeline, label, why_not)
+    return _finish(
+        config, scenario, trace, gateway.solve_times, extra, gateway.timeline, label, why_not
+    )
+
+
+def _why_not(gateway: _GatewaySide, scenario: Scenario) -> str:
+    """Why the gateway did not finish the drive ("" when it reported the end reached)."""
+    transitions = gateway.transitions
+    ended = [tr for tr in transitions if tr["to"] in ("FAULT", "STOPPING", "STANDBY")]
+    if not gateway.engaged_once:
+        refusal = _refusal(gateway.timeline)
+        return "the gateway never engaged" + (f": {refusal}" if refusal else "")
+    if ended and (ended[0]["to"] != "STANDBY" or ended[0]["reason"] != END_REACHED):
+        first = ended[0]
+        return f"{first['to']} at t = {first['t']:.2f} s: {first['reason']}"
+    if gateway.state != GatewayState.STANDBY:
+        return f"time limit {scenario.duration:.0f} s reached in {gateway.state.name}"
+    return ""
 
 
 def _refusal(timeline: list[tuple[float, str]]) -> str:
