@@ -5,7 +5,8 @@
 
 Runs :func:`leafgate.sim.runner.run` (the full simulated loop, ``config/sim.yaml``) for every
 scenario in :data:`leafgate.sim.scenarios.SCENARIOS` on the kinematic and steer-lag plants with
-every controller of ``leafgate compare``, plus the s-curve with each injection, each vehicle
+every controller of ``leafgate compare`` and the MPC without the gateway
+(:func:`~leafgate.sim.runner.run_direct`, the paper's check), plus the s-curve with each injection, each vehicle
 profile, localization noise and latency, and a rolling-window plan. Writes each drive's metrics
 (without :data:`~leafgate.sim.runner.WALL_CLOCK_METRICS`), a digest of its per-tick series and
 its timeline. ``--against`` compares numbers to ``--tolerance`` (1e-9) and prints a JSON summary
@@ -28,7 +29,14 @@ import leafgate
 from leafgate.errors import LeafgateError
 from leafgate.settings import LeafgateConfig, load_config, with_profile
 from leafgate.sim.compare import CONTROLLERS, drive_config
-from leafgate.sim.runner import INJECTION_KINDS, WALL_CLOCK_METRICS, Injection, RollingWindow, run
+from leafgate.sim.runner import (
+    INJECTION_KINDS,
+    WALL_CLOCK_METRICS,
+    Injection,
+    RollingWindow,
+    run,
+    run_direct,
+)
 from leafgate.sim.scenarios import SCENARIOS, get_scenario
 
 PLANTS = ("kinematic", "steer-lag")
@@ -43,6 +51,8 @@ def _drives(base: LeafgateConfig) -> list[tuple[str, LeafgateConfig, str, dict[s
             for controller in CONTROLLERS:
                 cfg = drive_config(base, controller, plant)
                 out.append((f"{scenario}/{plant}/{controller}", cfg, scenario, {}))
+            direct = drive_config(base, "mpc", plant)
+            out.append((f"{scenario}/{plant}/mpc direct", direct, scenario, {"direct": True}))
     mpc = drive_config(base, "mpc", "kinematic")
     for kind in INJECTION_KINDS:
         injection = Injection(kind, 6.0, 1.0 if kind != "report-dropout" else 0.3)
@@ -121,7 +131,10 @@ def main() -> int:
         if args.only and args.only not in name:
             continue
         try:
-            result = run(cfg, get_scenario(scenario), **kwargs)
+            if kwargs.get("direct"):
+                result = run_direct(cfg, get_scenario(scenario))
+            else:
+                result = run(cfg, get_scenario(scenario), **kwargs)
         except LeafgateError as exc:
             drives[name] = {"error": str(exc)}
             continue
