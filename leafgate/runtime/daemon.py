@@ -418,6 +418,7 @@ def run_daemon(
                 "zenoh_last_errors": transport.last_errors,
                 "engage_refused_unheard": transport.request_refusals,
                 "zenoh_invalid_samples": transport.invalid_samples,
+                "zenoh_input_sources": transport.input_sources,
                 "recording": recording.diagnostics(),
                 "vehicle": vehicle.latest,
             },
