@@ -419,6 +419,8 @@ def run_daemon(
                 "engage_refused_unheard": transport.request_refusals,
                 "zenoh_invalid_samples": transport.invalid_samples,
                 "zenoh_input_sources": transport.input_sources,
+                # counter skips after a receive stall: lost frames, not report errors
+                "can_stall_skips": receiver.stall_skips,
                 "recording": recording.diagnostics(),
                 "vehicle": vehicle.latest,
             },

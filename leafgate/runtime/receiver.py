@@ -36,6 +36,14 @@ ECHO_WINDOW = 2.0
 
 FOREIGN_LOGGED = 20  # foreign frames logged one by one, then every thousandth
 
+# A starved receive thread loses frames: the socket's buffer fills while nobody reads it and the
+# kernel drops what arrives meanwhile, so the next frame of every ID skips its alive counter.
+# Such a skip is a lost frame, not an ECU error (issue 17, finding 7), when its ID's frame was
+# read at least STALL_LAG late (the one before it or itself) AND its receive time follows the
+# one before by more than STALL_GAP of the ID's usual interval (the frames between are missing).
+STALL_LAG = 0.05  # s
+STALL_GAP = 1.5  # usual intervals
+
 
 class _Sent:
     """One frame sent, waiting for its echo."""
@@ -138,6 +146,12 @@ class CanReceiver(can.Listener):
         self._lock = threading.Lock()
         self._good = 0
         self._bad = 0
+        #: counter skips taken as frames lost in a receive stall (STALL_LAG), not counted as
+        #: report errors; each stands for one or more lost frames of its ID
+        self.stall_skips = 0
+        # per ID: receive time and read lag of its last frame, its usual interval (s, 0 until
+        # known), and whether a stall has been excused since its last good frame
+        self._rx_timing: dict[int, list[Any]] = {}
         self.on_frame: Callable[[can.Message, Decoded], None] | None = None  # recorder hook
 
     def received_at(self, msg: can.Message) -> float:
@@ -155,7 +169,30 @@ class CanReceiver(can.Listener):
             return now - age
         return now
 
+    def _lost_in_stall(self, frame_id: int, received: float, lag: float, valid: bool) -> bool:
+        """Whether a bad-counter frame follows a receive stall (see STALL_LAG); also keeps the
+        ID's timing for the next frame. One skip per ID is excused per stall: a second bad
+        counter before a good frame (two senders taking turns, a replay) stays an error."""
+        timing = self._rx_timing.get(frame_id)
+        if timing is None:
+            self._rx_timing[frame_id] = [received, lag, 0.0, False]
+            return False
+        last, last_lag, interval, excused = timing
+        gap = received - last
+        timing[0], timing[1] = received, lag
+        if valid:
+            if gap > 0.0:  # the usual interval, from frames that arrived in turn
+                timing[2] = gap if interval == 0.0 else 0.9 * interval + 0.1 * gap
+            timing[3] = False
+            return False
+        stalled = max(lag, last_lag) > STALL_LAG and interval > 0.0 and gap > STALL_GAP * interval
+        if stalled and not excused:
+            timing[3] = True
+            return True
+        return False
+
     def on_message_received(self, msg: can.Message) -> None:
+        read = self.clock()
         now = self.received_at(msg)
         if now > self.horizon:
             self.horizon = now
@@ -185,9 +222,14 @@ class CanReceiver(can.Listener):
             self.on_frame(msg, decoded)
         values = decoded.values  # a frame may refresh several messages
         if decoded.counts_for_reports:
+            lost = (decoded.error == "bad_counter" or decoded.valid) and self._lost_in_stall(
+                msg.arbitration_id, now, read - now, decoded.valid
+            )
             with self._lock:
                 if decoded.valid:
                     self._good += 1
+                elif lost:
+                    self.stall_skips += 1
                 else:
                     self._bad += 1
         if not decoded.valid:
