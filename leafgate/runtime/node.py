@@ -273,6 +273,10 @@ class GatewayTransport:
         # carry the ROS names, so they line up with rosbag2 recordings in either ROS mode).
         self.on_raw: Callable[[str, bytes, float, str | None], None] | None = None
         self._tap_errors = 0
+        # Called on Zenoh's thread with every valid plan before the control thread can see it:
+        # the daemon builds the controller's reference path there
+        # (:func:`~leafgate.control.reference.prebuild`), so no control tick builds one.
+        self.on_plan: Callable[[Trajectory], None] | None = None
         self._lock = threading.Lock()
         # Queries are parsed on Zenoh's thread (refusals answered there at once) and answered
         # on threads of our own: the handler may wait for the control thread, and a Zenoh
@@ -435,6 +439,11 @@ class GatewayTransport:
             if isinstance(value, Trajectory) and len(value) > max_points:
                 slot.count_error(f"plan of {len(value)} points > {max_points} (max_plan_points)")
                 return
+            if isinstance(value, Trajectory) and ok and self.on_plan is not None:
+                try:  # the controller's reference, built here and not in a control tick
+                    self.on_plan(value)
+                except Exception as exc:  # the controller then builds it itself
+                    log.warning("could not prepare a plan's reference: %r", exc)
             if isinstance(value, Pose) and math.isfinite(value.stamp):
                 # The measurement's age by its header stamp counts as well as the arrival's.
                 lag = stamp_clock() - value.stamp
