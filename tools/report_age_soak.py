@@ -5,7 +5,10 @@ the fault suite's harness), with DESIGN's report thresholds (3 periods: 30 ms fo
 DBW_STEER_RPT) and two ``while True: pass`` processes beside the stack, and counts the runs that
 ended in a report-age FAULT. Before the report ages came from the frames' receive timestamps, 11
 of 71 such runs faulted. Prints one JSON object; exit status 0 only if no run had a report-age
-FAULT.
+FAULT. Also reports the runs that ended in a report-error FAULT (counter skips after a
+receive stall are lost frames since, not errors), and every ENABLE=1 command frame judged
+against the safety limits at the plant's true state (the harness's judgement), and the
+machine's load averages before and after (other work shares the machine).
 
     python tools/report_age_soak.py --runs 20
 """
@@ -14,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -36,13 +40,20 @@ def one_run(directory: Path) -> dict[str, Any]:
         engaged = run.wait_engaged(timeout=20)
         with cpu_hogs(2):
             run.wait_at_rest({GatewayState.STANDBY, GatewayState.FAULT}, timeout=60, hold=1.0)
+        status = run.status()
         run.shutdown()
         changes = [t for t in transitions(run.recording_files()[1]) if t["time"] >= engaged]
+        outcome = run.outcome(None, status=status)  # the commands judged on the true state
     faults = [t["reason"] for t in changes if t["to"] == "FAULT"]
     return {
         "ended": changes[-1]["to"] if changes else None,
         "faults": faults,
         "report_age_fault": any("report age" in r for r in faults),
+        "report_error_fault": any("report frame errors" in r for r in faults),
+        # counter skips the receiver took as frames lost in a receive stall (not errors)
+        "can_stall_skips": status.get("can_stall_skips"),
+        "commands_checked": outcome.extra.get("commands_checked"),
+        "commands_outside_limits": outcome.extra.get("commands_outside_limits"),
         "startup_resets": run.startup_resets,
     }
 
@@ -55,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--runs must be at least 1")
     results = []
     started = time.monotonic()
+    load_before = os.getloadavg()  # other work on the machine, besides the two busy loops
     with tempfile.TemporaryDirectory(prefix="leafgate-age-") as tmp:
         for k in range(args.runs):
             directory = Path(tmp) / f"run{k:02d}"
@@ -73,6 +85,14 @@ def main(argv: list[str] | None = None) -> int:
                     1 for r in results if r.get("faults") and not r.get("report_age_fault")
                 ),
                 "runs_not_completed": sum(1 for r in results if "error" in r),
+                "report_error_faults": sum(1 for r in results if r.get("report_error_fault")),
+                "commands_checked": sum(r.get("commands_checked") or 0 for r in results),
+                "commands_outside_limits": sum(
+                    r.get("commands_outside_limits") or 0 for r in results
+                ),
+                "cpus": os.cpu_count(),
+                "loadavg_1_5_15_before": [round(x, 2) for x in load_before],
+                "loadavg_1_5_15_after": [round(x, 2) for x in os.getloadavg()],
                 "wall_s": round(time.monotonic() - started, 1),
                 "results": results,
             },
