@@ -9,6 +9,7 @@ scouting off; the multi-process attack is ``tests/faults/test_localization_spoof
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections.abc import Iterator
 from typing import Any
@@ -23,8 +24,10 @@ from leafgate.config import from_mapping
 from leafgate.config.gateway import WatchdogConfig
 from leafgate.config.transport import ZenohConfig
 from leafgate.gateway import watchdog
+from leafgate.gateway.core import GatewayInputs
 from leafgate.gateway.watchdog import PoseWatchdog, Reaction, Status, pose_problem
 from leafgate.messages import GatewayState, OperatorRequest, Pose, Stamped
+from leafgate.record.session import decode_inputs, encode_inputs
 from leafgate.runtime import node
 from leafgate.runtime.node import GatewayTransport, SourceTracker
 from leafgate.transport import cdr, client, keys
@@ -235,3 +238,17 @@ class _session:
 
     def __exit__(self, *exc: object) -> None:
         self.session.close()
+
+
+def test_a_recorded_session_keeps_the_publishers_and_the_covariance() -> None:
+    # a rerun of a recorded session must see the second source (and the variances) again
+    pose = Pose(1.0, 2.0, 0.0, 1.0, var_x=0.04, var_heading=1e-3)
+    inputs = GatewayInputs(
+        pose=Stamped(pose, 3.0, sources=("zid:a/1", "zid:b/2")),
+        trajectory=None,
+        steer_report=None,
+        long_report=None,
+        system_report=None,
+    )
+    data = json.loads(json.dumps(encode_inputs(inputs, None)))
+    assert decode_inputs(data, lambda ref, obj: None) == inputs  # type: ignore[arg-type,return-value]
