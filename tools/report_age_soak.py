@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "faults"))
+sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # harness imports tests.conftest
 
 from harness import FaultRun, cpu_hogs, transitions
 
