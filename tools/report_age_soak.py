@@ -39,6 +39,15 @@ def one_run(directory: Path) -> dict[str, Any]:
         run.start()
         run.engage()
         engaged = run.wait_engaged(timeout=20)
+        sniffer = run.sniffer
+        assert sniffer is not None
+        # The ECU reports ENABLED before the next DBW_SYSTEM_CMD (every 100 ms) says ENGAGED: the
+        # car, still at rest then, would look done (the runs ended before they drove).
+        run.wait_for(
+            "ENGAGED on DBW_SYSTEM_CMD",
+            lambda: sniffer.gateway_state is not GatewayState.STANDBY,
+            5,
+        )
         with cpu_hogs(2):
             run.wait_at_rest({GatewayState.STANDBY, GatewayState.FAULT}, timeout=60, hold=1.0)
         status = run.status()
@@ -48,6 +57,8 @@ def one_run(directory: Path) -> dict[str, Any]:
     faults = [t["reason"] for t in changes if t["to"] == "FAULT"]
     return {
         "ended": changes[-1]["to"] if changes else None,
+        "reason": changes[-1]["reason"] if changes else None,
+        "driven_s": round(changes[-1]["time"] - engaged, 2) if changes else None,
         "faults": faults,
         "report_age_fault": any("report age" in r for r in faults),
         "report_error_fault": any("report frame errors" in r for r in faults),
