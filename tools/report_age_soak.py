@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 import tempfile
 import time
@@ -27,9 +28,46 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "faults"))
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # harness imports tests.conftest
 
+import can
 from harness import FaultRun, cpu_hogs, transitions
 
+from leafgate.can import e2e
+from leafgate.can.codec import CanCodec
 from leafgate.messages import GatewayState
+
+REPORT_FRAMES = {
+    "steer_report": "DBW_STEER_RPT",
+    "long_report": "DBW_LONG_RPT",
+    "system_report": "DBW_SYSTEM_RPT",
+}
+AGE_FAULT = re.compile(r"(\w+_report) age ([0-9.]+) s > ([0-9.]+) s")
+
+
+def sent_late(frames: list[tuple[float, can.Message]], reason: str, at: float) -> bool | None:
+    """Whether the bus itself shows the report-age FAULT's gap: the ECU sent no frame of the
+    report for longer than the limit just before ``at`` (perf_counter), its alive counter
+    advancing by one across the gap (so the sniffer lost nothing). True: the ECU process was
+    starved, the report really was late; False: frames came in time, the gateway judged a
+    stale report that was not; None: not a report-age FAULT, or the sniffer lost frames there.
+    """
+    match = AGE_FAULT.search(reason)
+    if match is None:
+        return None
+    frame_id = CanCodec(profile="leafgate-dbw").frame_id(REPORT_FRAMES[match.group(1)])
+    limit = float(match.group(3))
+    mine = [(t, m) for t, m in frames if m.arbitration_id == frame_id and m.timestamp > 0]
+    if len(mine) < 2:
+        return None
+    offset = min(t - m.timestamp for t, m in mine)  # kernel epoch → perf_counter (least lag)
+    ordered = sorted((m for _, m in mine), key=lambda m: m.timestamp)
+    before = [m for m in ordered if m.timestamp + offset <= at]
+    after = [m for m in ordered if m.timestamp + offset > at]
+    if not before or not after:
+        return None
+    a, b = before[-1], after[0]  # the frames around the FAULT, on the bus's own clock
+    if (b.data[e2e.COUNTER_BYTE] - a.data[e2e.COUNTER_BYTE]) & 0x0F != 1:
+        return None  # the sniffer lost frames here: no verdict
+    return b.timestamp - a.timestamp > limit
 
 
 def one_run(directory: Path) -> dict[str, Any]:
@@ -54,13 +92,17 @@ def one_run(directory: Path) -> dict[str, Any]:
         run.shutdown()
         changes = [t for t in transitions(run.recording_files()[1]) if t["time"] >= engaged]
         outcome = run.outcome(None, status=status)  # the commands judged on the true state
+        frames = sniffer.snapshot()
     faults = [t["reason"] for t in changes if t["to"] == "FAULT"]
+    ecu_late = [sent_late(frames, t["reason"], t["time"]) for t in changes if t["to"] == "FAULT"]
     return {
         "ended": changes[-1]["to"] if changes else None,
         "reason": changes[-1]["reason"] if changes else None,
         "driven_s": round(changes[-1]["time"] - engaged, 2) if changes else None,
         "faults": faults,
         "report_age_fault": any("report age" in r for r in faults),
+        # per FAULT: the ECU really sent late (the bus shows the gap), or not (None: no verdict)
+        "ecu_sent_late": ecu_late,
         "report_error_fault": any("report frame errors" in r for r in faults),
         # counter skips the receiver took as frames lost in a receive stall (not errors)
         "can_stall_skips": status.get("can_stall_skips"),
@@ -88,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
             except AssertionError as exc:  # the harness's "timed out waiting for …"
                 results.append({"error": str(exc).splitlines()[0]})
     age_faults = sum(1 for r in results if r.get("report_age_fault"))
+    verdicts = [v for r in results for v in r.get("ecu_sent_late", ())]
     print(
         json.dumps(
             {
@@ -98,6 +141,11 @@ def main(argv: list[str] | None = None) -> int:
                 ),
                 "runs_not_completed": sum(1 for r in results if "error" in r),
                 "report_error_faults": sum(1 for r in results if r.get("report_error_fault")),
+                # report-age FAULTs whose gap the bus itself shows (the simulated ECU's process
+                # was starved and sent late: a true FAULT), and those it does not (the gateway
+                # judged a report stale that had arrived in time: a false one)
+                "report_age_faults_ecu_late": verdicts.count(True),
+                "report_age_faults_not_late_on_bus": verdicts.count(False),
                 "commands_checked": sum(r.get("commands_checked") or 0 for r in results),
                 "commands_outside_limits": sum(
                     r.get("commands_outside_limits") or 0 for r in results
