@@ -111,3 +111,28 @@ def test_only_one_skip_per_id_is_excused_per_stall() -> None:
     deliver(receiver, clocks, steer(forger), start + 0.25)  # a second bad counter: an error
     assert receiver.stall_skips == 1
     assert receiver.take_counts()[1] == 1
+
+
+class PreemptedClocks(Clocks):
+    """The thread is preempted for ``pause`` s right after its first monotonic read."""
+
+    def __init__(self, pause: float) -> None:
+        super().__init__()
+        self.pause = pause
+
+    def mono(self) -> float:
+        now = self.now
+        if self.pause:
+            self.now, self.pause = self.now + self.pause, 0.0  # the next read comes later
+        return now
+
+
+def test_a_preemption_between_two_clock_reads_does_not_age_a_frame() -> None:
+    # before: age = wall() - timestamp, read after now = clock(); a 40 ms preemption between
+    # the two made a frame just received 40 ms old (a report-age FAULT on a loaded machine)
+    clocks = PreemptedClocks(pause=0.040)
+    receiver = CanReceiver(CanCodec(profile="leafgate-dbw"), clocks.mono, clocks.wall)
+    msg = steer(CanCodec(profile="leafgate-dbw"))
+    msg.timestamp = clocks.wall() - 0.002  # arrived 2 ms ago
+    arrived = clocks.now - 0.002
+    assert abs(receiver.received_at(msg) - arrived) < 1e-6  # epoch floats: 0.2 µs steps

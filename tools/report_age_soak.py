@@ -16,6 +16,7 @@ machine's load averages before and after (other work shares the machine).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import re
@@ -44,11 +45,13 @@ AGE_FAULT = re.compile(r"(\w+_report) age ([0-9.]+) s > ([0-9.]+) s")
 
 
 def sent_late(frames: list[tuple[float, can.Message]], reason: str, at: float) -> bool | None:
-    """Whether the bus itself shows the report-age FAULT's gap: the ECU sent no frame of the
-    report for longer than the limit just before ``at`` (perf_counter), its alive counter
-    advancing by one across the gap (so the sniffer lost nothing). True: the ECU process was
-    starved, the report really was late; False: frames came in time, the gateway judged a
-    stale report that was not; None: not a report-age FAULT, or the sniffer lost frames there.
+    """Whether the bus itself shows the report-age FAULT: in the second before ``at``
+    (perf_counter), the ECU sent no frame of the report for longer than the limit, by the
+    sniffer's kernel receive timestamps, its alive counter advancing by one across that gap (so
+    the sniffer lost nothing there). True: the simulated ECU's process was starved and the
+    report really was late (a true FAULT); False: every gap on the bus was within the limit,
+    the gateway judged a report stale that had come in time; None: not a report-age FAULT, or
+    the sniffer lost frames in a gap over the limit.
     """
     match = AGE_FAULT.search(reason)
     if match is None:
@@ -60,14 +63,15 @@ def sent_late(frames: list[tuple[float, can.Message]], reason: str, at: float) -
         return None
     offset = min(t - m.timestamp for t, m in mine)  # kernel epoch → perf_counter (least lag)
     ordered = sorted((m for _, m in mine), key=lambda m: m.timestamp)
-    before = [m for m in ordered if m.timestamp + offset <= at]
-    after = [m for m in ordered if m.timestamp + offset > at]
-    if not before or not after:
-        return None
-    a, b = before[-1], after[0]  # the frames around the FAULT, on the bus's own clock
-    if (b.data[e2e.COUNTER_BYTE] - a.data[e2e.COUNTER_BYTE]) & 0x0F != 1:
-        return None  # the sniffer lost frames here: no verdict
-    return b.timestamp - a.timestamp > limit
+    near = [m for m in ordered if at - 1.0 <= m.timestamp + offset <= at + 1.0]
+    verdict: bool | None = False
+    for a, b in itertools.pairwise(near):
+        if a.timestamp + offset > at or b.timestamp - a.timestamp <= limit:
+            continue  # after the FAULT, or within the limit
+        if (b.data[e2e.COUNTER_BYTE] - a.data[e2e.COUNTER_BYTE]) & 0x0F == 1:
+            return True  # nothing sent for longer than the limit: the ECU was late
+        verdict = None  # the sniffer lost frames in this gap: cannot tell
+    return verdict
 
 
 def one_run(directory: Path) -> dict[str, Any]:
