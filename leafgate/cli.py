@@ -366,7 +366,7 @@ def vehicle_text(vehicle: Any) -> str:
 
 def cmd_status(args: argparse.Namespace) -> int:
     from leafgate.runtime.daemon import tool_view
-    from leafgate.transport.client import watch_diagnostics
+    from leafgate.transport.client import DiagnosticsWatch, watch_diagnostics
 
     cfg = load_config(args.config)
     seen: list[dict[str, Any]] = []
@@ -405,9 +405,25 @@ def cmd_status(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    watch_diagnostics(tool_view(cfg.zenoh), show, args.duration)
+    watch = DiagnosticsWatch()
+    watch_diagnostics(tool_view(cfg.zenoh), show, args.duration, watch=watch)
     if closed:
         raise closed[0]
+    foreign = watch.foreign()
+    if foreign:  # someone else publishes on the gateway's key: shown, never believed
+        named = ", ".join(f"{who} ({n})" for who, n in sorted(foreign.items()))
+        print(
+            f"leafgate: warning: ignored {sum(foreign.values())} diagnostics record(s) from "
+            f"publishers without the gateway's liveliness token: {named}",
+            file=sys.stderr,
+        )
+    if len(watch.gateways) > 1:
+        print(
+            f"leafgate: error: diagnostics from {len(watch.gateways)} sessions holding the "
+            f"gateway's liveliness token (conflicting): {', '.join(sorted(watch.gateways))}",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
     if not seen:
         print(
             f"leafgate: error: no diagnostics from a gateway within {args.duration:g} s",

@@ -79,6 +79,12 @@ class Pose:
     speed: float  # m/s, signed: negative when reversing
     yaw_rate: float = 0.0  # rad/s
     stamp: float = math.nan  # s, the sender's time of the measurement (not the receive time)
+    # Variances the localization reports for its estimate: the x, y and yaw diagonal of the
+    # 6×6 row-major pose covariance (ROS geometry_msgs/PoseWithCovariance: indices 0, 7, 35).
+    # 0 means "not given" (publishers that leave the covariance zero, as leafgate's own do).
+    var_x: float = 0.0  # m²
+    var_y: float = 0.0  # m²
+    var_heading: float = 0.0  # rad²
 
 
 @dataclass(frozen=True, eq=False)
@@ -263,6 +269,10 @@ class Stamped(Generic[T]):
     value: T
     received: float  # s
     valid: bool = True
+    # The publishers heard on the input's key within the recent window up to this sample,
+    # this one's included (transport identities, "" for a sample that carries none); () when
+    # the input's source does not tell (the CAN reports, the simulator).
+    sources: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

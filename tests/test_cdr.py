@@ -364,6 +364,9 @@ def test_json_is_flat_si_with_nan_as_null() -> None:
         "speed": -1.0,
         "yaw_rate": 0.0,
         "stamp": None,
+        "var_x": 0.0,
+        "var_y": 0.0,
+        "var_heading": 0.0,
     }
     gear = json.loads(codecs("json").gear.encode(GearStatus(Gear.R, 1.0)))
     assert gear == {"gear": "R", "stamp": 1.0}

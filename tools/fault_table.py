@@ -1,7 +1,10 @@
 """The fault-injection results as a Markdown table.
 
 Run the fault suite with ``LEAFGATE_FAULT_REPORT=faults.jsonl`` set (each test appends one JSON
-line: fault, detected, state, reason, reaction_s, safe_state_s, frames_missing), then::
+line: fault, detected, state, reason, reaction_s, safe_state_s, frames_missing, and the
+gateway's ENABLE=1 command frames judged against the safety limits at the plant's true speed
+and wheel angle from the simulated ECU's trace: commands_outside_limits of commands_checked),
+then::
 
     python tools/fault_table.py faults.jsonl
 
@@ -23,6 +26,7 @@ COLUMNS = (
     ("reaction_s", "reaction [s]"),
     ("safe_state_s", "to rest [s]"),
     ("frames_missing", "frames missing (CAN log / session)"),
+    ("commands_outside_limits", "commands outside limits (true state) / judged"),
 )
 
 
@@ -54,6 +58,9 @@ def cell(key: str, row: dict[str, Any]) -> str:
         session = row.get("frames_missing_session")
         log = "–" if value is None else str(value)
         return log if session is None else f"{log} / {session}"
+    if key == "commands_outside_limits":
+        judged = row.get("commands_checked")
+        return "–" if value is None else f"{value} / {judged}"
     if value is None:
         return "–"
     if isinstance(value, float):

@@ -25,6 +25,13 @@ class WatchdogConfig:
     # localization source: a 2 cm-per-sample drift is caught at 0.2 m, before 0.3 m off path).
     localization_max_drift: float = 0.2
     localization_drift_window: float = 1.0  # s
+    # Bounds on the uncertainty a localization reports with each pose (its covariance): a pose
+    # whose position std (m, the larger of x and y) or heading std (rad; _deg in YAML) is
+    # beyond them is invalid, as is a NaN or negative variance. A covariance of zeros is "not
+    # given" and accepted. 0.5 m is Autoware's localization_error_monitor bound (an error
+    # ellipse of 1.5 m at 3 sigma).
+    localization_max_position_std: float = 0.5  # m
+    localization_max_heading_std: float = math.radians(5.0)  # rad
     # s, a trajectory older than this cannot be engaged on; None: a plan never goes stale (for
     # planners that publish a parking maneuver once). While engaged, the accepted plan is followed.
     trajectory_max_age: float | None = 1.0
@@ -57,6 +64,8 @@ class WatchdogConfig:
             "localization_max_jump",
             "localization_max_drift",
             "localization_drift_window",
+            "localization_max_position_std",
+            "localization_max_heading_std",
             "steer_report_period",
             "long_report_period",
             "report_timeout_periods",

@@ -20,9 +20,12 @@ after the header).
 from __future__ import annotations
 
 import bisect
+import collections
 import csv
 import itertools
 import math
+import threading
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -795,9 +798,59 @@ def prepare_plan(
     :param previous: the progress on the plan driven so far; carried over when the new plan
         continues it (:meth:`Progress.continued_on`), else the new plan starts afresh
     """
-    problem = trajectory_problem(trajectory)
-    if problem is not None:
-        return None, None, problem
-    path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
+    built = _prebuilt(trajectory, creep_speed)  # built where the plan arrived: see prebuild
+    if built is not None:
+        prebuilt, why = built
+        if prebuilt is None:
+            return None, None, why
+        path = prebuilt
+    else:
+        problem = trajectory_problem(trajectory)
+        if problem is not None:
+            return None, None, problem
+        path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
     carried = previous.continued_on(path) if previous is not None else None
     return path, carried or Progress(path, window), ""
+
+
+# --- built off the control thread (issue 17, finding 5) --------------------------------------
+# A new plan's reference path takes milliseconds to build (1.8 ms for 2000 points); built in the
+# controller's first step it delays a control tick. The gateway's transport therefore builds it
+# where the plan arrives (on Zenoh's thread: GatewayTransport.on_plan) and leaves it here, keyed
+# by the trajectory object; prepare_plan takes it instead of building one. A plan nobody built
+# beforehand is built by prepare_plan as before. Bounded: only the newest few plans are kept.
+
+PREBUILT_PLANS = 4  # plans whose reference is kept for the controller
+
+_prebuilt_plans: collections.deque[tuple[weakref.ref[Trajectory], float, ReferencePath | None, str]]
+_prebuilt_plans = collections.deque(maxlen=PREBUILT_PLANS)
+_prebuilt_lock = threading.Lock()
+_HORIZON_PROBE = np.zeros(1)  # one horizon point: enough to build a segment's interpolation
+
+
+def prebuild(trajectory: Trajectory, creep_speed: float) -> None:
+    """Build ``trajectory``'s reference path now, on the caller's thread, for the controller.
+
+    Also builds each segment's interpolation tables (else built by the first horizon query).
+
+    :param creep_speed: m/s, the controller's (``controller.<kind>.creep_speed``): a path is
+        taken only by a controller with the same one
+    """
+    problem = trajectory_problem(trajectory)
+    path = None
+    if problem is None:
+        path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
+        for seg in path.segments:
+            path.horizon(seg, float(path.s[seg.start]), _HORIZON_PROBE)
+    with _prebuilt_lock:
+        _prebuilt_plans.append((weakref.ref(trajectory), creep_speed, path, problem or ""))
+
+
+def _prebuilt(
+    trajectory: Trajectory, creep_speed: float
+) -> tuple[ReferencePath | None, str] | None:
+    with _prebuilt_lock:
+        for ref, creep, path, problem in reversed(_prebuilt_plans):
+            if ref() is trajectory and creep == creep_speed:
+                return path, problem
+    return None

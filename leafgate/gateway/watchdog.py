@@ -10,6 +10,9 @@ watchdog                       threshold (``WatchdogConfig``)          reaction
 localization age               > ``localization_stop_age`` (100 ms)    STOP
 localization age / jump        > ``localization_fault_age`` (500 ms),  FAULT
                                > ``localization_max_jump`` (1 m)
+localization covariance        std > ``localization_max_position_std``  pose invalid
+                               (0.5 m) / ``…_heading_std`` (5°)
+localization sources           > 1 publisher heard within 1 s          FAULT
 ECU report age (each report)   > 3 periods (10, 20, 100 ms)            FAULT
 report CRC/counter errors      counter ≥ 5 (+1 bad, −1 good, floor 0)  FAULT
 control loop overrun           3 ticks in a row                        FAULT
@@ -60,6 +63,7 @@ class Status(enum.Enum):
     INCONSISTENT = "inconsistent"  # disagrees with dead reckoning from the ECU's reports
     ERRORS = "errors"  # error counter at or above its threshold
     OVERRUN = "overrun"  # too many late ticks in a row
+    SOURCES = "sources"  # samples from more than one publisher on the input's key
 
 
 class Reaction(enum.IntEnum):
@@ -106,11 +110,58 @@ def freshness(age: float | None, stale_after: float, lost_after: float) -> Statu
     return Status.OK
 
 
-def pose_is_valid(pose: Pose) -> bool:
-    """A pose is usable when position, heading and speed are finite."""
-    # Chained rather than all(<generator>): this runs on every pose, every tick.
-    isfinite = math.isfinite
-    return isfinite(pose.x) and isfinite(pose.y) and isfinite(pose.heading) and isfinite(pose.speed)
+def pose_problem(
+    pose: Pose, max_position_std: float = math.inf, max_heading_std: float = math.inf
+) -> str | None:
+    """Why a localization sample cannot be used, or None: the one rule, for the transport's
+    subscriber (which knows no bounds) and the core's watchdog (which applies the configured
+    ones).
+
+    Position, heading, speed and yaw rate must be finite. The reported variances
+    (:attr:`Pose.var_x`, ``var_y``, ``var_heading``) must be finite, not negative, and their
+    standard deviations within the bounds: a localization that says it is lost (1e12) is not
+    followed. A variance of 0 is "not given" (many publishers leave the covariance zero) and
+    passes; so does any variance while the bound is infinite.
+
+    :param max_position_std: m, bound on ``sqrt(max(var_x, var_y))``
+    :param max_heading_std: rad, bound on ``sqrt(var_heading)``
+    """
+    isfinite = math.isfinite  # chained, not all(<generator>): this runs on every pose
+    if not (
+        isfinite(pose.x)
+        and isfinite(pose.y)
+        and isfinite(pose.heading)
+        and isfinite(pose.speed)
+        and isfinite(pose.yaw_rate)
+    ):
+        return "localization not finite"
+    var_x, var_y, var_h = pose.var_x, pose.var_y, pose.var_heading
+    if var_x == 0.0 and var_y == 0.0 and var_h == 0.0:  # the common case: not given
+        return None
+    if not (
+        0.0 <= var_x < math.inf and 0.0 <= var_y < math.inf and 0.0 <= var_h < math.inf
+    ):  # negative, NaN or infinite
+        return (
+            f"localization covariance: variances x {var_x:g} m², y {var_y:g} m², "
+            f"yaw {var_h:g} rad² (not finite, or negative)"
+        )
+    position_std = math.sqrt(max(var_x, var_y))
+    if position_std > max_position_std:
+        return f"localization covariance: position std {position_std:g} m > {max_position_std:g} m"
+    heading_std = math.sqrt(var_h)
+    if heading_std > max_heading_std:
+        return (
+            f"localization covariance: heading std {math.degrees(heading_std):g}° > "
+            f"{math.degrees(max_heading_std):g}°"
+        )
+    return None
+
+
+def pose_is_valid(
+    pose: Pose, max_position_std: float = math.inf, max_heading_std: float = math.inf
+) -> bool:
+    """A pose is usable (:func:`pose_problem` finds nothing)."""
+    return pose_problem(pose, max_position_std, max_heading_std) is None
 
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
@@ -238,9 +289,34 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
         self.config = config
         self.dead_reckoning = DeadReckoning(config.localization_drift_window)
         self.drift = 0.0  # m, the last disagreement with dead reckoning
+        self.problem = ""  # why the last refused sample was refused (pose_problem)
+        self.problem_at = -math.inf  # s, its receive time
 
     def _is_valid(self, sample: Stamped[Pose]) -> bool:
-        return pose_is_valid(sample.value)
+        cfg = self.config
+        problem = pose_problem(
+            sample.value, cfg.localization_max_position_std, cfg.localization_max_heading_std
+        )
+        if problem is not None:
+            self.problem = problem
+            self.problem_at = sample.received
+        return problem is None
+
+    def _take(self, sample: Stamped[Pose] | None) -> bool:
+        if (
+            sample is not None
+            and not sample.valid
+            and (self.last is None or sample.received != self.last.received)
+        ):  # refused on arrival by the transport: say why, as far as the pose tells
+            self.problem = pose_problem(sample.value) or "localization stamped in the future"
+            self.problem_at = sample.received
+        return super()._take(sample)
+
+    def _refused(self) -> str:
+        """Why the newest sample was refused, for a reason ("" when it was not)."""
+        if not self.problem or (self.last is not None and self.problem_at <= self.last.received):
+            return ""
+        return f" (newest sample refused: {self.problem})"
 
     def update(
         self, now: float, sample: Stamped[Pose] | None, long: Stamped[LongReport] | None = None
@@ -259,6 +335,20 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
             if previous is not None:
                 jump = position_jump(previous, self.last)
             self.drift, span = self.dead_reckoning.add(self.last)
+        sources = sample.sources if sample is not None else ()
+        if len(sources) > 1:
+            # More than one publisher on the localization key within the transport's window:
+            # which one the car follows depends on who published last.
+            named = ", ".join(s or "unidentified" for s in sources)
+            return Check(
+                self.name,
+                Status.SOURCES,
+                None if self.last is None else now - self.last.received,
+                1.0,
+                Reaction.FAULT,
+                f"localization from {len(sources)} publishers: {named} (a second source)",
+                float(len(sources)),
+            )
         if self.last is None:
             status = self._missing_status()
             return Check(
@@ -267,7 +357,7 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
                 None,
                 cfg.localization_fault_age,
                 Reaction.FAULT,
-                f"localization {status.value}",
+                f"localization {status.value}" + self._refused(),
             )
         age = now - self.last.received
         if jump is not None and jump > cfg.localization_max_jump:
@@ -299,7 +389,8 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
                 age,
                 cfg.localization_fault_age,
                 Reaction.FAULT,
-                f"localization age {age:.3f} s > {cfg.localization_fault_age:g} s",
+                f"localization age {age:.3f} s > {cfg.localization_fault_age:g} s"
+                + self._refused(),
                 jump,
             )
         if status is Status.STALE:
@@ -309,7 +400,18 @@ class PoseWatchdog(_SlotWatchdog[Pose]):
                 age,
                 cfg.localization_stop_age,
                 Reaction.STOP,
-                f"localization age {age:.3f} s > {cfg.localization_stop_age:g} s",
+                f"localization age {age:.3f} s > {cfg.localization_stop_age:g} s" + self._refused(),
+                jump,
+            )
+        refused = self._refused()
+        if refused:  # the last valid sample is still fresh, but the newest one is not usable
+            return Check(
+                self.name,
+                Status.INVALID,
+                age,
+                cfg.localization_stop_age,
+                Reaction.NONE,
+                f"localization invalid{refused}",
                 jump,
             )
         return Check(self.name, Status.OK, age, cfg.localization_stop_age, Reaction.NONE, "", jump)

@@ -230,13 +230,19 @@ def decode_flat(cls: type[T], data: Mapping[str, Any]) -> T:
 def _stamped(s: Stamped[Any] | None) -> dict[str, Any] | None:
     if s is None:
         return None
-    return {"value": encode_flat(s.value), "received": _float_out(s.received), "valid": s.valid}
+    out = {"value": encode_flat(s.value), "received": _float_out(s.received), "valid": s.valid}
+    if s.sources:  # the publishers heard (a second one faults): a rerun must see them too
+        out["sources"] = list(s.sources)
+    return out
 
 
 def _unstamped(cls: type[T], d: Mapping[str, Any] | None) -> Stamped[T] | None:
     if d is None:
         return None
-    return Stamped(decode_flat(cls, d["value"]), _float_in(d["received"]), bool(d["valid"]))
+    sources = tuple(str(x) for x in d.get("sources") or ())
+    return Stamped(
+        decode_flat(cls, d["value"]), _float_in(d["received"]), bool(d["valid"]), sources
+    )
 
 
 def encode_trajectory(ref: int, trajectory: Trajectory) -> dict[str, Any]:

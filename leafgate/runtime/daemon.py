@@ -10,6 +10,7 @@ with one line naming it, before anything is sent.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import gc
 import logging
 import os
@@ -30,6 +31,7 @@ from leafgate.can.profile import Profile
 from leafgate.config.transport import ZenohConfig
 from leafgate.control import make_controller
 from leafgate.control.base import Controller
+from leafgate.control.reference import prebuild
 from leafgate.gateway.core import Gateway, StepResult
 from leafgate.gateway.watchdog import CHECK_ORDER, Check, Status
 from leafgate.journal import ERR, NOTICE, WARNING
@@ -383,6 +385,9 @@ def run_daemon(
         stack.callback(recording.close)
         gateway = build_gateway(cfg, wrap_controller=recording.wrap_controller)
         transport.on_raw = recording.on_zenoh_input
+        # a new plan's reference is built on Zenoh's thread as it arrives, not in a tick
+        controller_cfg = getattr(cfg.controller, cfg.controller.kind.replace("-", "_"))
+        transport.on_plan = functools.partial(prebuild, creep_speed=controller_cfg.creep_speed)
         receiver = CanReceiver(codec, clock)
         receiver.on_frame = lambda msg, _decoded: recording.on_can_frame(msg, "rx")
         notifier = can.Notifier(
@@ -418,6 +423,9 @@ def run_daemon(
                 "zenoh_last_errors": transport.last_errors,
                 "engage_refused_unheard": transport.request_refusals,
                 "zenoh_invalid_samples": transport.invalid_samples,
+                "zenoh_input_sources": transport.input_sources,
+                # counter skips after a receive stall: lost frames, not report errors
+                "can_stall_skips": receiver.stall_skips,
                 "recording": recording.diagnostics(),
                 "vehicle": vehicle.latest,
             },

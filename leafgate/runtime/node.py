@@ -24,8 +24,8 @@ from typing import Any, TypeVar
 import zenoh
 
 from leafgate.config.transport import ZenohConfig
-from leafgate.control.reference import trajectory_problem
 from leafgate.errors import TransportError
+from leafgate.gateway.watchdog import pose_is_valid, trajectory_is_valid
 from leafgate.jsonconv import to_json
 from leafgate.messages import (
     STOP_REQUESTS,
@@ -55,7 +55,7 @@ from leafgate.transport.payloads import (
     steering_status,
     velocity_status,
 )
-from leafgate.transport.rosnode import RosFace, RosPublisher
+from leafgate.transport.rosnode import RosFace, RosPublisher, sample_source
 from leafgate.transport.session import open_session, zenoh_message
 
 T = TypeVar("T")
@@ -82,6 +82,42 @@ REQUEST_QUEUE_LENGTH = 8  # queries waiting per lane (stops, others); more are r
 # abandoned. With the runtime's 1 s decision timeout a request is answered or withdrawn within
 # 1.5 s, before a tool's default query_timeout (2 s) has given up on it.
 REQUEST_MAX_AGE = 0.5
+
+
+# s a publisher heard on an input key counts as present: two within this window are two
+# sources (the localization's FAULT). Longer than any gap of a live localization (the fault
+# age is 0.5 s), short enough that a publisher replaced on purpose is forgotten soon.
+SOURCE_WINDOW = 1.0
+
+
+class SourceTracker:
+    """The publishers heard on one input key within the last ``window`` seconds.
+
+    Fed on Zenoh's thread with every sample's identity (:func:`~leafgate.transport.rosnode.
+    sample_source`, ``""`` for none) and receive time; each sample carries the answer in its
+    :attr:`~leafgate.messages.Stamped.sources`, so the control thread, which sees only the
+    newest sample, still learns of a second publisher whose samples it never saw.
+    """
+
+    def __init__(self, window: float = SOURCE_WINDOW) -> None:
+        self.window = window
+        self._seen: dict[str, float] = {}  # identity → receive time of its newest sample
+        self._lock = threading.Lock()
+
+    def note(self, source: str, received: float) -> tuple[str, ...]:
+        """Record a sample; the identities heard within the window, sorted."""
+        with self._lock:
+            seen = self._seen
+            seen[source] = max(received, seen.get(source, received))
+            if len(seen) > 1:
+                for other in [s for s, t in seen.items() if received - t > self.window]:
+                    del seen[other]
+            return tuple(sorted(seen))
+
+    def heard(self) -> list[str]:
+        """Every identity currently remembered ("unidentified" for samples without one)."""
+        with self._lock:
+            return sorted(s or "unidentified" for s in self._seen)
 
 
 @dataclasses.dataclass
@@ -138,20 +174,6 @@ class _QueryLanes:
         with self.cond:
             self.closed = True
             self.cond.notify_all()
-
-
-def pose_is_valid(pose: Pose) -> bool:
-    """A decoded pose is usable when every kinematic field is finite (the stamp may be unset)."""
-    return all(math.isfinite(v) for v in (pose.x, pose.y, pose.heading, pose.speed, pose.yaw_rate))
-
-
-def trajectory_is_valid(trajectory: Trajectory) -> bool:
-    """A decoded trajectory is usable by the controller's one rule (:func:`~leafgate.control.
-    reference.trajectory_problem`): finite, four or more waypoints once overlaps are removed.
-
-    The plan-size bound is the subscriber's (a plan above it is dropped with its reason).
-    """
-    return trajectory_problem(trajectory) is None
 
 
 def _reply_json(reply: Mapping[str, Any]) -> dict[str, Any]:
@@ -251,6 +273,10 @@ class GatewayTransport:
         # carry the ROS names, so they line up with rosbag2 recordings in either ROS mode).
         self.on_raw: Callable[[str, bytes, float, str | None], None] | None = None
         self._tap_errors = 0
+        # Called on Zenoh's thread with every valid plan before the control thread can see it:
+        # the daemon builds the controller's reference path there
+        # (:func:`~leafgate.control.reference.prebuild`), so no control tick builds one.
+        self.on_plan: Callable[[Trajectory], None] | None = None
         self._lock = threading.Lock()
         # Queries are parsed on Zenoh's thread (refusals answered there at once) and answered
         # on threads of our own: the handler may wait for the control thread, and a Zenoh
@@ -266,6 +292,7 @@ class GatewayTransport:
         for worker in self._query_workers:
             worker.start()
 
+        self._sources: dict[str, SourceTracker] = {}  # per input key
         self._declared: list[Any] = []
         self._publishers: dict[str, tuple[RosPublisher, Codec[Any] | None]] = {}
         try:
@@ -283,6 +310,7 @@ class GatewayTransport:
                     self._subscriber(
                         self.pose,
                         self._codecs.pose,
+                        # the core's one rule; it applies the configured covariance bounds
                         pose_is_valid,
                         cdr.ODOMETRY,
                         cfg.topic("kinematic_state"),
@@ -383,6 +411,7 @@ class GatewayTransport:
         typename_or_none = typename if self._cfg.encoding == "cdr" else None
         name = topic or slot.key
 
+        sources = self._sources[slot.key] = SourceTracker()
         max_bytes = self._cfg.max_payload_bytes
         max_points = self._cfg.max_plan_points
         max_offset = self._cfg.max_clock_offset
@@ -390,6 +419,7 @@ class GatewayTransport:
 
         def on_sample(sample: zenoh.Sample) -> None:
             received = clock()  # before decoding: the age counts from arrival
+            heard = sources.note(sample_source(sample), received)
             size = len(sample.payload)
             if size > max_bytes:  # refused before it is copied or decoded
                 slot.count_error(f"payload of {size} bytes > {max_bytes} (max_payload_bytes)")
@@ -409,6 +439,11 @@ class GatewayTransport:
             if isinstance(value, Trajectory) and len(value) > max_points:
                 slot.count_error(f"plan of {len(value)} points > {max_points} (max_plan_points)")
                 return
+            if isinstance(value, Trajectory) and ok and self.on_plan is not None:
+                try:  # the controller's reference, built here and not in a control tick
+                    self.on_plan(value)
+                except Exception as exc:  # the controller then builds it itself
+                    log.warning("could not prepare a plan's reference: %r", exc)
             if isinstance(value, Pose) and math.isfinite(value.stamp):
                 # The measurement's age by its header stamp counts as well as the arrival's.
                 lag = stamp_clock() - value.stamp
@@ -416,7 +451,7 @@ class GatewayTransport:
                     received -= lag - max_offset
                 elif lag < -max_offset:
                     ok = False  # from the future: the sender's clock is off, or the stamp forged
-            slot.put(Stamped(value, received, valid=ok))
+            slot.put(Stamped(value, received, valid=ok, sources=heard))
 
         return on_sample
 
@@ -446,6 +481,13 @@ class GatewayTransport:
         """Samples per input key that decoded but were stored marked invalid (the control
         path refuses them); together with :attr:`decode_errors`, every rejected sample."""
         return {self.pose.key: self.pose.invalid, self.trajectory.key: self.trajectory.invalid}
+
+    @property
+    def input_sources(self) -> dict[str, list[str]]:
+        """The publishers heard on each input key recently (:class:`SourceTracker`), for
+        diagnostics: "unidentified" where a sample names none, so one such entry is one or
+        more publishers that cannot be told apart."""
+        return {key: tracker.heard() for key, tracker in self._sources.items()}
 
     @property
     def publish_errors(self) -> dict[str, int]:

@@ -32,9 +32,19 @@ log = logging.getLogger(__name__)
 # s, how far back a frame's own receive timestamp (python-can ``msg.timestamp``, wall clock) is
 # believed; a timestamp older than this, in the future or unset counts as "received now".
 TIMESTAMP_TRUST = 10.0
+CLOCK_READS = 4  # bracketed readings of the two clocks at most, per frame
+CLOCK_BRACKET = 2e-4  # s, a bracket this narrow is taken at once
 ECHO_WINDOW = 2.0
 
 FOREIGN_LOGGED = 20  # foreign frames logged one by one, then every thousandth
+
+# A starved receive thread loses frames: the socket's buffer fills while nobody reads it and the
+# kernel drops what arrives meanwhile, so the next frame of every ID skips its alive counter.
+# Such a skip is a lost frame, not an ECU error (issue 17, finding 7), when its ID's frame was
+# read at least STALL_LAG late (the one before it or itself) AND its receive time follows the
+# one before by more than STALL_GAP of the ID's usual interval (the frames between are missing).
+STALL_LAG = 0.05  # s
+STALL_GAP = 1.5  # usual intervals
 
 
 class _Sent:
@@ -138,6 +148,12 @@ class CanReceiver(can.Listener):
         self._lock = threading.Lock()
         self._good = 0
         self._bad = 0
+        #: counter skips taken as frames lost in a receive stall (STALL_LAG), not counted as
+        #: report errors; each stands for one or more lost frames of its ID
+        self.stall_skips = 0
+        # per ID: receive time and read lag of its last frame, its usual interval (s, 0 until
+        # known), and whether a stall has been excused since its last good frame
+        self._rx_timing: dict[int, list[Any]] = {}
         self.on_frame: Callable[[can.Message, Decoded], None] | None = None  # recorder hook
 
     def received_at(self, msg: can.Message) -> float:
@@ -149,13 +165,52 @@ class CanReceiver(can.Listener):
         finding 7), nor the echo of our own frame look foreign after a stall: the frame's age
         is taken from its timestamp and subtracted from now on the monotonic clock.
         """
+        received = msg.timestamp - self._wall_minus_mono()
         now = self.clock()
-        age = self.wall_clock() - msg.timestamp
-        if msg.timestamp > 0.0 and 0.0 <= age <= TIMESTAMP_TRUST:
-            return now - age
+        if msg.timestamp > 0.0 and 0.0 <= now - received <= TIMESTAMP_TRUST:
+            return received
         return now
 
+    def _wall_minus_mono(self) -> float:
+        """The wall clock minus :attr:`clock`, s, from the tightest of a few bracketed readings
+        (wall, monotonic, wall): a thread preempted between two clock reads must not move a
+        frame's receive time by the length of the preemption, which on a loaded machine is tens
+        of milliseconds, a report-age FAULT by itself."""
+        best, offset = math.inf, 0.0
+        for _ in range(CLOCK_READS):
+            before = self.wall_clock()
+            mono = self.clock()
+            width = self.wall_clock() - before
+            if width < best:
+                best, offset = width, before + 0.5 * width - mono
+                if width <= CLOCK_BRACKET:
+                    break
+        return offset
+
+    def _lost_in_stall(self, frame_id: int, received: float, lag: float, valid: bool) -> bool:
+        """Whether a bad-counter frame follows a receive stall (see STALL_LAG); also keeps the
+        ID's timing for the next frame. One skip per ID is excused per stall: a second bad
+        counter before a good frame (two senders taking turns, a replay) stays an error."""
+        timing = self._rx_timing.get(frame_id)
+        if timing is None:
+            self._rx_timing[frame_id] = [received, lag, 0.0, False]
+            return False
+        last, last_lag, interval, excused = timing
+        gap = received - last
+        timing[0], timing[1] = received, lag
+        if valid:
+            if gap > 0.0:  # the usual interval, from frames that arrived in turn
+                timing[2] = gap if interval == 0.0 else 0.9 * interval + 0.1 * gap
+            timing[3] = False
+            return False
+        stalled = max(lag, last_lag) > STALL_LAG and interval > 0.0 and gap > STALL_GAP * interval
+        if stalled and not excused:
+            timing[3] = True
+            return True
+        return False
+
     def on_message_received(self, msg: can.Message) -> None:
+        read = self.clock()
         now = self.received_at(msg)
         if now > self.horizon:
             self.horizon = now
@@ -185,9 +240,14 @@ class CanReceiver(can.Listener):
             self.on_frame(msg, decoded)
         values = decoded.values  # a frame may refresh several messages
         if decoded.counts_for_reports:
+            lost = (decoded.error == "bad_counter" or decoded.valid) and self._lost_in_stall(
+                msg.arbitration_id, now, read - now, decoded.valid
+            )
             with self._lock:
                 if decoded.valid:
                     self._good += 1
+                elif lost:
+                    self.stall_skips += 1
                 else:
                     self._bad += 1
         if not decoded.valid:

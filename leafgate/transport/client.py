@@ -27,7 +27,7 @@ from leafgate.messages import OperatorRequest, Pose, Trajectory
 from leafgate.transport import keys
 from leafgate.transport.payloads import Codec, codecs
 from leafgate.transport.ros2 import INPUT_QOS
-from leafgate.transport.rosnode import RosFace
+from leafgate.transport.rosnode import RosFace, sample_source
 from leafgate.transport.session import open_session, zenoh_message
 
 T = TypeVar("T")
@@ -192,24 +192,76 @@ def engage(
             time.sleep(poll)
 
 
+@dataclasses.dataclass
+class DiagnosticsWatch:
+    """What :func:`watch_diagnostics` saw besides the records it delivered."""
+
+    #: Zenoh IDs of the gateways (liveliness token holders) whose records were delivered; more
+    #: than one is a conflict: several sessions claim to be the gateway
+    gateways: set[str] = dataclasses.field(default_factory=set)
+    #: records not believed, per publisher identity (``zid:<session>/<entity>``, or
+    #: ``unidentified``): their publisher does not hold the gateway's liveliness token
+    ignored: dict[str, int] = dataclasses.field(default_factory=dict)
+
+    #: every Zenoh ID seen holding the token while watched
+    holders: set[str] = dataclasses.field(default_factory=set)
+
+    def foreign(self) -> dict[str, int]:
+        """The ignored records of publishers that never held the token while watched (a
+        gateway's records that arrived just before its token was seen are not foreign)."""
+        return {who: n for who, n in self.ignored.items() if _zid_of(who) not in self.holders}
+
+
+def _zid_of(identity: str) -> str:
+    """The Zenoh session ID of a ``zid:<session>/<entity>`` identity, "" for any other."""
+    return identity.removeprefix("zid:").partition("/")[0] if identity.startswith("zid:") else ""
+
+
 def watch_diagnostics(
     cfg: ZenohConfig,
     callback: Callable[[dict[str, Any]], None],
     duration: float,
     *,
     session: zenoh.Session | None = None,
+    watch: DiagnosticsWatch | None = None,
 ) -> int:
     """Call ``callback`` with each ``gateway/diagnostics`` object for ``duration`` seconds.
 
-    Payloads that are not JSON objects are skipped. The callback runs on a Zenoh thread.
+    Only records published by a session that holds the gateway's liveliness token
+    (``gateway/alive/<its Zenoh ID>``) are believed, as :func:`request` believes only its
+    replies: anyone may publish on the key, and a forged record would show the operator a
+    state the gateway is not in. The gateway's publisher names itself with Zenoh's source
+    info; records without it, or from another session, are skipped and counted in ``watch``,
+    as are the gateways heard (more than one: a conflict). Payloads that are not JSON objects
+    are skipped. The callback runs on a Zenoh thread.
 
     :returns: the number of diagnostics objects delivered
     """
     count = 0
     lock = threading.Lock()
+    seen = watch if watch is not None else DiagnosticsWatch()
+    holders: set[str] = set()  # Zenoh IDs holding the token now
+    base = cfg.key(keys.ALIVE) + "/"
+
+    def on_token(sample: zenoh.Sample) -> None:
+        zid = str(sample.key_expr).removeprefix(base)
+        with lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                holders.discard(zid)
+            else:
+                holders.add(zid)
+                seen.holders.add(zid)
 
     def on_sample(sample: zenoh.Sample) -> None:
         nonlocal count
+        source = sample_source(sample)
+        zid = _zid_of(source)
+        with lock:
+            believed = bool(zid) and zid in holders
+            if not believed:
+                who = source or "unidentified"
+                seen.ignored[who] = seen.ignored.get(who, 0) + 1
+                return
         try:
             data = json.loads(sample.payload.to_bytes())
         except ValueError:
@@ -217,14 +269,20 @@ def watch_diagnostics(
         if isinstance(data, dict):
             with lock:
                 count += 1
+                seen.gateways.add(zid)
             callback(data)
 
     with _session_for(cfg, session) as s:
-        subscriber = s.declare_subscriber(cfg.key(keys.DIAGNOSTICS), on_sample)
+        # The tokens first (with those already there), so the first records are judged.
+        tokens = s.liveliness().declare_subscriber(base + "*", on_token, history=True)
         try:
-            time.sleep(max(0.0, duration))
+            subscriber = s.declare_subscriber(cfg.key(keys.DIAGNOSTICS), on_sample)
+            try:
+                time.sleep(max(0.0, duration))
+            finally:
+                subscriber.undeclare()
         finally:
-            subscriber.undeclare()
+            tokens.undeclare()
     with lock:
         return count
 
@@ -241,6 +299,11 @@ class _InputPublisher(Generic[T]):
         )
         self.key = self._ros.key
         self._publisher = self._ros.publisher
+
+    @property
+    def identity(self) -> str:
+        """The publisher's identity as the gateway names it (in a second-source fault)."""
+        return self._ros.identity
 
     @property
     def matched(self) -> bool:

@@ -9,7 +9,9 @@ foreign exception out: anything wrong with a payload is a
 Conventions at this edge:
 
 - Pose is the rear-axle centre, which is Autoware's ``base_link``; heading is the yaw of the
-  orientation quaternion; speed is ``twist.linear.x`` (signed, in ``base_link``).
+  orientation quaternion; speed is ``twist.linear.x`` (signed, in ``base_link``); the x, y
+  and yaw variances are the diagonal entries 0, 7 and 35 of the pose covariance (both ways;
+  a publisher that leaves them zero says nothing about its uncertainty, and is accepted).
 - Stamps are float seconds inside; ROS time ``{sec: 0, nanosec: 0}`` means "not set" and maps
   to NaN both ways.
 - Statuses the gateway publishes have small value types here (:class:`SteeringStatus` …) with
@@ -274,9 +276,19 @@ def _vector3(x: float, y: float, z: float) -> Any:
 # --- conversions to and from the ROS objects --------------------------------------------------
 
 
+# The pose's variances in the 6×6 row-major covariance of geometry_msgs/PoseWithCovariance,
+# whose rows and columns are x, y, z, rotation about x, about y, about z (yaw).
+COVARIANCE_X, COVARIANCE_Y, COVARIANCE_YAW = 0, 7, 35
+
+
 def pose_to_odometry(pose: Pose) -> Any:
-    """Pose → nav_msgs/msg/Odometry (covariances zero: leafgate does not carry them)."""
+    """Pose → nav_msgs/msg/Odometry: the pose covariance carries the x, y and yaw variances
+    on its diagonal (zeros elsewhere, and a zero twist covariance)."""
     t = _types()
+    covariance = np.zeros(36, dtype=np.float64)
+    covariance[COVARIANCE_X] = pose.var_x
+    covariance[COVARIANCE_Y] = pose.var_y
+    covariance[COVARIANCE_YAW] = pose.var_heading
     return t[cdr.ODOMETRY](
         header=_header(pose.stamp, MAP_FRAME),
         child_frame_id=BASE_FRAME,
@@ -285,7 +297,7 @@ def pose_to_odometry(pose: Pose) -> Any:
                 position=t["geometry_msgs/msg/Point"](x=pose.x, y=pose.y, z=0.0),
                 orientation=_quaternion(pose.heading),
             ),
-            covariance=np.zeros(36, dtype=np.float64),
+            covariance=covariance,
         ),
         twist=t["geometry_msgs/msg/TwistWithCovariance"](
             twist=t["geometry_msgs/msg/Twist"](
@@ -298,10 +310,14 @@ def pose_to_odometry(pose: Pose) -> Any:
 
 
 def odometry_to_pose(msg: Any) -> Pose:
-    """nav_msgs/msg/Odometry of ``base_link`` (the rear-axle centre) → Pose."""
+    """nav_msgs/msg/Odometry of ``base_link`` (the rear-axle centre) → Pose, with the x, y and
+    yaw variances of the pose covariance (the gateway judges them)."""
     position = msg.pose.pose.position
     q = msg.pose.pose.orientation
     twist = msg.twist.twist
+    covariance = msg.pose.covariance
+    if len(covariance) != 36:
+        raise PayloadError(f"pose covariance has {len(covariance)} values, not 36")
     return Pose(
         x=float(position.x),
         y=float(position.y),
@@ -309,6 +325,9 @@ def odometry_to_pose(msg: Any) -> Pose:
         speed=float(twist.linear.x),
         yaw_rate=float(twist.angular.z),
         stamp=from_ros_time(msg.header.stamp),
+        var_x=float(covariance[COVARIANCE_X]),
+        var_y=float(covariance[COVARIANCE_Y]),
+        var_heading=float(covariance[COVARIANCE_YAW]),
     )
 
 

@@ -36,21 +36,55 @@ class RosPublisher:
         self._wall = wall
         self._sequence = itertools.count(1)
         self._lock = threading.Lock()
+        self._id = publisher.id  # Zenoh's global ID of the publisher (session ID, entity ID)
 
     def put(self, payload: bytes) -> None:
-        """Publish ``payload`` (with rmw_zenoh's attachment when in that mode)."""
-        if self._gid is None:
-            self.publisher.put(payload)
-            return
+        """Publish ``payload`` with the publisher's identity: rmw_zenoh's attachment (GID,
+        sequence number, source time) in that mode, else Zenoh's source info (the publisher's
+        entity ID and a sequence number), so a subscriber can tell publishers apart
+        (:func:`sample_source`)."""
         with self._lock:  # sequence numbers in publication order
             sequence = next(self._sequence)
+            if self._gid is None:
+                self.publisher.put(payload, source_info=zenoh.SourceInfo(self._id, sequence))
+                return
             self.publisher.put(
                 payload,
                 attachment=ros2.attachment(sequence, round(self._wall() * 1e9), self._gid),
             )
 
+    @property
+    def identity(self) -> str:
+        """What :func:`sample_source` makes of this publisher's samples."""
+        return "gid:" + self._gid.hex() if self._gid is not None else _zenoh_identity(self._id)
+
     def undeclare(self) -> None:
         self.publisher.undeclare()
+
+
+def sample_source(sample: zenoh.Sample) -> str:
+    """The identity of a sample's publisher, ``""`` when the sample carries none.
+
+    ``gid:<hex>`` from an rmw_zenoh attachment (the publisher's GID, ros2/rmw_zenoh
+    ``docs/design.md``), else ``zid:<session>/<entity>`` from Zenoh's source info, which
+    leafgate's own publishers set (:meth:`RosPublisher.put`). Publishers that send neither (a
+    plain ``put``, zenoh-bridge-ros2dds) cannot be told apart: the identity is self-declared,
+    so it names a second publisher that does not hide, not one that forges another's.
+    """
+    attachment = sample.attachment
+    if attachment is not None:
+        try:
+            _, _, gid = ros2.parse_attachment(attachment.to_bytes())
+        except TransportError:
+            pass  # someone else's attachment: fall through to the source info
+        else:
+            return "gid:" + gid.hex()
+    info = getattr(sample, "source_info", None)  # unstable in zenoh-python: may be absent
+    return "" if info is None else _zenoh_identity(info.source_id)
+
+
+def _zenoh_identity(entity: zenoh.EntityGlobalId) -> str:
+    return f"zid:{entity.zid}/{entity.eid}"
 
 
 class RosFace:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import random
 import re
@@ -31,7 +32,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +253,100 @@ def rest_time(rows: np.ndarray, after: float) -> float | None:
         return float(mono[later][0])
     last = int(moving[-1])
     return float(mono[last + 1]) if last + 1 < len(mono) else None
+
+
+TRUE_STATE_WINDOW = 0.06  # s back from a command frame in which the plant's state may be taken
+# slack on every bound: a few quantisation steps of the command signals
+LIMIT_TOLERANCE = {"angle": 1e-3, "long": 1e-2}  # rad; m/s² and m/s
+
+
+@dataclass
+class TrueStateJudgement:
+    """The gateway's command frames on the bus judged against the plant's true state."""
+
+    checked: int = 0  # ENABLE=1 command frames judged
+    outside: int = 0  # … outside the safety limits at every true state of their window
+    examples: list[str] = field(default_factory=list)  # the first few, described
+
+
+def judge_commands_on_true_state(
+    frames: Sequence[tuple[float, can.Message]],
+    excluded: Counter[tuple[int, bytes]],
+    rows: np.ndarray,
+    config: Path,
+) -> TrueStateJudgement:
+    """Every ENABLE=1 command frame the gateway sent, against the safety gate's limits at the
+    plant's TRUE speed and road-wheel angle (the ECU's trace), not at the reports' values.
+
+    The gate limits each command against the one before (rates, jerk) and the measured speed
+    (speed-dependent steering rate, lateral acceleration, direction); an ENABLE=1 steering
+    command after ENABLE=0 is judged from the true wheel angle (a forged angle report must not
+    seed it). Reports lag the plant by up to a report period, so a frame counts as outside only
+    when it breaks a limit at every trace sample within ``TRUE_STATE_WINDOW`` before it (and at
+    the state interpolated at its time). Frames the test sent itself (``excluded``) are skipped.
+    """
+    from leafgate.gateway.safety import Measured, SafetyLimits, check
+    from leafgate.messages import Gear, LongCommand, SteerCommand
+    from leafgate.replay.check import LONG_KINDS, STEER_KINDS
+    from leafgate.settings import load_config
+
+    cfg = load_config(str(config))
+    limits = SafetyLimits.from_config(cfg.gateway.safety, cfg.vehicle, cfg.gateway.period)
+    codec = CanCodec.for_config(cfg)
+    mono, speed, angle = rows[:, 6], rows[:, 4], rows[:, 5]
+    skip = Counter(excluded)
+    out = TrueStateJudgement()
+    last_steer, last_long = SteerCommand(angle=0.0), LongCommand()
+    last_time: dict[int, float] = {}
+    gear = Gear.NONE
+    for t, msg in frames:
+        key = frame_key(msg)
+        if skip[key] > 0:
+            skip[key] -= 1
+            continue
+        decoded = codec.decode(msg)
+        if isinstance(decoded.value, LongReport):
+            gear = decoded.value.gear
+        if msg.arbitration_id not in COMMAND_IDS:
+            continue
+        elapsed = t - last_time.get(msg.arbitration_id, -math.inf)
+        last_time[msg.arbitration_id] = t
+        for value in decoded.values:
+            if not isinstance(value, (SteerCommand, LongCommand)):
+                continue
+            previous = last_steer if isinstance(value, SteerCommand) else last_long
+            if isinstance(value, SteerCommand):
+                last_steer = value
+            else:
+                last_long = value
+            if not value.enable:
+                continue
+            inside = (mono >= t - TRUE_STATE_WINDOW) & (mono <= t)
+            if not inside.any() or t > mono[-1]:
+                continue  # no plant state known for this frame
+            at = float(np.interp(t, mono, speed)), float(np.interp(t, mono, angle))
+            states = [at, *zip(speed[inside].tolist(), angle[inside].tolist(), strict=True)]
+            lim = limits if not elapsed > 1.5 * limits.period else replace(limits, period=elapsed)
+            steer = isinstance(value, SteerCommand)
+            kinds = STEER_KINDS if steer else LONG_KINDS
+            found: list[str] = []
+            for v, a in states:
+                if steer:
+                    last = previous if previous.enable else SteerCommand(angle=a)
+                    args = (value, last_long, last, last_long)
+                else:
+                    args = (last_steer, value, last_steer, previous)
+                tol = LIMIT_TOLERANCE["angle" if steer else "long"]
+                broken = [x for x in check(*args, Measured(v, gear), lim, tol) if x.kind in kinds]
+                if not broken:
+                    break
+                found = [f"{x.kind} {x.value:.4f} beyond {x.bound:.4f}" for x in broken]
+            else:
+                out.outside += 1
+                if len(out.examples) < 5:
+                    out.examples.append(f"t={t:.3f} 0x{msg.arbitration_id:03X}: {'; '.join(found)}")
+            out.checked += 1
+    return out
 
 
 def transitions(session: Path) -> list[dict[str, Any]]:
@@ -600,6 +695,11 @@ class FaultRun:
         missing_session = (
             sum((on_bus - recorded_commands([session])).values()) if session.exists() else None
         )
+        judged = (
+            judge_commands_on_true_state(self.sniffer.snapshot(), self.excluded, rows, self.config)
+            if self.sniffer is not None
+            else None
+        )
         state = status.get("state") if status else None
         reason = (status or {}).get("reason", "")
         detected = reaction is not None
@@ -614,6 +714,15 @@ class FaultRun:
             frames_missing_session=missing_session,
             extra={
                 **({"startup_resets": self.startup_resets} if self.startup_resets else {}),
+                **(
+                    {
+                        "commands_checked": judged.checked,
+                        "commands_outside_limits": judged.outside,
+                        **({"outside_examples": judged.examples} if judged.examples else {}),
+                    }
+                    if judged is not None
+                    else {}
+                ),
                 **(extra or {}),
             },
         )

@@ -5,6 +5,7 @@ frames, ``sim-ecu``'s injections, the session fields, truncated text logs and th
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 import math
@@ -489,3 +490,38 @@ def test_fault_table_prints_the_last_outcome_of_each_fault(tmp_path: Path) -> No
     assert out[2].startswith("| b | no | – |") and "| 3 |" in out[2]
     assert out[3].startswith("| a | yes | STANDBY | z | – | 1.500 |")
     assert len(out) == 4
+
+
+# --- commands judged against the plant's true state (issue 17's goal) ---------------------------
+
+
+def _true_state_rows(speed: float, angle: float, until: float) -> np.ndarray:
+    """A plant trace (t, x, y, heading, speed, steer_angle, mono) every 20 ms up to ``until``."""
+    mono = np.arange(0.0, until + 1e-9, 0.02)
+    rows = np.zeros((len(mono), 7))
+    rows[:, 4], rows[:, 5], rows[:, 6] = speed, angle, mono
+    return rows
+
+
+@pytest.mark.parametrize(
+    "first_deg, outside",
+    [(0.2, 0), (30.3, 1)],  # 30.3°: the first command seeded from a forged 40° report
+)
+def test_commands_are_judged_against_the_true_wheel_angle(
+    tmp_path: Path, first_deg: float, outside: int
+) -> None:
+    from harness import judge_commands_on_true_state, write_config
+
+    config = tmp_path / "sim.yaml"
+    write_config(config, tmp_path / "rec")
+    codec = CanCodec(profile="leafgate-dbw")
+    frames: list[tuple[float, can.Message]] = []
+    for k, enable in enumerate((False, True, True)):
+        angle = math.radians(first_deg) if enable else 0.0
+        t = 0.5 + k * PERIOD
+        frames.append((t, codec.encode(SteerCommand(angle=angle, enable=enable))))
+        frames.append((t + 1e-4, codec.encode(LongCommand(enable=enable))))
+    rows = _true_state_rows(0.0, 0.0, 2.0)  # the wheel truly stands at 0°
+    judged = judge_commands_on_true_state(frames, collections.Counter(), rows, config)
+    assert judged.checked == 4  # two steering and two longitudinal ENABLE=1 frames
+    assert judged.outside == outside, judged.examples
