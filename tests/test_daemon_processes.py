@@ -57,7 +57,7 @@ def sim_config(tmp_path: Path, profile: str) -> Path:
     # failure worth stopping this test for. The thresholds themselves are tested in
     # test_watchdog.py; this test is about tracking and the protocol across processes.
     # Likewise a 30 ms report gap or three late ticks in a row (10 ms ones for leaf-ze1-lkas)
-    # while four processes start on two cores; tests/faults/ keeps DESIGN's values where a
+    # while four processes start on two cores; tests/faults/ keeps docs/watchdogs.md's where a
     # test is about that watchdog.
     cfg["gateway"]["watchdog"].update(
         {

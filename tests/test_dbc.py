@@ -1,4 +1,4 @@
-"""The DBC files are the contract of DESIGN.md, section CAN."""
+"""The DBC files are the contract of docs/can-protocol.md."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from cantools.database.can import Database
 from leafgate.config import VehicleConfig
 from leafgate.messages import EcuState, GatewayState, Gear, LongMode
 
-# DESIGN.md frame table: ID → (name, sender, period in ms)
+# docs/can-protocol.md frame table: ID → (name, sender, period in ms)
 DESIGN_FRAMES = {
     0x0A0: ("DBW_STEER_CMD", "GATEWAY", 20),
     0x0A1: ("DBW_LONG_CMD", "GATEWAY", 20),

@@ -1,4 +1,4 @@
-"""Every row of DESIGN's watchdog table: the watchdog alone, then its reaction in the gateway —
+"""Rows of docs/watchdogs.md's watchdog table: the watchdog alone, then its reaction in the gateway —
 input withheld, late or corrupted → the stated reaction within one control period of the
 threshold."""
 

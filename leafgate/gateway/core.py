@@ -14,7 +14,7 @@ with the latest inputs and their receive times, and send what it returns. One ti
    (:mod:`leafgate.gateway.safety`) last;
 5. DBW_SYSTEM_CMD is added when due (every 100 ms of ``now``, and at once on a reset).
 
-Decisions that go beyond DESIGN's tables (documented here so the tests can hold them):
+Decisions behind the tables of docs/watchdogs.md and docs/state-machine.md (the tests hold them):
 
 - Staleness of localization and ECU reports acts only while the gateway drives (ENGAGED or
   STOPPING); in STANDBY it only refuses an engage, so a gateway started before its inputs does

@@ -2,7 +2,7 @@
 
 Each watchdog is a small class fed with the latest input slot (and the gateway's ``now``) once
 per tick and answering a :class:`Check`: how old the last valid sample is, its status, and the
-reaction DESIGN's watchdog table asks for while the gateway is engaged or stopping.
+reaction the table of docs/watchdogs.md asks for while the gateway is engaged or stopping.
 
 =============================  ======================================  ===========
 watchdog                       threshold (``WatchdogConfig``)          reaction
