@@ -7,16 +7,10 @@ runs (and a daemon on the defaults) never meet.
 from __future__ import annotations
 
 import random
-import socket
 
 import can
 
-
-def free_port(kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
-    """A loopback port the kernel has just handed out (TCP by default, ``SOCK_DGRAM`` for UDP)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tools._common import free_port  # one copy for the tests and the tools
 
 
 def private_group() -> str:

@@ -67,6 +67,7 @@ import can
 import numpy as np
 import yaml
 import zenoh
+from _common import StubSession
 
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded, EncodableMessage
@@ -554,52 +555,6 @@ class CanReceiverTarget(CanCodecTarget):
 
 
 # --- Zenoh ------------------------------------------------------------------------------------
-
-
-class _StubEntity:
-    def undeclare(self) -> None:
-        pass
-
-    def put(self, payload: bytes) -> None:
-        pass
-
-
-class StubSession:
-    """Enough of ``zenoh.Session`` for :class:`GatewayTransport` to declare itself on.
-
-    Keeps the subscriber callbacks so that samples can be fed to them directly: the decode
-    path is exactly the daemon's, without a network between.
-    """
-
-    def __init__(self) -> None:
-        self.subscribers: dict[str, Callable[[Any], None]] = {}
-
-    def declare_subscriber(self, key: str, callback: Callable[[Any], None]) -> _StubEntity:
-        self.subscribers[key] = callback
-        return _StubEntity()
-
-    def declare_queryable(self, key: str, callback: Any, **kwargs: Any) -> _StubEntity:
-        return _StubEntity()
-
-    def zid(self) -> str:
-        return "0123456789abcdef0123456789abcdef"  # a Zenoh session id, for the ROS tokens
-
-    def declare_publisher(self, key: str, **kwargs: Any) -> _StubEntity:
-        return _StubEntity()
-
-    def liveliness(self) -> StubSession:
-        return self
-
-    @property
-    def info(self) -> Any:
-        """The session's identity (the gateway names its liveliness token after it)."""
-        return SimpleNamespace(zid=lambda: "0")
-
-    def declare_token(self, key: str) -> _StubEntity:
-        return _StubEntity()
-
-    def close(self) -> None:
-        pass
 
 
 def stub_transport(encoding: str) -> tuple[GatewayTransport, StubSession]:
