@@ -4,8 +4,10 @@
 
 from __future__ import annotations
 
+import re
 import socket
 from collections.abc import Callable
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -64,3 +66,45 @@ class StubSession:
 
     def close(self) -> None:
         pass
+
+
+# --- file error messages ----------------------------------------------------------------------
+
+#: a file error's place in the file
+LOCATION = re.compile(r"\b(row \d+|line \d+)\b")
+#: whole-file problems of a trajectory file: the file is named, no row or line applies
+TRAJECTORY_FILE_LEVEL = (
+    "empty file",
+    "no header",
+    "missing column",
+    "unknown column",
+    "a column is given twice",
+    "waypoint(s), at least",
+    "the lists differ in length",
+    "expected a list of waypoints",
+    ": expected a list of numbers",
+    "unknown trajectory format",
+)
+
+
+def after_file(message: str, path: Path) -> str:
+    """What a file error says after ``"{path}: "``.
+
+    :raises ValueError: the message is not one line starting with the file, saying why
+    """
+    if "\n" in message:
+        raise ValueError(f"multi-line message: {message!r}")
+    prefix = f"{path}: "
+    if not message.startswith(prefix):
+        raise ValueError(f"message does not start with the file: {message!r}")
+    return message[len(prefix) :]
+
+
+def names_trajectory_place(rest: str) -> bool:
+    """A trajectory file error (after the file name) names its row or line, or is about the
+    whole file, or about one key of the YAML mapping."""
+    return bool(
+        LOCATION.search(rest)
+        or any(text in rest for text in TRAJECTORY_FILE_LEVEL)
+        or re.match(r"(x|y|heading|speed): expected a list", rest)
+    )

@@ -49,7 +49,6 @@ Exit status: 0 when there is no finding, 1 otherwise.
 from __future__ import annotations
 
 import functools
-import json
 import math
 import sys
 import time
@@ -76,6 +75,7 @@ from leafgate.messages import (
     WheelSpeeds,
 )
 from leafgate.record.logs import FrameSource, is_end_marker, recording_context
+from leafgate.replay.report import write_report
 from leafgate.settings import LeafgateConfig
 
 __all__ = ["CheckReport", "Finding", "IdStats", "check_frames", "check_log", "main_check"]
@@ -900,10 +900,5 @@ def main_check(
             f"leafgate: warning: {log}: timestamps go backwards at {report.backwards} frames "
             f"(by up to {report.worst_backwards * 1e3:.1f} ms)\n"
         )
-    if as_json:
-        json.dump(report.to_dict(), out, indent=2)
-        out.write("\n")
-    else:
-        for line in report.format():
-            out.write(line + "\n")
+    write_report(report, as_json, out)
     return 0 if report.ok else 1
