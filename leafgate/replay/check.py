@@ -343,17 +343,17 @@ class _CommandCheck:
         elif engaged:
             self.checked += 1
 
-    def _limits(self, elapsed: float) -> tuple[SafetyLimits, bool]:
-        """The limits after ``elapsed`` s, and whether the rates can be checked at all: not on
-        the first command of a log, nor after a gap, where the previous command is missing."""
+    def _limits(self, elapsed: float) -> SafetyLimits:
+        """The limits after ``elapsed`` s; the envelope alone when the rates cannot be checked
+        (counted): on the first command of a log, or after a gap, the previous one is missing."""
         if not elapsed <= self.gap:
             self.not_checkable["rates_unknown"] += 1
-            return _envelope(self.limits), False
-        return _over(self.limits, elapsed), True
+            return _envelope(self.limits)
+        return _over(self.limits, elapsed)
 
     def _steer(self, t: float, frame_id: int, name: str, value: SteerCommand) -> SteerCommand:
         measured = _measured(self.long_report, self.limits)
-        lim, _ = self._limits(t - self.steer_time)
+        lim = self._limits(t - self.steer_time)
         args = (self.last_long, self.last_steer, self.last_long, measured, lim)
         found = _violations(value, *args, self.angle_tol, STEER_KINDS)
         self._add(t, frame_id, name, found)
@@ -361,7 +361,7 @@ class _CommandCheck:
 
     def _long(self, t: float, frame_id: int, name: str, value: LongCommand) -> LongCommand:
         measured = _measured(self.long_report, self.limits)
-        lim, _ = self._limits(t - self.long_time)
+        lim = self._limits(t - self.long_time)
         found = _violations(
             self.last_steer,
             value,
