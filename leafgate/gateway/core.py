@@ -138,11 +138,7 @@ class EngagePhase(enum.Enum):
 
 
 class ControllerFigures(NamedTuple):
-    """The controller's figures of one tick (from :class:`~leafgate.messages.ControlOutput`).
-
-    A named tuple rather than a frozen dataclass: one is built every tick the controller runs,
-    and a tuple is built in a fraction of the time.
-    """
+    """The controller's figures of one tick (from :class:`~leafgate.messages.ControlOutput`)."""
 
     converged: bool
     iterations: int
@@ -232,7 +228,7 @@ class StepResult:
 
 
 def _finite_output(out: ControlOutput) -> bool:
-    isfinite = math.isfinite  # chained, not all(<generator>): once per tick
+    isfinite = math.isfinite
     return isfinite(out.steer_angle) and isfinite(out.accel) and isfinite(out.speed)
 
 

@@ -71,11 +71,7 @@ class Reaction(enum.IntEnum):
 
 
 class Check(NamedTuple):
-    """The verdict of one watchdog for one tick.
-
-    A named tuple rather than a frozen dataclass: several are built every tick, and a tuple is
-    built in a third of the time. Immutable all the same, so a verdict can be shared.
-    """
+    """The verdict of one watchdog for one tick (immutable, so a verdict can be shared)."""
 
     name: str
     status: Status
@@ -108,9 +104,7 @@ def freshness(age: float | None, stale_after: float, lost_after: float) -> Statu
 
 def pose_is_valid(pose: Pose) -> bool:
     """A pose is usable when position, heading and speed are finite."""
-    # Chained rather than all(<generator>): this runs on every pose, every tick.
-    isfinite = math.isfinite
-    return isfinite(pose.x) and isfinite(pose.y) and isfinite(pose.heading) and isfinite(pose.speed)
+    return all(math.isfinite(v) for v in (pose.x, pose.y, pose.heading, pose.speed))
 
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:
@@ -421,7 +415,6 @@ class ErrorCounter:
     def __init__(self, threshold: int) -> None:
         self.threshold = threshold
         self.count = 0
-        self._ok: Check | None = None  # the last OK verdict, reused while the count is unchanged
 
     def update(self, good: int, bad: int, cause: str = "") -> Check:
         """Count this tick's good and bad report frames.
@@ -441,13 +434,7 @@ class ErrorCounter:
                 + (f": {cause}" if cause else ""),
                 peak,
             )
-        # Checks are frozen, so an unchanged verdict can be shared between ticks (saves building
-        # one per tick on the common path: no errors).
-        if self._ok is None or self._ok.value != self.count:
-            self._ok = Check(
-                self.name, Status.OK, None, self.threshold, Reaction.NONE, "", self.count
-            )
-        return self._ok
+        return Check(self.name, Status.OK, None, self.threshold, Reaction.NONE, "", self.count)
 
 
 class OverrunWatchdog:
@@ -460,7 +447,6 @@ class OverrunWatchdog:
         self.limit = limit
         self.stall_limit = stall_limit  # s
         self.in_row = 0
-        self._ok: Check | None = None  # the last OK verdict, reused while in_row is unchanged
 
     def update(self, overrun: bool, lateness: float = 0.0) -> Check:
         """Count this tick (``overrun``: it started late, by ``lateness`` s)."""
@@ -485,9 +471,7 @@ class OverrunWatchdog:
                 f"control loop overran {self.in_row} ticks in a row",
                 self.in_row,
             )
-        if self._ok is None or self._ok.value != self.in_row:  # shared like ErrorCounter's
-            self._ok = Check(self.name, Status.OK, None, self.limit, Reaction.NONE, "", self.in_row)
-        return self._ok
+        return Check(self.name, Status.OK, None, self.limit, Reaction.NONE, "", self.in_row)
 
 
 def override_active(
@@ -526,7 +510,6 @@ CHECK_ORDER: tuple[str, ...] = (
     "overrun",
     "progress",  # judged after the controller ran (ProgressWatchdog), not by Watchdogs.update
 )
-_CHECK_INDEX = {name: i for i, name in enumerate(CHECK_ORDER)}
 
 
 @dataclass(frozen=True)
@@ -545,10 +528,6 @@ class WatchdogReport:
 
         :raises KeyError: no such watchdog
         """
-        # Called several times per tick: try the slot Watchdogs.update puts it in first.
-        i = _CHECK_INDEX.get(name)
-        if i is not None and i < len(self.checks) and self.checks[i].name == name:
-            return self.checks[i]
         for c in self.checks:
             if c.name == name:
                 return c
@@ -556,7 +535,7 @@ class WatchdogReport:
 
     def failing(self, at_least: Reaction) -> tuple[Check, ...]:
         """The checks asking for ``at_least`` this severe a reaction."""
-        return tuple([c for c in self.checks if c.reaction >= at_least])  # list: no generator
+        return tuple(c for c in self.checks if c.reaction >= at_least)
 
 
 class Watchdogs:
