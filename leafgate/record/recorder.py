@@ -427,7 +427,6 @@ class CanLogRecorder(_FileRecorder):
         self.one_bus = one_bus
         self.reorder_window = reorder_window
         self.files: list[Path] = []
-        self.frames = 0
         self.late = 0  # frames that arrived after the reorder window (written re-stamped)
         self._pending: list[tuple[float, int, can.Message]] = []  # a heap, by timestamp
         self._arrivals = 0
@@ -519,7 +518,6 @@ class CanLogRecorder(_FileRecorder):
         if self._writer is None:
             raise OSError(0, "no open log file")
         self._writer.on_message_received(msg)
-        self.frames += 1
         self._since_check += 1
         if self.max_bytes and self._since_check >= _ROTATE_CHECK_EVERY:
             self._since_check = 0
