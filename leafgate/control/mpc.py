@@ -262,7 +262,7 @@ class MpcController:
         if path is None or prog is None:
             return self._hold(f"bad-trajectory: {self._bad_trajectory}", 1, t0)
         seg = prog.segment
-        isfinite = math.isfinite
+        isfinite = math.isfinite  # a chain of calls: no generator on the hot path
         if not (
             isfinite(pose.x)
             and isfinite(pose.y)

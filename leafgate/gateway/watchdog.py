@@ -104,7 +104,9 @@ def freshness(age: float | None, stale_after: float, lost_after: float) -> Statu
 
 def pose_is_valid(pose: Pose) -> bool:
     """A pose is usable when position, heading and speed are finite."""
-    return all(math.isfinite(v) for v in (pose.x, pose.y, pose.heading, pose.speed))
+    # Chained rather than all(<generator>): this runs on every pose, every tick.
+    isfinite = math.isfinite
+    return isfinite(pose.x) and isfinite(pose.y) and isfinite(pose.heading) and isfinite(pose.speed)
 
 
 def trajectory_is_valid(trajectory: Trajectory) -> bool:

@@ -52,7 +52,7 @@ import functools
 import math
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Final, TextIO
@@ -396,13 +396,12 @@ class _Scan:
         template: CanCodec,
         commands: _CommandCheck,
         judge: _ReportJudge,
-        dbw_dbc: str | None,
-        car_dbc: str | None,
+        new_codec: Callable[[], CanCodec],
     ) -> None:
         self.template = template
         self.commands = commands
         self.judge = judge
-        self._dbcs = (dbw_dbc, car_dbc)
+        self._new_codec = new_codec  # a codec like the template, for a further channel
         self.command_ids = template.receive_ids("commands")
         self.codecs: dict[object, CanCodec] = {}  # one per recorded channel
         self.times: dict[int, list[float]] = {}
@@ -460,10 +459,7 @@ class _Scan:
     def _codec(self, channel: object) -> CanCodec:
         codec = self.codecs.get(channel)
         if codec is None:
-            template = self.template
-            codec = self.codecs[channel] = (
-                template if not self.codecs else CanCodec(*self._dbcs, template.profile)
-            )
+            codec = self.codecs[channel] = self.template if not self.codecs else self._new_codec()
         return codec
 
     def _e2e(self, index: int, t: float, frame_id: int, name: str, error: str) -> None:
@@ -517,7 +513,8 @@ def check_frames(
     angle_tol, long_tol = _tolerances(template)
     command_gap = gap_periods * template.profile.command_period
     commands = _CommandCheck(limits, angle_tol, long_tol, command_gap)
-    scan = _Scan(template, commands, _ReportJudge(vehicle or VehicleConfig()), dbw_dbc, car_dbc)
+    judge = _ReportJudge(vehicle or VehicleConfig())
+    scan = _Scan(template, commands, judge, lambda: CanCodec(dbw_dbc, car_dbc, template.profile))
     take = scan.take
     for msg in frames:
         take(msg)
@@ -525,7 +522,8 @@ def check_frames(
             progress.update(scan.frames)
     if progress is not None:
         progress.done()
-    ids, findings = _findings(scan, gap_periods, require_end)
+    merged, names = scan.stats()
+    ids, findings = _findings(scan, merged, names, gap_periods, require_end)
     return CheckReport(
         path=path,
         profile=template.profile.name,
@@ -544,10 +542,13 @@ def check_frames(
 
 
 def _findings(
-    scan: _Scan, gap_periods: float, require_end: bool
+    scan: _Scan,
+    merged: dict[int, FrameStats],
+    names: dict[int, str | None],
+    gap_periods: float,
+    require_end: bool,
 ) -> tuple[list[IdStats], list[Finding]]:
     """The per-ID statistics and every finding of a finished scan, in time order."""
-    merged, names = scan.stats()
     skips = {
         (frame_id, index) for index, _, frame_id, _, error in scan.e2e if error == "bad_counter"
     }
