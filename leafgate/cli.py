@@ -19,6 +19,7 @@ from typing import Any
 
 try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line, as later
     from leafgate import __version__
+    from leafgate.cliargs import add_gap_periods, add_overrides, add_profile_options
     from leafgate.config import parse_overrides
     from leafgate.errors import ConfigError, LeafgateError
     from leafgate.journal import setup_logging
@@ -587,10 +588,6 @@ def _sim_key_file(cfg: LeafgateConfig, directory: Path) -> LeafgateConfig:
 # --- the command line -------------------------------------------------------------------------
 
 
-PROFILE_HELP = (
-    "vehicle profile NAME (leafgate-dbw, leafgate-dbw-auth, sze-hlc, leaf-ze1-lkas) or FILE; "
-    "default: the --config's, or the one a session recorded"
-)
 KEY_FILE_HELP = (
     "key file verifying authenticated frames (leafgate-dbw-auth); default: the --config's "
     "can.auth_key_file; without a key their MACs are reported as not verified"
@@ -651,13 +648,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="X,Y,HEADING_DEG",
         help="start pose for --trajectory, at rest (default: the first waypoint)",
     )
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override, e.g. controller.mpc.weight_lateral=10 (repeatable)",
-    )
+    add_overrides(p)
     p.add_argument(
         "--rolling-window",
         type=float,
@@ -806,12 +797,9 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap); a rotated log's parts",
     )
-    r.add_argument("--config", help="the deployment config whose limits and profile apply")
-    r.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
+    add_profile_options(r, "the deployment config whose limits and profile apply")
     r.add_argument("--json", action="store_true", help="machine-readable report")
-    r.add_argument(
-        "--gap-periods", type=float, default=3.0, help="a gap is this many periods of silence"
-    )
+    add_gap_periods(r)
     r.add_argument("--key-file", metavar="FILE", help=KEY_FILE_HELP)
     r = rsub.add_parser(
         "play",
@@ -822,19 +810,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_play_arguments(r)
     r = rsub.add_parser("rerun", help="re-run a recorded session through Gateway.step and compare")
     r.add_argument("session", help="session .mcap")
-    r.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override, e.g. controller.mpc.weight_lateral=10",
-    )
+    add_overrides(r)
     r.add_argument("--json", action="store_true")
     r = rsub.add_parser("plot", help="path, steering and speed plots of a recorded drive")
     r.add_argument("log", help="CAN log or session .mcap")
     r.add_argument("--out", required=True, help="output directory")
-    r.add_argument("--config", help="the deployment config naming the vehicle profile")
-    r.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
+    add_profile_options(r, "the deployment config naming the vehicle profile")
     p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("check-config", help="load and check a config file")
@@ -858,8 +839,7 @@ def build_parser() -> argparse.ArgumentParser:
         "decode", help="decode a CAN log (.log/.asc/.blf/.trc/.csv) with the leafgate DBCs"
     )
     p.add_argument("log")
-    p.add_argument("--config", help="the deployment config naming the vehicle profile and DBCs")
-    p.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
+    add_profile_options(p, "the deployment config naming the vehicle profile and DBCs")
     p.add_argument("--no-summary", action="store_true")
     p.add_argument("--key-file", metavar="FILE", help=KEY_FILE_HELP)
     p.set_defaults(func=cmd_decode)

@@ -36,7 +36,7 @@ class LongMode(enum.IntEnum):
 
 
 class GatewayState(enum.IntEnum):
-    """Engagement state of the gateway (DESIGN, "Engagement")."""
+    """Engagement state of the gateway (docs/state-machine.md)."""
 
     STANDBY = 0
     ENGAGED = 1

@@ -6,17 +6,32 @@ runs (and a daemon on the defaults) never meet.
 
 from __future__ import annotations
 
+import json
 import random
-import socket
+from collections.abc import Iterator
+from importlib import resources
+from typing import TYPE_CHECKING
 
 import can
+import pytest
+
+from tools._common import free_port  # one copy for the tests and the tools
+
+if TYPE_CHECKING:
+    from cantools.database.can import Database
 
 
-def free_port(kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
-    """A loopback port the kernel has just handed out (TCP by default, ``SOCK_DGRAM`` for UDP)."""
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+#: Watchdog thresholds relaxed for tests that run several processes on two shared cores, where a
+#: scheduling stall is not the failure the test is about. The defaults are tested in
+#: test_watchdog.py, and tests/faults/ keeps them where a test is about that watchdog.
+RELAXED_WATCHDOG = {
+    "localization_stop_age": 0.3,
+    "localization_fault_age": 1.0,
+    "report_timeout_periods": 10,
+    "max_overruns": 25,
+    "max_stall_periods": 25.0,
+    "max_receive_lag": 1.0,
+}
 
 
 def private_group() -> str:
@@ -34,3 +49,31 @@ def udp_multicast_works() -> bool:
         return False
     bus.shutdown()
     return True
+
+
+def packaged_dbc(name: str) -> Database:
+    """A DBC file shipped in the package (``leafgate/data/dbc``), loaded strictly by cantools
+    itself, not through leafgate's codec."""
+    import cantools
+    from cantools.database.can import Database
+
+    text = (resources.files("leafgate") / "data/dbc" / name).read_text(encoding="utf-8")
+    db = cantools.database.load_string(text, database_format="dbc", strict=True)
+    assert isinstance(db, Database)
+    return db
+
+
+@pytest.fixture
+def router() -> Iterator[str]:
+    """A Zenoh router on a free loopback port (what ``rmw_zenohd`` is to ROS 2 nodes): its
+    endpoint, for the sessions that connect to it."""
+    import zenoh
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = zenoh.Config()
+    config.insert_json5("mode", '"router"')
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    yield endpoint
+    session.close()

@@ -8,7 +8,6 @@ import json
 import os
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ import pytest
 from leafgate.batch.results import read_table
 from leafgate.cli import main
 from leafgate.sim.runner import WALL_CLOCK_METRICS
+from tests.conftest import free_port
 
 pytestmark = pytest.mark.slow
 
@@ -38,12 +38,6 @@ disturbances:
   sim.plant.steer_bias_deg: [-0.5, 0.5]
   sim.start_heading_offset: [-0.05, 0.05]
 """
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def comparable(row: dict[str, Any]) -> dict[str, Any]:

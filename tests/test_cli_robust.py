@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from leafgate.cli import OUTPUT_FILES, OUTPUT_FOLDERS, build_parser
+from tests.conftest import free_port
 
 pytestmark = pytest.mark.slow
 
@@ -37,21 +38,13 @@ def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     tmp = tmp_path_factory.mktemp("robust")
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
-    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{_free_port()}"]
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
     cfg["can"]["dbw"]["channel"] = f"239.74.{random.randint(164, 250)}.{random.randint(1, 250)}"
-    cfg["can"]["dbw"]["kwargs"] = {"port": _free_port()}
+    cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
     (tmp / "sim.yaml").write_text(yaml.safe_dump(cfg))
     subprocess.run(
         [*CLI, "sim", "--record", str(tmp / "rec"), "--no-plots", "--out", str(tmp / "o")],

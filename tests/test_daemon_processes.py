@@ -28,7 +28,7 @@ from leafgate.can.codec import CanCodec
 from leafgate.messages import EcuState, SteerCommand, SystemReport
 from leafgate.sim.metrics import tracking_metrics
 from leafgate.sim.scenarios import get_scenario
-from tests.conftest import free_port, udp_multicast_works
+from tests.conftest import RELAXED_WATCHDOG, free_port, udp_multicast_works
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "leafgate.cli"]
@@ -57,18 +57,9 @@ def sim_config(tmp_path: Path, profile: str) -> Path:
     # failure worth stopping this test for. The thresholds themselves are tested in
     # test_watchdog.py; this test is about tracking and the protocol across processes.
     # Likewise a 30 ms report gap or three late ticks in a row (10 ms ones for leaf-ze1-lkas)
-    # while four processes start on two cores; tests/faults/ keeps DESIGN's values where a
+    # while four processes start on two cores; tests/faults/ keeps docs/watchdogs.md's where a
     # test is about that watchdog.
-    cfg["gateway"]["watchdog"].update(
-        {
-            "localization_stop_age": 0.3,
-            "localization_fault_age": 1.0,
-            "report_timeout_periods": 10,
-            "max_overruns": 25,
-            "max_stall_periods": 25.0,
-            "max_receive_lag": 1.0,
-        }
-    )
+    cfg["gateway"]["watchdog"].update(RELAXED_WATCHDOG)
     path = tmp_path / "sim.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

@@ -1,18 +1,17 @@
-"""The DBC files are the contract of DESIGN.md, section CAN."""
+"""The DBC files are the contract of docs/can-protocol.md."""
 
 from __future__ import annotations
 
 import enum
-from importlib import resources
 
-import cantools
 import pytest
 from cantools.database.can import Database
 
 from leafgate.config import VehicleConfig
 from leafgate.messages import EcuState, GatewayState, Gear, LongMode
+from tests.conftest import packaged_dbc
 
-# DESIGN.md frame table: ID → (name, sender, period in ms)
+# docs/can-protocol.md frame table: ID → (name, sender, period in ms)
 DESIGN_FRAMES = {
     0x0A0: ("DBW_STEER_CMD", "GATEWAY", 20),
     0x0A1: ("DBW_LONG_CMD", "GATEWAY", 20),
@@ -24,21 +23,14 @@ DESIGN_FRAMES = {
 CAR_FRAMES = {0x002: 10, 0x176: 10, 0x284: 20, 0x285: 20, 0x421: 60}  # ID → period, ms
 
 
-def load(name: str) -> Database:
-    text = (resources.files("leafgate") / "data/dbc" / name).read_text(encoding="utf-8")
-    db = cantools.database.load_string(text, database_format="dbc", strict=True)
-    assert isinstance(db, Database)
-    return db
-
-
 @pytest.fixture(scope="module")
 def dbw() -> Database:
-    return load("leafgate_dbw.dbc")
+    return packaged_dbc("leafgate_dbw.dbc")
 
 
 @pytest.fixture(scope="module")
 def car() -> Database:
-    return load("leaf_aze0_car.dbc")
+    return packaged_dbc("leaf_aze0_car.dbc")
 
 
 def test_both_dbcs_load_strictly_from_the_package(dbw: Database, car: Database) -> None:

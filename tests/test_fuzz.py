@@ -38,6 +38,7 @@ from leafgate.runtime.node import GatewayTransport
 from leafgate.runtime.receiver import CanReceiver
 from leafgate.settings import load_config
 from leafgate.transport.payloads import codecs
+from tools._common import StubSession, after_file, names_trajectory_place
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM_YAML = ROOT / "config" / "sim.yaml"
@@ -177,42 +178,6 @@ def test_gateway_receiver_never_raises_and_keeps_only_valid_reports(
 
 
 # --- Zenoh payloads ---------------------------------------------------------------------------
-
-
-class _Entity:
-    def undeclare(self) -> None:
-        pass
-
-
-class StubSession:
-    """Enough of a Zenoh session for GatewayTransport to declare on; keeps the callbacks."""
-
-    def __init__(self) -> None:
-        self.subscribers: dict[str, Any] = {}
-
-    def declare_subscriber(self, key: str, callback: Any) -> _Entity:
-        self.subscribers[key] = callback
-        return _Entity()
-
-    def declare_queryable(self, key: str, callback: Any, **kwargs: Any) -> _Entity:
-        return _Entity()
-
-    def declare_publisher(self, key: str, **kwargs: Any) -> _Entity:
-        return _Entity()
-
-    def zid(self) -> str:
-        return "0123456789abcdef0123456789abcdef"
-
-    def liveliness(self) -> StubSession:
-        return self
-
-    @property
-    def info(self) -> Any:
-        """The session's identity (the gateway names its liveliness token after it)."""
-        return SimpleNamespace(zid=lambda: "0")
-
-    def declare_token(self, key: str) -> _Entity:
-        return _Entity()
 
 
 class Inputs:
@@ -391,25 +356,9 @@ def test_cdr_trajectory_with_overflowing_quaternions_decodes_without_numpy_warni
 
 # --- trajectory files -------------------------------------------------------------------------
 
-_LOCATION = re.compile(r"\b(row \d+|line \d+)\b")
-_FILE_LEVEL = (
-    "empty file",
-    "no header",
-    "missing column",
-    "unknown column",
-    "a column is given twice",
-    "waypoint(s), at least",
-    "the lists differ in length",
-    "expected a list of waypoints",
-    ": expected a list of numbers",
-)
-
 
 def assert_names_file_and_location(message: str, path: Path) -> None:
-    assert "\n" not in message
-    assert message.startswith(f"{path}: "), message
-    rest = message[len(f"{path}: ") :]
-    assert _LOCATION.search(rest) or any(t in rest for t in _FILE_LEVEL), message
+    assert names_trajectory_place(after_file(message, path)), message
 
 
 def _csv_text(t: Trajectory) -> str:

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import ros2_peer
 import zenoh
-from test_transport import free_port, wait_until
+from test_transport import wait_until
 
 from leafgate.config.transport import ZenohConfig
 from leafgate.messages import (
@@ -58,19 +58,6 @@ class Handler:
     def __call__(self, request: OperatorRequest) -> dict[str, Any]:
         self.requests.append(request)
         return {"accepted": True, "state": GatewayState.ENGAGED, "reason": ""}
-
-
-@pytest.fixture
-def router() -> Iterator[str]:
-    """A Zenoh router on a free loopback port: what ``rmw_zenohd`` is to ROS 2 nodes."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    config = zenoh.Config()
-    config.insert_json5("mode", '"router"')
-    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(config)
-    yield endpoint
-    session.close()
 
 
 @pytest.fixture

@@ -18,14 +18,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 import ros2_peer
 import yaml
-import zenoh
 from test_daemon_processes import udp_multicast_works
 from test_ros2_rmw_zenoh import STATUSES, control_mode_request
 from test_transport import free_port
@@ -33,6 +31,7 @@ from test_transport import free_port
 from leafgate.sim.metrics import tracking_metrics
 from leafgate.sim.scenarios import get_scenario
 from leafgate.transport.payloads import codecs
+from tests.conftest import RELAXED_WATCHDOG
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "leafgate.cli"]
@@ -48,18 +47,6 @@ pytestmark = [
 ]
 
 
-@pytest.fixture
-def router() -> Iterator[str]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    config = zenoh.Config()
-    config.insert_json5("mode", '"router"')
-    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(config)
-    yield endpoint
-    session.close()
-
-
 def configs(tmp_path: Path, router: str) -> tuple[Path, Path]:
     """(daemon, simulated ECU) configs: rmw_zenoh mode through ``router``."""
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
@@ -68,14 +55,7 @@ def configs(tmp_path: Path, router: str) -> tuple[Path, Path]:
     cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
     # Four processes on two shared cores, and localization relayed through this test: as in
     # test_daemon_processes, a scheduling stall is not a failure this test is about.
-    cfg["gateway"]["watchdog"].update(
-        {
-            "localization_stop_age": 0.3,
-            "localization_fault_age": 1.0,
-            "report_timeout_periods": 10,
-            "max_overruns": 25,
-        }
-    )
+    cfg["gateway"]["watchdog"].update(RELAXED_WATCHDOG)
     daemon = tmp_path / "daemon.yaml"
     daemon.write_text(yaml.safe_dump(cfg))
     cfg["zenoh"]["topics"] = {"kinematic_state": "/sim/ground_truth"}

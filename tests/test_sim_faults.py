@@ -1,6 +1,6 @@
 """Fault and driver-action injections in the full simulated loop, as ``leafgate sim --inject``.
 
-Each ends in the state DESIGN prescribes, with the car at rest, and every command frame the
+Each ends in the state docs/state-machine.md prescribes, with the car at rest, and every command frame the
 gateway sent while engaged passes the offline safety check (the same check as
 ``leafgate replay check``) on a recording of the drive.
 """

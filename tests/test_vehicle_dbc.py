@@ -25,6 +25,7 @@ from hypothesis import strategies as st
 
 from leafgate.can.codec import CanCodec
 from leafgate.can.e2e import crc8_nissan_lkas
+from tests.conftest import packaged_dbc
 
 # Frames of leaf_ze1_lkas.dbc that opendbc's Leaf 2018 database also describes.
 ZE1_FRAMES = (0x169, 0x002, 0x185, 0x284, 0x285, 0x421)
@@ -37,26 +38,19 @@ NARROWER_THAN_THE_WIRE = {(0x002, "STEER_ANGLE")}  # +-800 deg; the Leaf turns a
 OPENDBC_MISSING = "opendbc (test-only dependency: pip install opendbc) is not installed"
 
 
-def load(name: str) -> Database:
-    text = (resources.files("leafgate") / "data/dbc" / name).read_text(encoding="utf-8")
-    db = cantools.database.load_string(text, database_format="dbc", strict=True)
-    assert isinstance(db, Database)
-    return db
-
-
 @pytest.fixture(scope="module")
 def ze1() -> Database:
-    return load("leaf_ze1_lkas.dbc")
+    return packaged_dbc("leaf_ze1_lkas.dbc")
 
 
 @pytest.fixture(scope="module")
 def sze() -> Database:
-    return load("sze_hlc.dbc")
+    return packaged_dbc("sze_hlc.dbc")
 
 
 @pytest.fixture(scope="module")
 def aze0() -> Database:
-    return load("leaf_aze0_car.dbc")
+    return packaged_dbc("leaf_aze0_car.dbc")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Every row of DESIGN's watchdog table: the watchdog alone, then its reaction in the gateway —
+"""Rows of docs/watchdogs.md's watchdog table: the watchdog alone, then its reaction in the gateway —
 input withheld, late or corrupted → the stated reaction within one control period of the
 threshold."""
 
@@ -389,11 +389,10 @@ def test_thresholds_come_from_config() -> None:
 
 
 def test_ok_verdicts_of_counters_follow_the_count() -> None:
-    # The OK verdict is reused while the count stands still: it must change with the count.
     counter = ErrorCounter(5)
     first = counter.update(good=0, bad=2)
     assert first.ok and first.value == 2
-    assert counter.update(good=0, bad=0) is first  # unchanged: the same (immutable) verdict
+    assert counter.update(good=0, bad=0) == first  # unchanged count: the same verdict
     assert counter.update(good=1, bad=0).value == 1
     overruns = OverrunWatchdog(3)
     assert overruns.update(False).value == 0

@@ -1,6 +1,6 @@
 """CAN codec throughput against plain cantools, and the simulated ECU's report jitter.
 
-Decode. Leaf-like traffic is generated with the codec itself, at the DESIGN periods: DBW
+Decode. Leaf-like traffic is generated with the codec itself, at the periods of docs/can-protocol.md: DBW
 reports at 10 (steer), 20 (long) and 100 ms (system), commands at 20 and 100 ms, CAR-CAN
 0x002 at 100 Hz, 0x284/0x285 at 50 Hz, 0x421 at 10 Hz and 0x176 at its DBC period. Each frame
 is decoded by

@@ -63,10 +63,12 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import _common
 import can
 import numpy as np
 import yaml
 import zenoh
+from _common import StubSession
 
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded, EncodableMessage
@@ -556,52 +558,6 @@ class CanReceiverTarget(CanCodecTarget):
 # --- Zenoh ------------------------------------------------------------------------------------
 
 
-class _StubEntity:
-    def undeclare(self) -> None:
-        pass
-
-    def put(self, payload: bytes) -> None:
-        pass
-
-
-class StubSession:
-    """Enough of ``zenoh.Session`` for :class:`GatewayTransport` to declare itself on.
-
-    Keeps the subscriber callbacks so that samples can be fed to them directly: the decode
-    path is exactly the daemon's, without a network between.
-    """
-
-    def __init__(self) -> None:
-        self.subscribers: dict[str, Callable[[Any], None]] = {}
-
-    def declare_subscriber(self, key: str, callback: Callable[[Any], None]) -> _StubEntity:
-        self.subscribers[key] = callback
-        return _StubEntity()
-
-    def declare_queryable(self, key: str, callback: Any, **kwargs: Any) -> _StubEntity:
-        return _StubEntity()
-
-    def zid(self) -> str:
-        return "0123456789abcdef0123456789abcdef"  # a Zenoh session id, for the ROS tokens
-
-    def declare_publisher(self, key: str, **kwargs: Any) -> _StubEntity:
-        return _StubEntity()
-
-    def liveliness(self) -> StubSession:
-        return self
-
-    @property
-    def info(self) -> Any:
-        """The session's identity (the gateway names its liveliness token after it)."""
-        return SimpleNamespace(zid=lambda: "0")
-
-    def declare_token(self, key: str) -> _StubEntity:
-        return _StubEntity()
-
-    def close(self) -> None:
-        pass
-
-
 def stub_transport(encoding: str) -> tuple[GatewayTransport, StubSession]:
     session = StubSession()
     transport = GatewayTransport(
@@ -840,8 +796,6 @@ class EngageRequestTarget(Target):
 
 # --- files ------------------------------------------------------------------------------------
 
-_LOCATION = re.compile(r"\b(row \d+|line \d+)\b")
-
 
 class FileTarget(Target):
     """Inputs are file contents, written to one scratch file and loaded by path."""
@@ -951,38 +905,18 @@ class TrajectoryFileTarget(FileTarget):
         return True
 
 
-# Whole-file problems: the file is named, no row or line applies.
-_FILE_LEVEL = (
-    "empty file",
-    "no header",
-    "missing column",
-    "unknown column",
-    "a column is given twice",
-    "waypoint(s), at least",
-    "the lists differ in length",
-    "expected a list of waypoints",
-    "unknown trajectory format",
-)
-
-
 def after_file(message: str, path: Path) -> str:
     """What a file error says after ``"{path}: "``; a Failure unless it is one such line."""
-    if "\n" in message:
-        raise Failure(f"multi-line message: {message!r}")
-    prefix = f"{path}: "
-    if not message.startswith(prefix):
-        raise Failure(f"message does not start with the file: {message!r}")
-    return message[len(prefix) :]
+    try:
+        return _common.after_file(message, path)
+    except ValueError as exc:
+        raise Failure(str(exc)) from None
 
 
 def check_file_message(message: str, path: Path) -> None:
     """A trajectory file error: one line, starts with the file, names the row/line if any."""
-    rest = after_file(message, path)
-    if _LOCATION.search(rest) or any(text in rest for text in _FILE_LEVEL):
-        return
-    if re.match(r"(x|y|heading|speed): expected a list", rest):  # a key of the YAML mapping
-        return
-    raise Failure(f"message names no location: {message!r}")
+    if not _common.names_trajectory_place(after_file(message, path)):
+        raise Failure(f"message names no location: {message!r}")
 
 
 # --- config files -----------------------------------------------------------------------------
@@ -1113,7 +1047,7 @@ class ConfigFileTarget(FileTarget):
     def _check_message(self, message: str, path: Path, case: ConfigCase) -> None:
         rest = after_file(message, path)
         if re.match(r"(invalid YAML|not UTF-8|cannot read)", rest):
-            if not _LOCATION.search(rest) and "line" not in rest:
+            if not _common.LOCATION.search(rest) and "line" not in rest:
                 raise Failure(f"YAML error without a line: {message!r}")
             return
         named = rest.split(": ", 1)[0]

@@ -1,7 +1,7 @@
 """Report-age FAULTs of the whole stack while two busy loops hog both cores (issue 17, finding 7).
 
 Runs ``--runs`` s-curve maneuvers, each as separate processes (simulated ECU, daemon, planner:
-the fault suite's harness), with DESIGN's report thresholds (3 periods: 30 ms for
+the fault suite's harness), with docs/watchdogs.md's report thresholds (3 periods: 30 ms for
 DBW_STEER_RPT) and two ``while True: pass`` processes beside the stack, and counts the runs that
 ended in a report-age FAULT. Before the report ages came from the frames' receive timestamps, 11
 of 71 such runs faulted. Prints one JSON object; exit status 0 only if no run had a report-age

@@ -10,6 +10,7 @@ from typing import Any
 from leafgate.batch import sweep as sweep_module
 from leafgate.batch.engine import BatchError, EngineRun, run_tasks
 from leafgate.batch.results import crossings, make_out_dir, write_report, write_table
+from leafgate.cliargs import add_gap_periods, add_overrides, add_profile_options
 
 __all__ = ["add_arguments", "cmd_batch"]
 
@@ -50,24 +51,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="only files whose name matches, e.g. '*.mcap' (default: every file with a "
         "readable suffix: .log .asc .blf .trc .csv .mf4 .mcap)",
     )
-    p.add_argument("--config", help="the deployment config whose limits and profile apply")
-    p.add_argument(
-        "--profile",
-        metavar="NAME|FILE",
-        help="vehicle profile of the logs (a CAN log names none; a session its own)",
-    )
-    p.add_argument("--gap-periods", type=float, default=3.0)
+    add_profile_options(p, "the deployment config whose limits and profile apply")
+    add_gap_periods(p)
     p.add_argument("--timeout", type=float, help="s per log")
     _common(p, "leafgate-batch-check")
     p = sub.add_parser("rerun", help="`replay rerun` of every session (.mcap) under DIR")
     p.add_argument("dir", help="folder searched recursively")
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override, e.g. controller.mpc.weight_lateral=10",
-    )
+    add_overrides(p)
     p.add_argument("--timeout", type=float, help="s per session")
     _common(p, "leafgate-batch-rerun")
 

@@ -204,7 +204,7 @@ class Decoded:
 
     @property
     def counts_for_reports(self) -> bool:
-        """Whether the frame counts in the gateway's report error counter (DESIGN, panda
+        """Whether the frame counts in the gateway's report error counter (docs/watchdogs.md, panda
         style): it refreshed an ECU report, or a frame of a known ID was bad (checksum,
         counter, length, or content outside its value table)."""
         if self.error is not None:

@@ -1,4 +1,4 @@
-"""End-to-end protection of the leafgate drive-by-wire frames (DESIGN.md, "CAN").
+"""End-to-end protection of the leafgate drive-by-wire frames (docs/can-protocol.md).
 
 Every DBW frame is 8 bytes. The low nibble of byte 6 is a 4-bit alive counter that advances
 by 1 (mod 16) with every frame of an ID; byte 7 is a CRC-8 SAE J1850 (polynomial 0x1D,

@@ -10,7 +10,7 @@ from it, so a new vehicle needs a DBC and a profile file, not new code.
 Four profiles ship with leafgate (``leafgate/data/profiles``):
 
 ``leafgate-dbw``
-    leafgate's own drive-by-wire protocol (DESIGN.md) with E2E protection on every frame, and
+    leafgate's own drive-by-wire protocol (docs/can-protocol.md) with E2E protection on every frame, and
     the 2011–17 Leaf's CAR-CAN feedback.
 ``leafgate-dbw-auth``
     the same with authenticated command frames (freshness value and truncated HMAC-SHA256,

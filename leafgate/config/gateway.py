@@ -1,6 +1,6 @@
 """Gateway section of the configuration (``gateway:``): loop rate, watchdogs, safety gate.
 
-Every threshold of DESIGN's "Engagement, watchdogs, safety gate" tables lives here with its
+Every threshold of the watchdog and safety-gate tables (docs/watchdogs.md) lives here with its
 default. Angles may be written in degrees in YAML with the ``_deg``/``_degps`` suffixes
 (``max_heading_error_deg: 30``, ``rate_up_degps: [34, 29, 11]``).
 """
@@ -15,7 +15,7 @@ from leafgate.config import positive
 
 @dataclass(frozen=True)
 class WatchdogConfig:
-    """Freshness and plausibility thresholds (DESIGN, watchdog table)."""
+    """Freshness and plausibility thresholds (docs/watchdogs.md, the watchdog table)."""
 
     localization_stop_age: float = 0.100  # s, localization older than this → STOPPING
     localization_fault_age: float = 0.500  # s, localization older than this → FAULT

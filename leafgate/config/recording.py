@@ -47,7 +47,7 @@ class RecordingConfig:
     def __post_init__(self) -> None:
         positive(self, "flush_period", "queue_size", "queue_bytes")
         if self.flush_period > 1.0:
-            # DESIGN: a crash or power loss loses at most the last second
+            # docs/design.md, "Recording": a crash or power loss loses at most the last second
             raise ValueError(f"flush_period must be at most 1 s, got {self.flush_period!r}")
         if self.max_bytes < 0:
             raise ValueError(

@@ -54,7 +54,7 @@ class PlantConfig:
 
 @dataclass(frozen=True)
 class EcuConfig:
-    """The simulated drive-by-wire ECU (DESIGN, "ECU semantics")."""
+    """The simulated drive-by-wire ECU (docs/can-protocol.md, "ECU semantics")."""
 
     cmd_timeout: float = 0.1  # s without a valid command → CMD_TIMEOUT
     timeout_decel: float = 3.0  # m/s², braking to a stop after a timeout

@@ -14,7 +14,7 @@ with the latest inputs and their receive times, and send what it returns. One ti
    (:mod:`leafgate.gateway.safety`) last;
 5. DBW_SYSTEM_CMD is added when due (every 100 ms of ``now``, and at once on a reset).
 
-Decisions that go beyond DESIGN's tables (documented here so the tests can hold them):
+Decisions behind the tables of docs/watchdogs.md and docs/state-machine.md (the tests hold them):
 
 - Staleness of localization and ECU reports acts only while the gateway drives (ENGAGED or
   STOPPING); in STANDBY it only refuses an engage, so a gateway started before its inputs does
@@ -138,11 +138,7 @@ class EngagePhase(enum.Enum):
 
 
 class ControllerFigures(NamedTuple):
-    """The controller's figures of one tick (from :class:`~leafgate.messages.ControlOutput`).
-
-    A named tuple rather than a frozen dataclass: one is built every tick the controller runs,
-    and a tuple is built in a fraction of the time.
-    """
+    """The controller's figures of one tick (from :class:`~leafgate.messages.ControlOutput`)."""
 
     converged: bool
     iterations: int
@@ -232,7 +228,7 @@ class StepResult:
 
 
 def _finite_output(out: ControlOutput) -> bool:
-    isfinite = math.isfinite  # chained, not all(<generator>): once per tick
+    isfinite = math.isfinite
     return isfinite(out.steer_angle) and isfinite(out.accel) and isfinite(out.speed)
 
 

@@ -59,7 +59,7 @@ class SafetyLimits:
 
     @functools.cached_property
     def speed_bounds(self) -> Bounds:
-        """Allowed speed command (a magnitude), m/s: constant, so built once, not per tick."""
+        """Allowed speed command (a magnitude), m/s (constant)."""
         return Bounds(0.0, self.max_speed, "speed", "speed")
 
     @classmethod
@@ -102,11 +102,7 @@ class Measured:
 
 
 class Bounds(NamedTuple):
-    """The allowed interval for the next value and what bounds each side.
-
-    A named tuple rather than a frozen dataclass: two are built per gated command, and a tuple
-    is built in a third of the time.
-    """
+    """The allowed interval for the next value and what bounds each side."""
 
     lo: float
     hi: float
@@ -292,7 +288,7 @@ def apply_limits(
         v = limits.max_speed
         measured = Measured(v, measured.gear)
 
-    # Non-finite values are replaced inline (no helper returning tuples): this runs every tick.
+    # Non-finite values are replaced by the last sent ones.
     angle = steer.angle
     if not isfinite(angle):
         angle = last_steer.angle
@@ -328,7 +324,7 @@ def apply_limits(
         kinds.add("non_finite")
     if not kinds and rate_limit >= 0.0:
         # Nothing clamped: every value above is the desired one, so the (frozen) desired
-        # commands are the result; saves building two commands on most ticks.
+        # commands are the result.
         return GateResult(steer=steer, long=long, clamped=())
     return GateResult(
         steer=SteerCommand(angle, max(rate_limit, 0.0), steer.enable, steer.clear_override),
@@ -420,7 +416,7 @@ class SafetyGate:
         """Remember a command sent without passing the gate (ENABLE=0 frames mirroring the
         measured state), so the rate limits start from what the ECU saw last."""
         if math.isfinite(steer.angle):
-            self.last_steer = steer  # frozen: kept as is rather than copied every tick
+            self.last_steer = steer  # frozen: kept as is
         else:
             self.last_steer = replace(steer, angle=self.last_steer.angle)
         self.last_long = long

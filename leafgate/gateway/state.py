@@ -1,4 +1,4 @@
-"""The engagement state machine: STANDBY → ENGAGED → STOPPING · FAULT (DESIGN, "Engagement").
+"""The engagement state machine: STANDBY → ENGAGED → STOPPING · FAULT (docs/state-machine.md).
 
 The transitions are a table (:data:`TRANSITIONS`) of (state, event) → state; an event that is not
 in the table for a state does not change it. The preconditions of an engage request are a pure

@@ -2,7 +2,7 @@
 
 Each watchdog is a small class fed with the latest input slot (and the gateway's ``now``) once
 per tick and answering a :class:`Check`: how old the last valid sample is, its status, and the
-reaction DESIGN's watchdog table asks for while the gateway is engaged or stopping.
+reaction the table of docs/watchdogs.md asks for while the gateway is engaged or stopping.
 
 =============================  ======================================  ===========
 watchdog                       threshold (``WatchdogConfig``)          reaction
@@ -75,11 +75,7 @@ class Reaction(enum.IntEnum):
 
 
 class Check(NamedTuple):
-    """The verdict of one watchdog for one tick.
-
-    A named tuple rather than a frozen dataclass: several are built every tick, and a tuple is
-    built in a third of the time. Immutable all the same, so a verdict can be shared.
-    """
+    """The verdict of one watchdog for one tick (immutable, so a verdict can be shared)."""
 
     name: str
     status: Status
@@ -523,7 +519,6 @@ class ErrorCounter:
     def __init__(self, threshold: int) -> None:
         self.threshold = threshold
         self.count = 0
-        self._ok: Check | None = None  # the last OK verdict, reused while the count is unchanged
 
     def update(self, good: int, bad: int, cause: str = "") -> Check:
         """Count this tick's good and bad report frames.
@@ -543,13 +538,7 @@ class ErrorCounter:
                 + (f": {cause}" if cause else ""),
                 peak,
             )
-        # Checks are frozen, so an unchanged verdict can be shared between ticks (saves building
-        # one per tick on the common path: no errors).
-        if self._ok is None or self._ok.value != self.count:
-            self._ok = Check(
-                self.name, Status.OK, None, self.threshold, Reaction.NONE, "", self.count
-            )
-        return self._ok
+        return Check(self.name, Status.OK, None, self.threshold, Reaction.NONE, "", self.count)
 
 
 class OverrunWatchdog:
@@ -562,7 +551,6 @@ class OverrunWatchdog:
         self.limit = limit
         self.stall_limit = stall_limit  # s
         self.in_row = 0
-        self._ok: Check | None = None  # the last OK verdict, reused while in_row is unchanged
 
     def update(self, overrun: bool, lateness: float = 0.0) -> Check:
         """Count this tick (``overrun``: it started late, by ``lateness`` s)."""
@@ -587,9 +575,7 @@ class OverrunWatchdog:
                 f"control loop overran {self.in_row} ticks in a row",
                 self.in_row,
             )
-        if self._ok is None or self._ok.value != self.in_row:  # shared like ErrorCounter's
-            self._ok = Check(self.name, Status.OK, None, self.limit, Reaction.NONE, "", self.in_row)
-        return self._ok
+        return Check(self.name, Status.OK, None, self.limit, Reaction.NONE, "", self.in_row)
 
 
 def override_active(
@@ -628,7 +614,6 @@ CHECK_ORDER: tuple[str, ...] = (
     "overrun",
     "progress",  # judged after the controller ran (ProgressWatchdog), not by Watchdogs.update
 )
-_CHECK_INDEX = {name: i for i, name in enumerate(CHECK_ORDER)}
 
 
 @dataclass(frozen=True)
@@ -647,10 +632,6 @@ class WatchdogReport:
 
         :raises KeyError: no such watchdog
         """
-        # Called several times per tick: try the slot Watchdogs.update puts it in first.
-        i = _CHECK_INDEX.get(name)
-        if i is not None and i < len(self.checks) and self.checks[i].name == name:
-            return self.checks[i]
         for c in self.checks:
             if c.name == name:
                 return c
@@ -658,7 +639,7 @@ class WatchdogReport:
 
     def failing(self, at_least: Reaction) -> tuple[Check, ...]:
         """The checks asking for ``at_least`` this severe a reaction."""
-        return tuple([c for c in self.checks if c.reaction >= at_least])  # list: no generator
+        return tuple(c for c in self.checks if c.reaction >= at_least)
 
 
 class Watchdogs:

@@ -205,22 +205,14 @@ class FrameSource:
 
 
 class RecordingContext:
-    """What a tool needs to read a recording's frames: the configuration and vehicle profile.
+    """What a tool needs to read a recording's frames: the configuration and vehicle profile."""
 
-    :attr:`source` tells where the profile came from (``--profile``, ``--config FILE``, the
-    session's recorded configuration), for the tool's first output line.
-    """
-
-    def __init__(self, config: LeafgateConfig, source: str) -> None:
+    def __init__(self, config: LeafgateConfig) -> None:
         self.config = config
-        self.source = source
 
     @property
     def profile(self) -> Profile:
         return self.config.profile
-
-    def describe(self) -> str:
-        return f"vehicle profile {self.profile.name} (from {self.source})"
 
 
 def recording_context(
@@ -239,11 +231,10 @@ def recording_context(
     :raises ConfigError: the configuration or profile does not load (names the file)
     """
     cfg: LeafgateConfig | None
-    source = ""
     if isinstance(config, LeafgateConfig):
-        cfg, source = config, "the given configuration"
+        cfg = config
     elif config is not None:
-        cfg, source = load_config(config), f"--config {config}"
+        cfg = load_config(config)
     else:
         cfg = None
         if is_session(path) and Path(path).is_file():
@@ -251,17 +242,15 @@ def recording_context(
                 reader.read_metadata()
                 if reader.config_yaml is not None:
                     cfg = reader.config()
-                    source = f"the configuration recorded in {Path(path).name}"
     if profile is not None:
         try:
             load_profile(profile)  # a clear error before the configuration is refitted
         except ConfigError as exc:
             raise ConfigError(f"--profile: {exc}") from None
         cfg = with_profile(cfg or LeafgateConfig(), profile)
-        source = f"--profile {profile}"
     if cfg is None:
         raise ReplayError(
             f"{path}: the recording names no vehicle profile; give --profile NAME|FILE "
             f"({', '.join(PROFILE_NAMES)}) or --config FILE"
         )
-    return RecordingContext(cfg, source)
+    return RecordingContext(cfg)

@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import IO, Any, Final, Literal, Protocol
+from typing import IO, Any, Final, Literal, Protocol, Self
 
 import can
 import numpy as np
@@ -340,7 +340,40 @@ def _copy(msg: can.Message, **changes: Any) -> can.Message:
     return can.Message(**fields)
 
 
-class CanLogRecorder:
+class _ClosedOnExit:
+    """``with recorder:`` closes it at the end of the block."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class _FileRecorder(_ClosedOnExit):
+    """The control side both file recorders share: a :class:`_BackgroundWriter` owns the file;
+    its fault, flush and close are the recorder's."""
+
+    _bg: _BackgroundWriter
+
+    @property
+    def fault(self) -> str:
+        """The last recording problem ("" while healthy)."""
+        return self._bg.fault
+
+    def flush(self, timeout: float = 5.0) -> bool:
+        """Block until everything handed in so far is in the file (a crash now loses none)."""
+        return self._bg.flush(timeout)
+
+    def close(self) -> None:
+        """Write what is queued and finish the file properly (MCAP summary, BLF header)."""
+        self._bg.close()
+
+
+class CanLogRecorder(_FileRecorder):
     """Every CAN frame in and out, in a python-can log file with size rotation.
 
     The format follows the suffix of ``path``: ``.blf`` (Vector binary logging), ``.log``
@@ -394,7 +427,6 @@ class CanLogRecorder:
         self.one_bus = one_bus
         self.reorder_window = reorder_window
         self.files: list[Path] = []
-        self.frames = 0
         self.late = 0  # frames that arrived after the reorder window (written re-stamped)
         self._pending: list[tuple[float, int, can.Message]] = []  # a heap, by timestamp
         self._arrivals = 0
@@ -486,7 +518,6 @@ class CanLogRecorder:
         if self._writer is None:
             raise OSError(0, "no open log file")
         self._writer.on_message_received(msg)
-        self.frames += 1
         self._since_check += 1
         if self.max_bytes and self._since_check >= _ROTATE_CHECK_EVERY:
             self._since_check = 0
@@ -517,32 +548,13 @@ class CanLogRecorder:
                 self._mark_end(writer)
                 writer.stop()
 
-    # -- control --
-
-    @property
-    def fault(self) -> str:
-        """The last recording problem ("" while healthy)."""
-        return self._bg.fault
-
-    def flush(self, timeout: float = 5.0) -> bool:
-        """Block until every frame handed in so far is in the file."""
-        return self._bg.flush(timeout)
-
-    def close(self) -> None:
-        """Write what is queued and close the file properly."""
-        self._bg.close()
+    # -- control (fault, flush, close: _FileRecorder) --
 
     def diagnostics(self) -> dict[str, Any]:
         return {"files": [str(f) for f in self.files], "late": self.late, **self._bg.counters()}
 
-    def __enter__(self) -> CanLogRecorder:
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class SessionRecorder:
+class SessionRecorder(_FileRecorder):
     """The whole session in one MCAP file (see :mod:`leafgate.record.session`).
 
     :param path: the ``.mcap`` file; its directory is created
@@ -676,34 +688,16 @@ class SessionRecorder:
             if self._file is not None:
                 self._file.close()
 
-    # -- control --
-
-    @property
-    def fault(self) -> str:
-        return self._bg.fault
-
-    def flush(self, timeout: float = 5.0) -> bool:
-        """Block until every item handed in so far is in the file (a crash now loses none)."""
-        return self._bg.flush(timeout)
-
-    def close(self) -> None:
-        """Write what is queued and finish the MCAP file (summary, footer)."""
-        self._bg.close()
+    # -- control (fault, flush, close: _FileRecorder) --
 
     def diagnostics(self) -> dict[str, Any]:
         return {"file": str(self.path), "ticks": self.ticks, **self._bg.counters()}
-
-    def __enter__(self) -> SessionRecorder:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 _AnyRecorder = CanLogRecorder | SessionRecorder
 
 
-class Recording:
+class Recording(_ClosedOnExit):
     """The configured recorders behind one set of hooks (what the runtime is given)."""
 
     def __init__(self, recorders: Sequence[_AnyRecorder] = (), epoch: float | None = None) -> None:
@@ -752,12 +746,6 @@ class Recording:
         for r in self.recorders:
             out["session" if isinstance(r, SessionRecorder) else "can_log"] = r.diagnostics()
         return out
-
-    def __enter__(self) -> Recording:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def open_recording(

@@ -685,7 +685,6 @@ class SessionReader:
         self.metadata: dict[str, dict[str, str]] = {}
         self.truncated = False  # the file ends before its footer (a crash)
         self.error = ""  # what stopped the reading early, if anything
-        self.records_read = 0
 
     @property
     def config_yaml(self) -> str | None:
@@ -730,7 +729,6 @@ class SessionReader:
                     topic, encoding, schema = channels.get(record.channel_id, ("?", "", ""))
                     if topics is not None and topic not in topics:
                         continue
-                    self.records_read += 1
                     yield SessionRecord(
                         topic, record.log_time, record.publish_time, record.data, encoding, schema
                     )

@@ -55,11 +55,10 @@ Exit status: 0 when there is no finding, 1 otherwise.
 from __future__ import annotations
 
 import functools
-import json
 import math
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Final, TextIO
@@ -84,6 +83,7 @@ from leafgate.messages import (
 )
 from leafgate.record.logs import FrameSource, is_end_marker, recording_context
 from leafgate.replay.decode import authentication_summary
+from leafgate.replay.report import write_report
 from leafgate.settings import LeafgateConfig
 
 __all__ = ["CheckReport", "Finding", "IdStats", "check_frames", "check_log", "main_check"]
@@ -354,17 +354,17 @@ class _CommandCheck:
         elif engaged:
             self.checked += 1
 
-    def _limits(self, elapsed: float) -> tuple[SafetyLimits, bool]:
-        """The limits after ``elapsed`` s, and whether the rates can be checked at all: not on
-        the first command of a log, nor after a gap, where the previous command is missing."""
+    def _limits(self, elapsed: float) -> SafetyLimits:
+        """The limits after ``elapsed`` s; the envelope alone when the rates cannot be checked
+        (counted): on the first command of a log, or after a gap, the previous one is missing."""
         if not elapsed <= self.gap:
             self.not_checkable["rates_unknown"] += 1
-            return _envelope(self.limits), False
-        return _over(self.limits, elapsed), True
+            return _envelope(self.limits)
+        return _over(self.limits, elapsed)
 
     def _steer(self, t: float, frame_id: int, name: str, value: SteerCommand) -> SteerCommand:
         measured = _measured(self.long_report, self.limits)
-        lim, _ = self._limits(t - self.steer_time)
+        lim = self._limits(t - self.steer_time)
         args = (self.last_long, self.last_steer, self.last_long, measured, lim)
         found = _violations(value, *args, self.angle_tol, STEER_KINDS)
         self._add(t, frame_id, name, found)
@@ -372,7 +372,7 @@ class _CommandCheck:
 
     def _long(self, t: float, frame_id: int, name: str, value: LongCommand) -> LongCommand:
         measured = _measured(self.long_report, self.limits)
-        lim, _ = self._limits(t - self.long_time)
+        lim = self._limits(t - self.long_time)
         found = _violations(
             self.last_steer,
             value,
@@ -393,6 +393,108 @@ class _CommandCheck:
     def _add(self, t: float, frame_id: int, name: str, found: list[Violation]) -> None:
         for v in found:
             self.findings.append(Finding(t, "limit", frame_id, name, v.kind, v.value, v.bound))
+
+
+_E2eError = tuple[int, float, int, str, str]  # (index of the frame in its ID, t, id, name, error)
+
+
+class _Scan:
+    """One pass over the frames (steps 1, 3 and 4 of the module notes, and what step 2 needs):
+    per-ID timestamps, E2E errors, the command re-check and the report judge, frame by frame."""
+
+    def __init__(
+        self,
+        template: CanCodec,
+        commands: _CommandCheck,
+        judge: _ReportJudge,
+        new_codec: Callable[[], CanCodec],
+    ) -> None:
+        self.template = template
+        self.commands = commands
+        self.judge = judge
+        self._new_codec = new_codec  # a codec like the template, for a further channel
+        self.command_ids = template.receive_ids("commands")
+        self.codecs: dict[object, CanCodec] = {}  # one per recorded channel
+        self.times: dict[int, list[float]] = {}
+        self.e2e: list[_E2eError] = []
+        self._invalid_before: set[int] = set()  # IDs whose previous frame was invalid (CRC, length)
+        self.frames = 0
+        self.command_frames = 0
+        self.first = self.last = math.nan
+        self.backwards = 0
+        self.worst_backwards = 0.0
+        self._latest = -math.inf
+        self.ended = False  # the last frame read was an end-of-recording marker
+
+    def take(self, msg: can.Message) -> None:
+        if is_end_marker(msg):
+            self.ended = True
+            return
+        self.ended = False  # frames after a marker: a later file or session segment
+        self.frames += 1
+        t = msg.timestamp
+        self._clock(t)
+        frame_id = msg.arbitration_id
+        stamps = self.times.get(frame_id)
+        if stamps is None:
+            stamps = self.times[frame_id] = []
+        stamps.append(t)
+        decoded = self._codec(msg.channel).decode(msg)
+        if frame_id in self.command_ids and not msg.is_extended_id:
+            self.command_frames += 1
+        if not decoded.valid:
+            self._e2e(len(stamps) - 1, t, frame_id, decoded.name or "?", decoded.error or "?")
+            return
+        self._invalid_before.discard(frame_id)
+        name = decoded.name or ""
+        for value in decoded.values:
+            if isinstance(value, (SteerReport, LongReport, WheelSpeeds, SteeringWheelAngle)):
+                # judged as the gateway judges them: an implausible report is never the state
+                plausible = self.judge.take(t, frame_id, name, value)
+                if isinstance(value, LongReport) and plausible:
+                    self.commands.long_report = value
+        if frame_id in self.command_ids:
+            self.commands.frame(t, frame_id, name, decoded.values)
+
+    def _clock(self, t: float) -> None:
+        """First and last timestamps, and how far the log goes backwards in time."""
+        if self.frames == 1:
+            self.first = t
+        self.last = t
+        if t < self._latest:
+            self.backwards += 1
+            self.worst_backwards = max(self.worst_backwards, self._latest - t)
+        else:
+            self._latest = t
+
+    def _codec(self, channel: object) -> CanCodec:
+        codec = self.codecs.get(channel)
+        if codec is None:
+            codec = self.codecs[channel] = self.template if not self.codecs else self._new_codec()
+        return codec
+
+    def _e2e(self, index: int, t: float, frame_id: int, name: str, error: str) -> None:
+        if error == "unknown_id":
+            return
+        # A frame with a bad CRC or length never reaches the counter check, so the next good
+        # frame of its ID sees a skipped counter: one corrupted frame, one finding.
+        if not (error == "bad_counter" and frame_id in self._invalid_before):
+            self.e2e.append((index, t, frame_id, name, error))
+        if error != "bad_counter":
+            self._invalid_before.add(frame_id)
+        else:
+            self._invalid_before.discard(frame_id)
+
+    def stats(self) -> tuple[dict[int, FrameStats], dict[int, str | None]]:
+        """Every channel's decode outcomes merged by ID, and the IDs' names."""
+        names = {}
+        merged: dict[int, FrameStats] = {}
+        for codec in self.codecs.values():
+            for frame_id, s in codec.stats.items():
+                if s.frames:
+                    merged[frame_id] = merged.get(frame_id, FrameStats()) + s
+                    names[frame_id] = codec.name_of(frame_id)
+        return merged, names
 
 
 def check_frames(
@@ -422,131 +524,80 @@ def check_frames(
     """
     t_start = time.perf_counter()
     template = CanCodec(dbw_dbc, car_dbc, profile, key=key, clock=None)
-    codecs: dict[object, CanCodec] = {}
     angle_tol, long_tol = _tolerances(template)
-    command_ids = template.receive_ids("commands")
-    command_period = template.profile.command_period
-    commands = _CommandCheck(limits, angle_tol, long_tol, gap_periods * command_period)
-    times: dict[int, list[float]] = {}
-    e2e_findings: list[tuple[int, float, int, str, str]] = []  # (index in ID, t, id, name, error)
-    invalid_before: set[int] = set()  # IDs whose previous frame was invalid (bad CRC, length)
-    command_frames = 0
-    backwards = 0
-    worst_backwards = 0.0
-    n = 0
-    first = last = math.nan
-    latest = -math.inf
+    command_gap = gap_periods * template.profile.command_period
+    commands = _CommandCheck(limits, angle_tol, long_tol, command_gap)
     judge = _ReportJudge(vehicle or VehicleConfig())
-    ended = False
+    scan = _Scan(
+        template,
+        commands,
+        judge,
+        lambda: CanCodec(dbw_dbc, car_dbc, template.profile, key=key, clock=None),
+    )
+    take = scan.take
     for msg in frames:
-        if is_end_marker(msg):
-            ended = True
-            continue
-        ended = False  # frames after a marker: a later file or session segment
-        n += 1
-        if progress is not None and not n & 0x3FF:
-            progress.update(n)
-        t = msg.timestamp
-        if n == 1:
-            first = t
-        last = t
-        if t < latest:
-            backwards += 1
-            worst_backwards = max(worst_backwards, latest - t)
-        else:
-            latest = t
-        frame_id = msg.arbitration_id
-        stamps = times.get(frame_id)
-        if stamps is None:
-            stamps = times[frame_id] = []
-        stamps.append(t)
-        codec = codecs.get(msg.channel)
-        if codec is None:
-            codec = codecs[msg.channel] = (
-                template
-                if not codecs
-                else CanCodec(dbw_dbc, car_dbc, template.profile, key=key, clock=None)
-            )
-        decoded = codec.decode(msg)
-        if frame_id in command_ids and not msg.is_extended_id:
-            command_frames += 1
-        if not decoded.valid:
-            error: str = decoded.error or "?"
-            if error == "unknown_id":
-                continue
-            # A frame with a bad CRC or length never reaches the counter check, so the next good
-            # frame of its ID sees a skipped counter: one corrupted frame, one finding.
-            if not (error == "bad_counter" and frame_id in invalid_before):
-                e2e_findings.append((len(stamps) - 1, t, frame_id, decoded.name or "?", error))
-            if error != "bad_counter":
-                invalid_before.add(frame_id)
-            else:
-                invalid_before.discard(frame_id)
-            continue
-        invalid_before.discard(frame_id)
-        for value in decoded.values:
-            if isinstance(value, (SteerReport, LongReport, WheelSpeeds, SteeringWheelAngle)):
-                # judged as the gateway judges them: an implausible report is never the state
-                plausible = judge.take(t, frame_id, decoded.name or "", value)
-                if isinstance(value, LongReport) and plausible:
-                    commands.long_report = value
-        if frame_id in command_ids:
-            commands.frame(t, frame_id, decoded.name or "", decoded.values)
+        take(msg)
+        if progress is not None and not scan.frames & 0x3FF:
+            progress.update(scan.frames)
     if progress is not None:
         progress.done()
-
-    names = {}
-    merged: dict[int, FrameStats] = {}
-    for codec in codecs.values():
-        for frame_id, s in codec.stats.items():
-            if s.frames:
-                merged[frame_id] = merged.get(frame_id, FrameStats()) + s
-                names[frame_id] = codec.name_of(frame_id)
-    skips = {
-        (frame_id, index) for index, _, frame_id, _, error in e2e_findings if error == "bad_counter"
-    }
-    ids, gaps = _timing(times, template, names, merged, gap_periods, skips)
-    findings = list(commands.findings)
-    gap_firsts = {(frame_id, index) for frame_id, index, _, _ in gaps}
-    for index, t, frame_id, name, kind in e2e_findings:
-        if kind == "bad_counter" and (frame_id, index) in gap_firsts:
-            continue  # the frames lost in a gap, reported as the gap
-        findings.append(Finding(t, "e2e", frame_id, name, kind))
-    silences = _bus_silences(times, ids, gap_periods)
-    findings.extend(_silence_findings(silences, gaps))
-    findings.extend(_merge_gaps(_unexplained(gaps, silences, ids, gap_periods), names))
-    findings.extend(_period_findings(ids, first))
-    findings.extend(
-        _coverage_findings(n, first, command_frames, commands, template, merged, command_ids)
-    )
-    findings.extend(judge.findings)
-    if require_end and n and not ended:
-        findings.append(
-            Finding(
-                last,
-                "incomplete",
-                None,
-                "",
-                f"no end-of-recording marker: the recording stops after frame {n} at {last:.3f} s",
-            )
-        )
-    findings.sort(key=lambda f: (f.time, f.kind))
+    merged, names = scan.stats()
+    ids, findings = _findings(scan, merged, names, gap_periods, require_end)
     return CheckReport(
         path=path,
         profile=template.profile.name,
-        frames=n,
-        start=first,
-        end=last,
+        frames=scan.frames,
+        start=scan.first,
+        end=scan.last,
         engaged_frames=commands.checked,
         not_checkable=dict(commands.not_checkable),
-        command_frames=command_frames,
-        backwards=backwards,
-        worst_backwards=worst_backwards,
+        command_frames=scan.command_frames,
+        backwards=scan.backwards,
+        worst_backwards=scan.worst_backwards,
         ids=ids,
         findings=findings,
         elapsed=time.perf_counter() - t_start,
         authentication=authentication_summary(template, merged),
     )
+
+
+def _findings(
+    scan: _Scan,
+    merged: dict[int, FrameStats],
+    names: dict[int, str | None],
+    gap_periods: float,
+    require_end: bool,
+) -> tuple[list[IdStats], list[Finding]]:
+    """The per-ID statistics and every finding of a finished scan, in time order."""
+    skips = {
+        (frame_id, index) for index, _, frame_id, _, error in scan.e2e if error == "bad_counter"
+    }
+    ids, gaps = _timing(scan.times, scan.template, names, merged, gap_periods, skips)
+    findings = list(scan.commands.findings)
+    gap_firsts = {(frame_id, index) for frame_id, index, _, _ in gaps}
+    for index, t, frame_id, name, kind in scan.e2e:
+        if kind == "bad_counter" and (frame_id, index) in gap_firsts:
+            continue  # the frames lost in a gap, reported as the gap
+        findings.append(Finding(t, "e2e", frame_id, name, kind))
+    silences = _bus_silences(scan.times, ids, gap_periods)
+    findings.extend(_silence_findings(silences, gaps))
+    findings.extend(_merge_gaps(_unexplained(gaps, silences, ids, gap_periods), names))
+    findings.extend(_period_findings(ids, scan.first))
+    findings.extend(_coverage_findings(scan, merged))
+    findings.extend(scan.judge.findings)
+    if require_end and scan.frames and not scan.ended:
+        findings.append(
+            Finding(
+                scan.last,
+                "incomplete",
+                None,
+                "",
+                f"no end-of-recording marker: the recording stops after frame {scan.frames} "
+                f"at {scan.last:.3f} s",
+            )
+        )
+    findings.sort(key=lambda f: (f.time, f.kind))
+    return ids, findings
 
 
 _PERIOD_TOLERANCE: Final = 0.10  # a median period this far off the profile's is a finding
@@ -576,18 +627,12 @@ def _period_findings(ids: list[IdStats], first: float) -> list[Finding]:
     return out
 
 
-def _coverage_findings(
-    n: int,
-    first: float,
-    command_frames: int,
-    commands: _CommandCheck,
-    codec: CanCodec,
-    stats: dict[int, FrameStats],
-    command_ids: frozenset[int],
-) -> list[Finding]:
+def _coverage_findings(scan: _Scan, stats: dict[int, FrameStats]) -> list[Finding]:
     """An empty log, a log whose command frames could not be checked, a log with no frame of
     the profile at all (another vehicle's recording): each is a finding, never "OK"."""
-    profile = codec.profile.name
+    n, first, command_frames = scan.frames, scan.first, scan.command_frames
+    commands, command_ids = scan.commands, scan.command_ids
+    profile = scan.template.profile.name
     if n == 0:
         return [Finding(math.nan, "coverage", None, "log", "the log has no frames")]
     if commands.checked == 0 and sum(commands.not_checkable.values()) > 0:
@@ -924,10 +969,5 @@ def main_check(
             f"leafgate: warning: {log}: timestamps go backwards at {report.backwards} frames "
             f"(by up to {report.worst_backwards * 1e3:.1f} ms)\n"
         )
-    if as_json:
-        json.dump(report.to_dict(), out, indent=2)
-        out.write("\n")
-    else:
-        for line in report.format():
-            out.write(line + "\n")
+    write_report(report, as_json, out)
     return 0 if report.ok else 1

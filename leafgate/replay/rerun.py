@@ -15,7 +15,6 @@ Exit status: 0 when every command is identical, 1 when any signal diverges.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from collections.abc import Mapping, Sequence
@@ -38,6 +37,7 @@ from leafgate.record.session import (
     encode_commands,
     gateway_mode,
 )
+from leafgate.replay.report import write_report
 
 __all__ = ["RerunReport", "SignalDiff", "main_rerun", "parse_overrides", "rerun_session"]
 
@@ -236,10 +236,5 @@ def main_rerun(
     """
     out = out or sys.stdout
     report = rerun_session(session, parse_overrides(overrides))
-    if as_json:
-        json.dump(report.to_dict(), out, indent=2)
-        out.write("\n")
-    else:
-        for line in report.format():
-            out.write(line + "\n")
+    write_report(report, as_json, out)
     return 0 if report.identical else 1

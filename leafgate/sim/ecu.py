@@ -1,7 +1,7 @@
 """The simulated drive-by-wire ECU: the vehicle side of the leafgate CAN protocol.
 
 :class:`SimulatedEcu` is the pure core. It is stepped on a simulated clock (``now`` in s): it
-receives decoded command frames, applies the ECU semantics of DESIGN.md ("ECU semantics"),
+receives decoded command frames, applies the ECU semantics of docs/can-protocol.md,
 actuates a plant from :mod:`leafgate.sim.plant`, and produces the report frames due at ``now``
 through its own :class:`~leafgate.can.codec.CanCodec`. It reads no clock and opens no socket,
 so the same object runs in the deterministic closed-loop simulation and, wrapped by

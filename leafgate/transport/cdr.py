@@ -216,7 +216,7 @@ uint8 mode
     ),
 }
 
-# Every type a leafgate key carries (the Zenoh interface table in DESIGN.md).
+# Every type a leafgate key carries (docs/design.md, "The Zenoh interface").
 KEY_TYPES: tuple[str, ...] = (
     ODOMETRY,
     TRAJECTORY,

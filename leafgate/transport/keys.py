@@ -1,4 +1,4 @@
-"""leafgate's own Zenoh key expressions, after the configured prefix (DESIGN, "Zenoh interface").
+"""leafgate's own Zenoh key expressions after the prefix (docs/design.md, "The Zenoh interface").
 
 The ROS topics and the engage service are named by role in the configuration
 (:data:`~leafgate.config.transport.DEFAULT_TOPICS`, Autoware's names by default) and turned

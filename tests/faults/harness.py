@@ -73,7 +73,7 @@ def write_config(
     of 100 ms is no localization failure, nor one of 40 ms an ECU report failure, nor three late
     ticks in a row a loop failure, worth ending a run before its fault is injected (other test
     sessions share the machine, too). The thresholds a test is not about are therefore relaxed
-    (as in test_daemon_processes.py); a test about one keeps DESIGN's value.
+    (as in test_daemon_processes.py); a test about one keeps docs/watchdogs.md's.
     """
     cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
     cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
@@ -85,9 +85,9 @@ def write_config(
     else:
         wd.update({"localization_stop_age": 0.3, "localization_fault_age": 1.0})
     if not report_design_thresholds:
-        wd["report_timeout_periods"] = 10.0  # 100 ms of DBW_STEER_RPT instead of DESIGN's 30 ms
+        wd["report_timeout_periods"] = 10.0  # 100 ms of DBW_STEER_RPT instead of the default 30 ms
     if not overrun_design_threshold:
-        wd["max_overruns"] = 25  # late ticks in a row: 0.5 s instead of DESIGN's 3
+        wd["max_overruns"] = 25  # late ticks in a row: 0.5 s instead of the default 3
         wd["max_stall_periods"] = 25.0  # one tick 0.5 s late instead of 100 ms
         wd["max_receive_lag"] = 1.0  # the receive thread 1 s behind instead of 0.2 s
     wd.update(watchdog or {})

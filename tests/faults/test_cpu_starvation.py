@@ -1,7 +1,7 @@
 """CPU starvation: two busy-loop processes hog both cores while the maneuver runs, and the
 localization publisher stops 3 s into it. The loop reports its lateness, and the watchdogs still
 act — the localization watchdog, or the overrun watchdog first when the starved loop falls three
-ticks behind (DESIGN's thresholds for both here).
+ticks behind (docs/watchdogs.md's thresholds for both here).
 
 Whether the loop overruns under this load depends on the scheduler, so the counters are
 asserted to be reported, not to be non-zero; their values go into the results table.
@@ -18,7 +18,7 @@ from leafgate.messages import GatewayState
 
 pytestmark = PROCESS_TEST
 
-FAULT_AGE = 0.5  # s, DESIGN: localization older than this → FAULT
+FAULT_AGE = 0.5  # s, docs/watchdogs.md: localization older than this → FAULT
 STARVED_SLACK = 1.5  # s, what two busy loops on two cores may add to any reaction
 MAX_SPEED = 2.0  # m/s, the s-curve's top speed
 LOOP_FIGURES = ("ticks", "overruns", "skipped_ticks", "start_lateness_p99_s", "compute_p99_s")

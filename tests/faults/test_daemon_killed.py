@@ -2,7 +2,7 @@
 recording up to the kill is readable.
 
 Nothing of the daemon runs after SIGKILL — no clean disengage, no file closing. The ECU's command
-timeout (DESIGN: 100 ms, then −3 m/s² to a stop) is the only reaction. The recorder makes its
+timeout (docs/can-protocol.md: 100 ms, then −3 m/s² to a stop) is the only reaction. The recorder makes its
 files readable every ``flush_period`` (1 s): the BLF's header and last container, and a closed
 MCAP chunk; what was sent after the last flush is lost, and reported.
 """
@@ -26,8 +26,8 @@ pytestmark = PROCESS_TEST
 
 SLACK = 0.4  # s, scheduling noise of four processes on two cores
 MAX_SPEED = 2.0  # m/s, the s-curve's top speed
-CMD_TIMEOUT = 0.1  # s, DESIGN
-TIMEOUT_DECEL = 3.0  # m/s², DESIGN
+CMD_TIMEOUT = 0.1  # s, docs/can-protocol.md, ECU semantics
+TIMEOUT_DECEL = 3.0  # m/s², docs/can-protocol.md, ECU semantics
 FLUSH_PERIOD = 1.0  # s, recording.flush_period of the run
 REORDER_WINDOW = DEFAULT_REORDER_WINDOW  # s, the CAN log writes frames this much later
 COMMAND_RATE = 50 + 50 + 10  # command frames per second (steer, long, system)

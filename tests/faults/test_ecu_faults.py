@@ -1,7 +1,7 @@
 """ECU-side faults across processes: its reports stop, or arrive with a bad CRC or a stuck
 alive counter; the driver overrides by steering torque or by the brake pedal.
 
-DESIGN: a report older than 3 periods → FAULT; report CRC/counter errors counted +1 bad / −1 good
+docs/watchdogs.md: a report older than 3 periods → FAULT; report CRC/counter errors counted +1 bad / −1 good
 reaching 5 → FAULT; an ECU OVERRIDE → STANDBY (a new engage needed).
 """
 
@@ -19,11 +19,11 @@ pytestmark = PROCESS_TEST
 
 SLACK = 0.4  # s, scheduling noise of four processes on two cores
 MAX_SPEED = 2.0  # m/s, the s-curve's top speed
-STEER_REPORT_TIMEOUT = 3 * 0.010  # s, DESIGN: 3 periods of DBW_STEER_RPT
-ERROR_LIMIT = 5  # bad report frames (DESIGN)
+STEER_REPORT_TIMEOUT = 3 * 0.010  # s, docs/watchdogs.md: 3 periods of DBW_STEER_RPT
+ERROR_LIMIT = 5  # bad report frames (docs/watchdogs.md)
 REPORT_RATE = 100 + 50 + 10  # DBW report frames per second (steer, long, system)
 DRIVER_DECEL = 2.0  # m/s², the simulated driver brakes once the ECU hands back
-OVERRIDE_TIME = 0.1  # s, DESIGN: torque above 2.5 N·m for 100 ms
+OVERRIDE_TIME = 0.1  # s, docs/can-protocol.md: torque above 2.5 N·m for 100 ms
 
 
 def _run(run: FaultRun, kind: str, state: GatewayState) -> tuple[float, dict]:

@@ -1,6 +1,6 @@
 """Localization faults across processes: the publisher stops, jumps 2 m, or runs 400 ms late.
 
-DESIGN's thresholds apply here (STOPPING above 100 ms of age, FAULT above 500 ms or a jump of
+docs/watchdogs.md's thresholds apply (STOPPING above 100 ms of age, FAULT above 500 ms or a jump of
 more than 1 m in one sample); the bounds on the reaction add scheduling slack for a shared
 2-core machine, not a different threshold.
 """
@@ -15,8 +15,8 @@ from leafgate.messages import GatewayState
 
 pytestmark = PROCESS_TEST
 
-STOP_AGE = 0.1  # s, DESIGN: localization older than this → STOPPING
-FAULT_AGE = 0.5  # s, DESIGN: older than this → FAULT
+STOP_AGE = 0.1  # s, docs/watchdogs.md: localization older than this → STOPPING
+FAULT_AGE = 0.5  # s, docs/watchdogs.md: older than this → FAULT
 SLACK = 0.4  # s, scheduling noise of four processes on two cores
 MAX_SPEED = 2.0  # m/s, the s-curve's top speed
 STOP_TIME = MAX_SPEED / 1.5 + 1.5 / 2.0  # s, comfort stop (1.5 m/s²) after its jerk ramp (2 m/s³)

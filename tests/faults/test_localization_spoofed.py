@@ -24,7 +24,7 @@ def test_poses_stamped_400_ms_ago_are_refused_at_engage(
     make_run: Callable[..., FaultRun],
 ) -> None:
     # Not about the reports: on a loaded machine a starved receive thread loses udp_multicast
-    # datagrams, and the skipped counters on six report IDs at once can reach DESIGN's error
+    # datagrams, and the skipped counters on six report IDs at once can reach the default error
     # limit (seen once in CI). Relaxed here, as the harness relaxes what a test is not about.
     run = make_run(
         "localization stamped 400 ms ago",
