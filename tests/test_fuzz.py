@@ -16,14 +16,12 @@ import subprocess
 import sys
 import warnings
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import can
 import numpy as np
 import pytest
 import yaml
-import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -38,7 +36,7 @@ from leafgate.runtime.node import GatewayTransport
 from leafgate.runtime.receiver import CanReceiver
 from leafgate.settings import load_config
 from leafgate.transport.payloads import codecs
-from tools._common import StubSession, after_file, names_trajectory_place
+from tools._common import StubSession, after_file, names_trajectory_place, stub_sample
 
 ROOT = Path(__file__).resolve().parent.parent
 SIM_YAML = ROOT / "config" / "sim.yaml"
@@ -205,7 +203,7 @@ class Inputs:
         before = slot.received + slot.errors
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # no numpy warnings on Zenoh's thread either
-            self.callbacks[key](SimpleNamespace(payload=zenoh.ZBytes(payload)))
+            self.callbacks[key](stub_sample(payload))
         assert slot.received + slot.errors == before + 1
         sample = slot.get()
         if sample is not None and sample.valid:

@@ -19,6 +19,14 @@ def free_port(kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
         return int(s.getsockname()[1])
 
 
+def stub_sample(payload: bytes) -> Any:
+    """What a Zenoh subscriber callback receives from a publisher that sends no identity: a real
+    ``ZBytes`` payload, no attachment, no source info."""
+    import zenoh
+
+    return SimpleNamespace(payload=zenoh.ZBytes(payload), attachment=None, source_info=None)
+
+
 class StubEntity:
     """A declared Zenoh subscriber, queryable, publisher or token that does nothing."""
 

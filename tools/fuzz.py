@@ -60,14 +60,12 @@ from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import _common
 import can
 import numpy as np
 import yaml
-import zenoh
 from _common import StubSession
 
 from leafgate.can import e2e
@@ -569,9 +567,7 @@ def stub_transport(encoding: str) -> tuple[GatewayTransport, StubSession]:
     return transport, session
 
 
-def sample_of(payload: bytes) -> Any:
-    """What a Zenoh subscriber callback receives, with a real ``ZBytes`` payload."""
-    return SimpleNamespace(payload=zenoh.ZBytes(payload))
+sample_of = _common.stub_sample
 
 
 def random_pose(rng: random.Random, finite: bool = True) -> Pose:

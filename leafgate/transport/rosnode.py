@@ -36,7 +36,9 @@ class RosPublisher:
         self._wall = wall
         self._sequence = itertools.count(1)
         self._lock = threading.Lock()
-        self._id = publisher.id  # Zenoh's global ID of the publisher (session ID, entity ID)
+        # Zenoh's global ID of the publisher (session ID, entity ID); a stand-in publisher (the
+        # fuzzer's stub session) has none, and its samples go out unidentified
+        self._id: zenoh.EntityGlobalId | None = getattr(publisher, "id", None)
 
     def put(self, payload: bytes) -> None:
         """Publish ``payload`` with the publisher's identity: rmw_zenoh's attachment (GID,
@@ -46,7 +48,10 @@ class RosPublisher:
         with self._lock:  # sequence numbers in publication order
             sequence = next(self._sequence)
             if self._gid is None:
-                self.publisher.put(payload, source_info=zenoh.SourceInfo(self._id, sequence))
+                if self._id is None:
+                    self.publisher.put(payload)
+                else:
+                    self.publisher.put(payload, source_info=zenoh.SourceInfo(self._id, sequence))
                 return
             self.publisher.put(
                 payload,
@@ -56,7 +61,9 @@ class RosPublisher:
     @property
     def identity(self) -> str:
         """What :func:`sample_source` makes of this publisher's samples."""
-        return "gid:" + self._gid.hex() if self._gid is not None else _zenoh_identity(self._id)
+        if self._gid is not None:
+            return "gid:" + self._gid.hex()
+        return "" if self._id is None else _zenoh_identity(self._id)
 
     def undeclare(self) -> None:
         self.publisher.undeclare()
