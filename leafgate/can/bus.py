@@ -32,17 +32,38 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from types import TracebackType
+from typing import Any
 
 import can
 
 from leafgate.config.can import BusConfig, CanConfig
 from leafgate.errors import BusError
 
-__all__ = ["Buses", "filters_for", "open_bus", "open_buses"]
+__all__ = ["Buses", "copy_frame", "filters_for", "open_bus", "open_buses"]
 
 _STANDARD_MASK = 0x7FF  # all 11 bits of a standard ID must match
 # A standard-ID filter on bit 11, which no standard ID has: it delivers nothing.
 _NOTHING = {"can_id": 0x800, "can_mask": 0x800, "extended": False}
+
+
+def copy_frame(msg: can.Message, **changes: Any) -> can.Message:
+    """A copy of a frame, every field kept but ``changes`` (the original may be shared)."""
+    fields: dict[str, Any] = {
+        "timestamp": msg.timestamp,
+        "arbitration_id": msg.arbitration_id,
+        "is_extended_id": msg.is_extended_id,
+        "is_remote_frame": msg.is_remote_frame,
+        "is_error_frame": msg.is_error_frame,
+        "channel": msg.channel,
+        "dlc": msg.dlc,
+        "data": msg.data,
+        "is_fd": msg.is_fd,
+        "is_rx": msg.is_rx,
+        "bitrate_switch": msg.bitrate_switch,
+        "error_state_indicator": msg.error_state_indicator,
+    }
+    fields.update(changes)
+    return can.Message(**fields)
 
 
 def filters_for(receive_ids: Iterable[int] | None) -> list[dict[str, int | bool]] | None:

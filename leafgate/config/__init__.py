@@ -221,17 +221,9 @@ def _convert(tp: Any, value: Any, source: str, dotted: str) -> Any:
 def load_yaml(path: str | Path) -> Any:
     """Read a YAML file, turning I/O and syntax errors into one-line ConfigErrors."""
     path = Path(path)
+    text = read_text(path, ConfigError)
     try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
-    try:
-        text = utf8_text(data)
         return safe_load_yaml(text)
-    except ValueError as exc:  # not UTF-8
-        raise ConfigError(f"{path}: {exc}") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: {yaml_error_text(exc, text)}") from None
 
@@ -356,6 +348,23 @@ def yaml_error_text(exc: yaml.YAMLError, text: str) -> str:
     else:
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
     return f"invalid YAML at line {line}, column {column}: {problem}"
+
+
+def read_text(path: Path, error: type[Exception]) -> str:
+    """A user's file as text (UTF-8, a leading BOM dropped).
+
+    :raises error: one line naming the file: missing, unreadable, or not UTF-8 (and where)
+    """
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        return utf8_text(data)
+    except ValueError as exc:
+        raise error(f"{path}: {exc}") from None
 
 
 def utf8_text(data: bytes) -> str:

@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from leafgate.config import safe_load_yaml, utf8_text, yaml_error_text
+from leafgate.config import read_text, safe_load_yaml, yaml_error_text
 from leafgate.errors import TrajectoryError
 from leafgate.messages import FloatArray, Trajectory
 
@@ -71,16 +71,7 @@ def load_trajectory(path: str | Path) -> Trajectory:
     :raises TrajectoryError: naming the file, the row and the problem
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise TrajectoryError(f"{path}: no such file") from None
-    except OSError as exc:
-        raise TrajectoryError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    try:
-        text = utf8_text(data)
-    except ValueError as exc:
-        raise TrajectoryError(f"{path}: {exc}") from None
+    text = read_text(path, TrajectoryError)
     suffix = path.suffix.lower()
     if suffix == ".csv":
         columns, rows = _parse_csv(text, str(path))

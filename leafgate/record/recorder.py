@@ -42,6 +42,7 @@ from typing import IO, Any, Final, Literal, Protocol, Self
 import can
 import numpy as np
 
+from leafgate.can.bus import copy_frame
 from leafgate.config.recording import CAN_LOG_SUFFIXES, RecordingConfig
 from leafgate.control.base import Controller
 from leafgate.gateway.core import GatewayInputs, StepResult
@@ -314,30 +315,12 @@ def _open_can_writer(path: Path, channel: str) -> can.io.generic.FileIOMessageWr
 
 
 def _tx_copy(msg: can.Message, timestamp: float, channel: str) -> can.Message:
-    return _copy(
+    return copy_frame(
         msg,
         timestamp=timestamp,
         channel=msg.channel if msg.channel is not None else channel,
         is_rx=False,
     )
-
-
-def _copy(msg: can.Message, **changes: Any) -> can.Message:
-    """A copy of a frame with some attributes changed (the original may be shared)."""
-    fields: dict[str, Any] = {
-        "timestamp": msg.timestamp,
-        "arbitration_id": msg.arbitration_id,
-        "is_extended_id": msg.is_extended_id,
-        "is_remote_frame": msg.is_remote_frame,
-        "is_error_frame": msg.is_error_frame,
-        "channel": msg.channel,
-        "dlc": msg.dlc,
-        "data": msg.data,
-        "is_fd": msg.is_fd,
-        "is_rx": msg.is_rx,
-    }
-    fields.update(changes)
-    return can.Message(**fields)
 
 
 class _ClosedOnExit:
@@ -457,7 +440,7 @@ class CanLogRecorder(_FileRecorder):
             stamp = self.tx_clock() if self.tx_clock is not None else msg.timestamp
             msg = _tx_copy(msg, stamp + self.time_offset, self.channel)
         elif self.time_offset:
-            msg = _copy(msg, timestamp=msg.timestamp + self.time_offset)
+            msg = copy_frame(msg, timestamp=msg.timestamp + self.time_offset)
         self._bg.put(msg)
 
     def on_tick(
@@ -496,9 +479,9 @@ class CanLogRecorder(_FileRecorder):
         stamp = msg.timestamp
         if stamp < self._last_written:  # beyond the window: keep the log monotonic
             self.late += 1
-            msg = _copy(msg, timestamp=self._last_written)
+            msg = copy_frame(msg, timestamp=self._last_written)
         if self.one_bus and msg.channel != self.channel:
-            msg = _copy(msg, channel=self.channel)
+            msg = copy_frame(msg, channel=self.channel)
         heapq.heappush(self._pending, (msg.timestamp, self._arrivals, msg))
         self._arrivals += 1
         self._newest = max(self._newest, stamp)
@@ -661,7 +644,7 @@ class SessionRecorder(_FileRecorder):
             if self.channel is not None and (
                 msg.channel is None or (self.one_bus and msg.channel != self.channel)
             ):
-                msg = _copy(msg, channel=self.channel)  # one bus, one channel name
+                msg = copy_frame(msg, channel=self.channel)  # one bus, one channel name
             writer.can_frame(t, msg, rx)
             self._last_t = t
         elif kind == "tick":

@@ -26,7 +26,7 @@ from typing import Any, TextIO
 
 import can
 
-from leafgate.can.bus import open_bus
+from leafgate.can.bus import copy_frame, open_bus
 from leafgate.config.can import BusConfig
 from leafgate.errors import BusError, ReplayError
 from leafgate.record.logs import FrameSource, is_end_marker
@@ -72,19 +72,6 @@ def parse_ids(text: str | None) -> frozenset[int] | None:
         except ValueError:
             raise ReplayError(f"--ids {text!r}: {item!r} is not a hexadecimal CAN ID") from None
     return frozenset(ids)
-
-
-def _copy(msg: can.Message) -> can.Message:
-    """The frame as sent: data and flags kept, timestamp and channel left to the bus."""
-    return can.Message(
-        arbitration_id=msg.arbitration_id,
-        is_extended_id=msg.is_extended_id,
-        is_remote_frame=msg.is_remote_frame,
-        is_fd=msg.is_fd,
-        bitrate_switch=msg.bitrate_switch,
-        dlc=msg.dlc,
-        data=msg.data,
-    )
 
 
 def play_frames(
@@ -135,7 +122,7 @@ def play_frames(
             else:
                 max_late = max(max_late, now - deadline)
         try:
-            bus.send(_copy(msg))
+            bus.send(copy_frame(msg, timestamp=0.0, channel=None, is_error_frame=False, is_rx=True))
         except can.CanError as exc:
             raise BusError(f"playback stopped after {sent} frames: send failed: {exc}") from None
         sent += 1
