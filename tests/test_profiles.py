@@ -306,6 +306,11 @@ def test_replay_check_passes_a_recorded_drive_of_each_profile(
     assert cli.main(["replay", "check", str(log), "--profile", profile]) == 0
     verdict = capsys.readouterr().out.splitlines()[-1]
     assert verdict.startswith("OK: ")
+    if profile == "sze-hlc":  # read with another profile, its command stream is not checked
+        assert cli.main(["replay", "check", str(log), "--profile", "leafgate-dbw"]) == 1
+        out = capsys.readouterr().out  # (it said "OK: 0 engaged command frames checked")
+        assert "no frame on the command IDs of profile leafgate-dbw" in out
+        assert out.splitlines()[-1].startswith("FAILED: ")
     authenticated = load_profile(profile).authenticated
     assert ("MAC not verified" in verdict) == authenticated
     assert "MAC verified" not in verdict

@@ -42,8 +42,9 @@ session's ``/can`` topic):
    Without the key the frames are decoded and checked as above, and the report says "MAC not
    verified": it never claims a MAC it did not check.
 
-An empty log, a log with no frame of the profile (another vehicle's?) and a log whose
-command frames could none be checked are findings, never "OK". Timestamps that go backwards
+An empty log, a log with no frame on the profile's command IDs (another vehicle's, one made
+with another profile, or one without the gateway) and a log whose command frames could none be
+checked are findings, never "OK". Timestamps that go backwards
 are warned about.
 
 Tolerances are 1.5 quantisation steps of the command signals (read from the DBC, through the
@@ -628,8 +629,9 @@ def _period_findings(ids: list[IdStats], first: float) -> list[Finding]:
 
 
 def _coverage_findings(scan: _Scan, stats: dict[int, FrameStats]) -> list[Finding]:
-    """An empty log, a log whose command frames could not be checked, a log with no frame of
-    the profile at all (another vehicle's recording): each is a finding, never "OK"."""
+    """An empty log, a log whose command frames could not be checked, a log with no frame on
+    the profile's command IDs (another vehicle's recording, one made with another profile, or
+    one without the gateway): each is a finding, never "OK"."""
     n, first, command_frames = scan.frames, scan.first, scan.command_frames
     commands, command_ids = scan.commands, scan.command_ids
     profile = scan.template.profile.name
@@ -648,18 +650,17 @@ def _coverage_findings(scan: _Scan, stats: dict[int, FrameStats]) -> list[Findin
             )
         ]
     known = sum(s.frames - s.unknown_id for s in stats.values())
-    if command_frames == 0 and known == 0:
+    if command_frames == 0:
         ids = ", ".join(f"{i:03X}" for i in sorted(command_ids))
-        return [
-            Finding(
-                first,
-                "coverage",
-                None,
-                "profile",
-                f"no frame of profile {profile} (command IDs {ids}): a recording of another "
-                "vehicle? give --profile",
-            )
-        ]
+        detail = (
+            f"no frame of profile {profile} (command IDs {ids}): a recording of another "
+            "vehicle? give --profile"
+            if known == 0
+            else f"no frame on the command IDs of profile {profile} ({ids}): the command stream "
+            f"was not checked, only {known} other frames of the profile (a recording without "
+            "the gateway, or made with another profile? give --profile)"
+        )
+        return [Finding(first, "coverage", None, "profile", detail)]
     return []
 
 
