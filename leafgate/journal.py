@@ -159,8 +159,3 @@ def setup_logging(
     atexit.register(_stop_listener)
     root.handlers[:] = [front]
     return front
-
-
-def flush_logging() -> None:
-    """Write every queued line now (before the process prints its last words or exits)."""
-    _stop_listener()

@@ -1309,9 +1309,3 @@ class CanCodec:
     def databases(self) -> tuple[Database, ...]:
         """The loaded cantools databases, in the profile's order."""
         return self._tables.databases
-
-
-def frame_summary(msg: can.Message) -> str:
-    """``"0A0 [8] 01 02 …"``: the ID, length and payload of a frame, for log lines."""
-    width = 8 if msg.is_extended_id else 3
-    return f"{msg.arbitration_id:0{width}X} [{len(msg.data)}] {bytes(msg.data).hex(' ').upper()}"

@@ -71,11 +71,6 @@ class DisturbanceEstimator:
         self._last: tuple[float, float, float] | None = None  # heading, speed, tan δ
         self._commands.clear()
 
-    def forget_motion(self) -> None:
-        """A gap in the measurements (a new plan, a held car): start the differences afresh."""
-        self._last = None
-        self._commands.clear()
-
     def update(self, heading: float, speed: float, tan_delta: float, accel_cmd: float) -> None:
         """One tick's measurement, and the signed acceleration (d(v)/dt) commanded at the
         previous tick — the one that acted since the previous measurement."""

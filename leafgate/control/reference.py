@@ -420,13 +420,6 @@ class ReferencePath:
 
     # --- queries ---
 
-    def segment_of(self, index: int) -> int:
-        """Index of the first segment containing waypoint ``index``."""
-        for k, seg in enumerate(self.segments):
-            if seg.start <= index <= seg.end:
-                return k
-        return len(self.segments) - 1
-
     def project(self, seg: Segment, index: int, x: float, y: float) -> float:
         """Arc length of the point's projection on the chords around waypoint ``index``."""
         s = self._s

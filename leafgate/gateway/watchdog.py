@@ -90,11 +90,6 @@ class Check(NamedTuple):
         return self.status is Status.OK
 
 
-def age_of(received: float | None, now: float) -> float | None:
-    """Age of a sample received at ``received`` (gateway clock), s."""
-    return None if received is None else now - received
-
-
 def freshness(age: float | None, stale_after: float, lost_after: float) -> Status:
     """OK, STALE (older than ``stale_after``), LOST (older than ``lost_after``) or MISSING."""
     if age is None:
@@ -644,8 +639,6 @@ class WatchdogReport:
 
 class Watchdogs:
     """Every input watchdog of the gateway, updated together once per tick."""
-
-    REPORTS: tuple[str, ...] = ("steer_report", "long_report", "system_report")
 
     def __init__(
         self, config: WatchdogConfig, period: float = math.inf, max_speed: float = math.inf

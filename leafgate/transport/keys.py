@@ -22,4 +22,3 @@ GEAR_STATUS = "vehicle/status/gear_status"  # out: GearReport
 CONTROL_MODE = "vehicle/status/control_mode"  # out: ControlModeReport
 TURN_INDICATORS_STATUS = "vehicle/status/turn_indicators_status"  # out: TurnIndicatorsReport
 HAZARD_LIGHTS_STATUS = "vehicle/status/hazard_lights_status"  # out: HazardLightsReport
-CONTROL_MODE_REQUEST = "control/control_mode_request"  # service: ControlModeCommand
