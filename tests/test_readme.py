@@ -71,13 +71,17 @@ def test_every_readme_block_runs_or_says_why_not() -> None:
     assert hil and hil[0].expect == ["ENGAGED"] and not hil[0].skip
 
 
+README_CHECK_TIMEOUT = 1800  # s: every block as written, `leafgate compare` alone takes minutes
+
+
 @pytest.mark.slow
+@pytest.mark.timeout(README_CHECK_TIMEOUT + 60)  # the suite's 300 s is per ordinary test
 def test_readme_blocks_pass_as_written() -> None:
     done = subprocess.run(
         [sys.executable, str(ROOT / "tools" / "readme_check.py")],
         capture_output=True,
         text=True,
-        timeout=1800,
+        timeout=README_CHECK_TIMEOUT,
     )
     report = json.loads(done.stdout)
     print(done.stderr)  # which blocks ran, were skipped (and why) or failed
