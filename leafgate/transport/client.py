@@ -33,6 +33,7 @@ from leafgate.transport.session import open_session, zenoh_message
 T = TypeVar("T")
 
 _POLL = 0.01  # s, how often a wait for a matching peer looks again
+TOKEN_POLL = 0.05  # s, how often a request looks again for the gateway's liveliness token
 
 
 @contextmanager
@@ -114,7 +115,11 @@ def request(
             # A query sent before the gateway's queryable is known goes nowhere: wait for it.
             if not _wait_matching(querier, deadline):
                 raise TransportError(f"no gateway answered on {key} within {wait:g} s")
+            # Its token may reach us a moment after its queryable (a gateway just starting).
             gateways = gateway_ids(cfg, s, max(0.05, deadline - time.monotonic()))
+            while not gateways and time.monotonic() < deadline:
+                time.sleep(TOKEN_POLL)
+                gateways = gateway_ids(cfg, s, max(0.05, deadline - time.monotonic()))
             if not gateways:
                 raise TransportError(f"no gateway liveliness token under {cfg.key(keys.ALIVE)}")
             for reply in querier.get(payload=text.encode()):
