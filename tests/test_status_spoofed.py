@@ -159,3 +159,34 @@ def test_status_shows_only_the_gateway_and_reports_the_others(
         assert code == 0, err
         assert records and all(r["state"] == "STANDBY" for r in records)
         assert "without the gateway's liveliness token" in err
+
+
+def test_a_request_waits_for_a_starting_gateways_token(port: int, tool_cfg: ZenohConfig) -> None:
+    """A gateway whose queryable is up a moment before its liveliness token still gets the
+    operator's request: the request waits for the token until its deadline (it looked once,
+    and a starting gateway was reported as "no gateway liveliness token")."""
+    cfg = ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",))
+    session = open_session(cfg)
+    tokens: list[Any] = []
+
+    def answer(query: zenoh.Query) -> None:
+        reply = {"accepted": False, "state": "STANDBY", "reason": "starting", "changed": False}
+        query.reply(query.key_expr, json.dumps(reply).encode())
+
+    def token_later() -> None:
+        time.sleep(1.0)
+        alive = f"{cfg.key(keys.ALIVE)}/{session.info.zid()}"
+        tokens.append(session.liveliness().declare_token(alive))
+
+    queryable = session.declare_queryable(cfg.key(keys.ENGAGE), answer)
+    later = threading.Thread(target=token_later)
+    later.start()
+    try:
+        reply = client.request(tool_cfg, "engage", timeout=10.0)
+    finally:
+        later.join()
+        for token in tokens:
+            token.undeclare()
+        queryable.undeclare()
+        session.close()
+    assert reply["reason"] == "starting"
