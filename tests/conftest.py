@@ -27,11 +27,31 @@ if TYPE_CHECKING:
 RELAXED_WATCHDOG = {
     "localization_stop_age": 0.3,
     "localization_fault_age": 1.0,
-    "report_timeout_periods": 10,
+    "report_timeout_periods": 25,
     "max_overruns": 25,
     "max_stall_periods": 25.0,
     "max_receive_lag": 1.0,
 }
+
+
+def relax_for_shared_cores(cfg: dict) -> None:
+    """Relax, in a config mapping, every deadline a scheduling stall of another process can miss.
+
+    Several Python processes on two loaded cores stall each other for 100 ms and more. Here that
+    is not the failure under test, and each default below is tested where a test is about it
+    (test_watchdog.py, test_state_machine.py, test_ecu.py, tests/faults/):
+
+    - the watchdog thresholds above;
+    - the time the ECU has to confirm an engage (0.5 s; a loaded simulated-ECU process missed it);
+    - the report-frame error count (frames the kernel drops from a stalled receiver's socket
+      make counter gaps);
+    - the simulated ECU's command timeout (0.1 s; after a timeout the ECU needs a fresh ENABLE
+      edge, so a stalled daemon at the moment of the engage leaves the car standing).
+    """
+    gateway = cfg.setdefault("gateway", {})
+    gateway.setdefault("watchdog", {}).update(RELAXED_WATCHDOG, max_report_errors=50)
+    gateway.setdefault("engage", {})["confirm_timeout"] = 3.0
+    cfg.setdefault("sim", {}).setdefault("ecu", {})["cmd_timeout"] = 0.5
 
 
 def private_group() -> str:

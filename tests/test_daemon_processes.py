@@ -28,7 +28,7 @@ from leafgate.can.codec import CanCodec
 from leafgate.messages import EcuState, SteerCommand, SystemReport
 from leafgate.sim.metrics import tracking_metrics
 from leafgate.sim.scenarios import get_scenario
-from tests.conftest import RELAXED_WATCHDOG, free_port, udp_multicast_works
+from tests.conftest import free_port, relax_for_shared_cores, udp_multicast_works
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "leafgate.cli"]
@@ -59,7 +59,7 @@ def sim_config(tmp_path: Path, profile: str) -> Path:
     # Likewise a 30 ms report gap or three late ticks in a row (10 ms ones for leaf-ze1-lkas)
     # while four processes start on two cores; tests/faults/ keeps docs/watchdogs.md's where a
     # test is about that watchdog.
-    cfg["gateway"]["watchdog"].update(RELAXED_WATCHDOG)
+    relax_for_shared_cores(cfg)
     path = tmp_path / "sim.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

@@ -88,14 +88,14 @@ class FakeEcu:
     state: EcuState = EcuState.READY
     fault: bool = False
     follow_enable: bool = True  # False: never enables (a broken ECU)
-    prev_enable: bool = False
+    prev_enable: bool | None = None  # None: no frame seen yet (the first ENABLE=1 is no edge)
     sent: list[tuple[float, SteerCommand, LongCommand]] = field(default_factory=list)
 
     def command(self, now: float, steer: SteerCommand, long: LongCommand) -> None:
         self.sent.append((now, steer, long))
         if steer.clear_override or long.clear_override:
             self.override = False
-        edge = steer.enable and not self.prev_enable
+        edge = steer.enable and self.prev_enable is False
         self.prev_enable = steer.enable
         if not steer.enable:
             self.enabled = False
@@ -282,6 +282,23 @@ def test_engage_sends_an_enable_edge_after_standby_frames() -> None:
     assert rig.results[-1].commands.steer.enable and rig.results[-1].commands.long.enable
     rig.run(0.1)
     assert rig.ecu.enabled
+    assert rig.results[-1].diagnostics.engage_phase is EngagePhase.ACTIVE
+
+
+def test_an_engage_on_the_first_tick_sends_enable_0_before_the_edge() -> None:
+    # CI: an engage queued while the daemon started ran on its first tick, whose frames carried
+    # ENABLE=1; the ECU had seen no ENABLE=0 before it, so there was no edge and it never engaged
+    # ("ECU did not report ENABLED", or with a profile without an ECU state report, a car left
+    # standing until the no-progress watchdog).
+    rig = Rig()
+    reply = rig.step(OperatorRequest.ENGAGE).reply
+    assert reply is not None and reply.accepted and rig.state == GatewayState.ENGAGED
+    first = rig.results[0].commands
+    assert not first.steer.enable and not first.long.enable
+    assert rig.controller.calls == 0  # nothing of the controller's went out, nor was computed
+    rig.run(0.1)
+    assert rig.results[1].commands.steer.enable and rig.results[1].commands.long.enable
+    assert rig.ecu.enabled and rig.state == GatewayState.ENGAGED
     assert rig.results[-1].diagnostics.engage_phase is EngagePhase.ACTIVE
 
 

@@ -31,7 +31,7 @@ from test_transport import free_port
 from leafgate.sim.metrics import tracking_metrics
 from leafgate.sim.scenarios import get_scenario
 from leafgate.transport.payloads import codecs
-from tests.conftest import RELAXED_WATCHDOG
+from tests.conftest import relax_for_shared_cores
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-m", "leafgate.cli"]
@@ -55,7 +55,7 @@ def configs(tmp_path: Path, router: str) -> tuple[Path, Path]:
     cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
     # Four processes on two shared cores, and localization relayed through this test: as in
     # test_daemon_processes, a scheduling stall is not a failure this test is about.
-    cfg["gateway"]["watchdog"].update(RELAXED_WATCHDOG)
+    relax_for_shared_cores(cfg)
     daemon = tmp_path / "daemon.yaml"
     daemon.write_text(yaml.safe_dump(cfg))
     cfg["zenoh"]["topics"] = {"kinematic_state": "/sim/ground_truth"}

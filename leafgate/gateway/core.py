@@ -267,6 +267,9 @@ class Gateway:
         self._clear_sent = False  # a CLEAR_OVERRIDE frame went out in this engagement
         self._override_latched = False  # the ECU latched an override we have not cleared
         self._enable_sent = False  # the last commands carried ENABLE=1
+        # the last commands carried ENABLE=0: the ECU engages on a 0→1 edge it has seen, so
+        # ENABLE=1 goes out only after such a tick (an engage on the gateway's first tick waits one)
+        self._disable_sent = False
         self._fault_braking = False  # in FAULT, still braking with ENABLE=1
         self._rest_since: float | None = None  # s, since when |v| is below standstill speed
         self._stop_reason = ""
@@ -326,10 +329,10 @@ class Gateway:
         gear_change = False
         if m.state == GatewayState.STOPPING and at_rest:
             m.fire(Event.AT_REST, now, f"at rest after a controlled stop ({self._stop_reason})")
-        if m.state == GatewayState.ENGAGED and self._phase in (
-            EngagePhase.ENABLING,
-            EngagePhase.ACTIVE,
-        ):
+        # the controller drives once ENABLE=0 has gone out before (the ECU needs the edge)
+        wire_ready = self._enable_sent or self._disable_sent
+        driving = self._phase in (EngagePhase.ENABLING, EngagePhase.ACTIVE) and wire_ready
+        if m.state == GatewayState.ENGAGED and driving:
             output = self._run_controller(wd)
             if not output.converged or not _finite_output(output):
                 self._stop(now, f"controller: {output.status} (converged={output.converged})")
@@ -373,6 +376,7 @@ class Gateway:
         else:
             self.gate.seed(steer, long)
         self._enable_sent = steer.enable or long.enable
+        self._disable_sent = not (steer.enable or long.enable)
 
         system = self._system_command(now, clear_faults)
         if reply is not None and inputs.request is not None:
