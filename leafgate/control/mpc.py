@@ -10,7 +10,8 @@ Each control tick:
    (eq. 15–19) with the four kinematic states as outputs (see :mod:`leafgate.control.model` for
    why the frame is path-aligned and why ``x`` is an output);
 3. prediction ``Y = F x + S ΔU`` (eq. 22–26) and the QP ``½ΔUᵀEΔU + ΔUᵀf, MΔU ≤ γ``
-   (eq. 28–31) with output weights ``Q`` and input-change weights ``R̄``;
+   (eq. 28–31) with output weights ``Q`` and input-change weights ``R̄``; ``M`` holds the
+   input limits of eq. 30 and rows that keep the predicted speed from going against the gear;
 4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else DAQP (the
    default), Hildreth or OSQP — and apply the first move, clipped to the hard limits whatever
    the solver returned.
@@ -58,6 +59,20 @@ on the wrong lock (after a cusp) would leave the path at once. Once the car has 
 segment's end point it brakes to rest (status ``stopping``) and never creeps on to correct the
 heading; the next segment (or the finish) starts from where it stopped. While finished or
 aligning the wheel holds or ramps monotonically: no chatter at standstill.
+
+**Never against the gear.** The QP's linear model would let the predicted speed change sign:
+a brake hold at rest (after a cusp the hold is ``−direction · hold_decel``) or any braking
+would carry the car backward in D. The car does not roll back under its brake, so the QP has
+one more row per predicted speed: ``direction · v_k ≥ min(0, v_fast,k) − 10⁻⁵ m/s``, where
+``v_fast,k`` is the speed reached by raising the acceleration along the gear as fast as the
+jerk and amplitude limits allow. That input sequence satisfies every other constraint, so the
+QP is always feasible; while a hold is left (``v_fast,k < 0``) the rows force it to be released
+at the jerk limit, and after that the plan may stop but never reverse. The speed rows of the
+prediction depend on the acceleration moves alone (``v_k = v_free,k + Σ_{j<k} Ts (k − j) Δa_j``,
+both models), so ``M`` is constant per direction and only ``γ`` changes per tick. A car the MPC
+keeps at rest with no hold left for ``_BLOCKED_TIME`` (its plan would roll back, or stays at
+rest: e.g. a cusp reached 0.8 m and 30° off a 1 m forward move) gets ``converged=False`` and
+status ``blocked: …`` naming the offset, so the gateway stops with the cause.
 
 **Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed at its
 own place on the path plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit).
@@ -116,6 +131,11 @@ from leafgate.geometry import wrap_angle as _wrap
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
 _GOVERN_TIME = 0.5  # s, time constant with which a car above the speed bound is slowed
+_BLOCKED_TIME = 1.0  # s, the MPC keeping the car at rest this long (no hold left) stops it
+_DRIVE_ACCEL = 0.01  # m/s², at rest a command along the gear above this drives off (below
+# −this, a brake hold is still being released)
+_SPEED_SLACK = 1e-5  # m/s, the speed rows' bound lies this far below the unavoidable speed, so
+# that rounding never makes the QP infeasible when that bound forces the fastest release
 _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a clip (solver
 # tolerances leave smaller excursions, which are clipped but not counted)
 
@@ -166,11 +186,23 @@ class MpcController:
         #   u_prev + Σ_{i≤j} Δu_i ≤ u_max,  −(…) ≤ −u_min,  Δu_j ≤ du_max,  −Δu_j ≤ −du_min
         cum = np.kron(np.tril(np.ones((Nc, Nc))), np.eye(m))
         eye = np.eye(Nc * m)
-        self.M = np.vstack((cum, -cum, eye, -eye))
+        box = np.vstack((cum, -cum, eye, -eye))
+        # and the predicted speeds never against the gear beyond what cannot be avoided
+        # (module notes): direction · v_k ≥ v_low,k, k = 1 … Np. The speed rows of the prediction
+        # are the same for both models and every tick, v_k = v_free,k + Σ_{j<k} Ts (k − j) Δa_j,
+        # so each direction has one constant M (rows −direction · S_v); only γ varies.
+        lag = np.arange(1, Np + 1)[:, None] - np.arange(Nc)[None, :]
+        self._speed_rows: FloatArray = np.where(lag > 0, self.Ts * lag, 0.0)  # (Np, Nc)
+        speed_S = np.zeros((Np, Nc * m))
+        speed_S[:, 0::2] = self._speed_rows
+        self._M_dir = {d: np.vstack((box, -d * speed_S)) for d in (1, -1)}
+        self.M = self._M_dir[1]  # the constraint matrix of the current direction
         self.tan_max = math.tan(cfg.steer_max)
         rate = np.array([cfg.jerk_max, cfg.steer_rate_max])  # per second
         self.du_max: FloatArray = np.concatenate((rate * period, np.tile(rate * self.Ts, Nc - 1)))
         self._du_first = (float(rate[0] * period), float(rate[1] * period))
+        # the acceleration along the gear raised as fast as the jerk limits allow, move by move
+        self._ramp: FloatArray = self._du_first[0] + rate[0] * self.Ts * np.arange(Nc)
         # γ = γ₀ + G u_prev, with γ₀ per driving direction (the signed accel limits flip)
         tile_eye = np.tile(np.eye(m), (Nc, 1))
         self._gamma_u = np.vstack((-tile_eye, tile_eye, np.zeros((2 * Nc * m, m))))
@@ -192,7 +224,9 @@ class MpcController:
             period, self.L, cfg.disturbance_tau_steer, cfg.disturbance_tau_accel
         )
         self._osqp: OsqpBackend | None = None
-        self._daqp = DaqpBackend(self.M) if cfg.solver == "daqp" else None
+        self._osqp_M = self.M  # the constraint matrix OSQP holds (same pattern both ways)
+        self._daqp_dir = {d: DaqpBackend(M) for d, M in self._M_dir.items()}
+        self._daqp = self._daqp_dir[1] if cfg.solver == "daqp" else None
         if cfg.solver == "osqp":
             E0 = np.eye(Nc * m)
             self._osqp = OsqpBackend(E0, self.M, eps=cfg.osqp_tolerance)
@@ -210,6 +244,9 @@ class MpcController:
         self._lam: FloatArray | None = None
         self._finished = False
         self._aligned = False  # the wheel has been turned for the current segment's start
+        self._tick = 0  # calls of step since the reset
+        self._standing = 0  # consecutive MPC ticks that kept the car at rest (see _blocked)
+        self._standing_tick = -1  # the tick that last counted
         # tan δ commands sent and not yet acting on the wheel (steering-aware model), oldest first
         self._in_flight: deque[float] = deque(maxlen=max(self._dead_ticks, 1))
         if self._osqp is not None:
@@ -259,6 +296,7 @@ class MpcController:
         self, pose: Pose, steer_angle: float, trajectory: Trajectory, t0: float
     ) -> ControlOutput:
         """One control tick: the checks, then the paper's steps 1–4 (module notes)."""
+        self._tick += 1
         if trajectory is not self._traj:
             self._set_trajectory(trajectory)
         path, prog = self._path, self._progress
@@ -305,8 +343,7 @@ class MpcController:
         ref -= y0
         err = ref.ravel() - free  # Rs − F x
         E, f = self._qp_terms(ST, err)
-        _, _, gamma0, _ = self._limits[direction]
-        gamma = gamma0 + self._gamma_u @ u_prev
+        gamma = self._constraint_bounds(direction, u_prev, a_prev, kin[2], free)
         # f is finite only if S and the errors are (a non-finite entry of S reaches every f
         # it touches, even times a zero weight or error), and then so is E. (np.add.reduce is
         # what f.sum() calls, without its Python wrapper; np.float64 is a float.)
@@ -484,6 +521,36 @@ class MpcController:
         u_eff = np.array([a_eff, t_eff])
         return self._predict_steer_lag(kin, tan_actual, u_eff, v_op, heading_op)
 
+    def _constraint_bounds(
+        self, direction: int, u_prev: FloatArray, a_prev: float, v0: float, free: FloatArray
+    ) -> FloatArray:
+        """``γ`` of this tick (and ``M`` of the direction made current): the input limits, and
+        the bounds of the speed rows, ``direction · v_k ≥ min(0, v_fast,k) − ε``.
+
+        ``v_fast,k`` is the speed (along the gear) at step k with the acceleration raised as fast
+        as the jerk and amplitude limits allow from the command sent last tick. So the QP may
+        not plan a roll-back against the gear (its linear model would let a brake hold, or a
+        stop, carry the car backward), except the part that raising the acceleration at once
+        cannot avoid: that input sequence meets every other constraint, the QP stays feasible.
+        """
+        if self.M is not self._M_dir[direction]:
+            self.M = self._M_dir[direction]
+            if self._daqp is not None:
+                self._daqp = self._daqp_dir[direction]
+        _, _, gamma0, _ = self._limits[direction]
+        Np = self.Np
+        v_free = free[2 * Np : 3 * Np] + v0  # no move: the free response's speeds
+        v_free *= direction
+        w_fast = direction * a_prev + self._ramp
+        np.minimum(w_fast, self.cfg.accel_max, out=w_fast)  # the drive limit, along the gear
+        w_fast[1:] -= w_fast[:-1].copy()
+        w_fast[0] -= direction * a_prev  # the fastest moves, along the gear
+        low = self._speed_rows @ w_fast
+        low += v_free
+        np.minimum(low, 0.0, out=low)
+        low -= _SPEED_SLACK
+        return np.concatenate((gamma0 + self._gamma_u @ u_prev, v_free - low))
+
     def _speed_bound(self, seg: Segment, s0: float, speed: float) -> float:
         """The speed bound, m/s: the plan's speed at the car's place ``s0`` plus the margin, and
         the plan's speed where the car will be in ``_GOVERN_TIME`` at ``speed`` when that is lower
@@ -561,8 +628,12 @@ class MpcController:
         if direction * speed_cmd > v_cap:
             speed_cmd = direction * v_cap
             limited = True
+        blocked = self._blocked(result, y0, v0, a_prev, a_cmd, speed_cmd, direction)
+        converged = result.converged and not blocked
         if not result.converged:
             status = "not-converged"
+        elif blocked:
+            status = blocked
         elif clips:
             status = "clipped"
         elif limited:
@@ -574,7 +645,7 @@ class MpcController:
             accel=a_cmd,
             speed=speed_cmd,
             gear=Gear.D if direction > 0 else Gear.R,
-            converged=result.converged,
+            converged=converged,
             iterations=result.iterations,
             clips=clips,
             cost=cost,
@@ -583,6 +654,52 @@ class MpcController:
             status=status,
             solve_time=time.perf_counter() - t0,
             **self._where(),
+        )
+
+    def _blocked(
+        self,
+        result: QpResult,
+        y0: FloatArray,
+        v0: float,
+        a_prev: float,
+        a_cmd: float,
+        speed_cmd: float,
+        direction: int,
+    ) -> str:
+        """Why the MPC does not drive the car off, once it has kept it at rest for
+        ``_BLOCKED_TIME`` with no brake hold left to release; else ``""``.
+
+        From far off the plan (a cusp reached 0.8 m and 30° off it) the QP's optimum may be to
+        roll back against the gear; the speed rows forbid that, and the plan then stays at rest
+        tick after tick. Said so, the gateway stops with the cause instead of a bare no-progress.
+        """
+        if self.cfg.mode == "velocity":
+            drives = direction * speed_cmd > self.cfg.stop_speed
+        else:
+            drives = direction * a_cmd > _DRIVE_ACCEL
+        standing = (
+            abs(v0) <= self.cfg.stop_speed
+            and not drives
+            and direction * a_prev >= -_DRIVE_ACCEL  # else a brake hold is being released
+        )
+        if not standing:
+            self._standing = 0
+            return ""
+        self._standing = self._standing + 1 if self._standing_tick == self._tick - 1 else 1
+        self._standing_tick = self._tick
+        waited = self._standing * self.period
+        if waited < _BLOCKED_TIME - 1e-9:
+            return ""
+        rows = self.M.shape[0] - self.Np  # the speed rows come last
+        why = (
+            "its plan would roll back against the gear"
+            if (result.lam[rows:] > 0.0).any()
+            else "its plan stays at rest"
+        )
+        lateral, heading = float(y0[1, 0]), float(y0[3, 0])
+        return (
+            f"blocked: at rest {abs(lateral):.2f} m and {math.degrees(abs(heading)):.0f}° off "
+            f"the path for {waited:.1f} s, the MPC does not drive off ({why})"
         )
 
     def _predict_steer_lag(
@@ -724,7 +841,10 @@ class MpcController:
         if self._daqp is not None:
             return self._daqp.solve(E, f, gamma)
         if self._osqp is not None:
-            return self._osqp.solve(E, f, gamma)
+            if self._osqp_M is self.M:
+                return self._osqp.solve(E, f, gamma)
+            self._osqp_M = self.M  # the direction changed: the speed rows flip their sign
+            return self._osqp.solve(E, f, gamma, M=self.M)
         result = hildreth(
             E,
             f,
