@@ -202,7 +202,11 @@ class MpcController:
         self.du_max: FloatArray = np.concatenate((rate * period, np.tile(rate * self.Ts, Nc - 1)))
         self._du_first = (float(rate[0] * period), float(rate[1] * period))
         # the acceleration along the gear raised as fast as the jerk limits allow, move by move
+        # (above the last command), and what input j adds to the speed at step k: Ts for each
+        # model step it is held before k (the last move is held to the horizon's end)
         self._ramp: FloatArray = self._du_first[0] + rate[0] * self.Ts * np.arange(Nc)
+        held = np.minimum(np.arange(Np)[:, None], Nc - 1) == np.arange(Nc)[None, :]  # (Np, Nc)
+        self._held: FloatArray = self.Ts * np.cumsum(held, axis=0)
         # γ = γ₀ + G u_prev, with γ₀ per driving direction (the signed accel limits flip)
         tile_eye = np.tile(np.eye(m), (Nc, 1))
         self._gamma_u = np.vstack((-tile_eye, tile_eye, np.zeros((2 * Nc * m, m))))
@@ -541,11 +545,9 @@ class MpcController:
         Np = self.Np
         v_free = free[2 * Np : 3 * Np] + v0  # no move: the free response's speeds
         v_free *= direction
-        w_fast = direction * a_prev + self._ramp
-        np.minimum(w_fast, self.cfg.accel_max, out=w_fast)  # the drive limit, along the gear
-        w_fast[1:] -= w_fast[:-1].copy()
-        w_fast[0] -= direction * a_prev  # the fastest moves, along the gear
-        low = self._speed_rows @ w_fast
+        w_prev = direction * a_prev
+        raised = np.minimum(self._ramp, self.cfg.accel_max - w_prev)  # the drive limit
+        low = self._held @ raised  # the speeds the fastest rise adds, along the gear
         low += v_free
         np.minimum(low, 0.0, out=low)
         low -= _SPEED_SLACK
