@@ -36,14 +36,6 @@ FEASIBLE = tuple(n for n in LIBRARY if n != "tight-hairpin")
 #: Goals not met on this branch, each with its measured figure (session 5, s5-routes). Strict:
 #: a fix makes the test pass, and the mark must then go.
 KNOWN_MISSES = {
-    ("switch-back", "steer-lag"): "8 steering sign changes where the path has 5 (+2 allowed): "
-    "counter-steers of 0.5° before the hairpin and 0.4° before the corner, and after the cusp the "
-    "wheel turned to 2.9° at 0.25 m/s, eased to 2.0°, then followed the clothoid to 15°. Not the "
-    "aligning (its 0.5° target lies within the 1.7° tolerance of the wheel at 0): the MPC's own "
-    "drive-off, the last of its 10 moves held over the 20 steps left of the horizon where the "
-    "curvature rises (3.6° commanded at 0.1 m/s where the path needs ≈ 1°); 30 moves give 7",
-    ("switch-back", "dynamic"): "8 steering sign changes where the path has 5 (+2 allowed), as "
-    "on the steer-lag plant (counter-steers of 0.5° and 0.4°, the wheel 2.9° → 2.0° after the cusp)",
     ("envelope", "parallel-park", -0.9, "kinematic"): "the first reverse S-bend (R = 5 m, the "
     "car turns no tighter than 4.7 m) cannot absorb 0.9 m and 25°: the car reaches the first cusp "
     "0.98 m and 33° off the 1.15 m pull-forward move, which no forward drive can correct (the "

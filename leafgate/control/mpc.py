@@ -37,6 +37,15 @@ does not exist at a 50 Hz tick. leafgate uses the increment the model itself giv
 next step with the current input, ``A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁)``, so the first predicted output is
 exactly the Euler step from the measured state. No history, no clock.
 
+**Spread moves** (``moves: spread``, the default; ``consecutive`` is the paper's). The ``Nc``
+moves act at model steps spread over the prediction horizon (move blocking,
+:func:`~leafgate.control.model.move_steps`: 0, 1, 3, 5, 8, 11, 15, 19, 24, 29 for 10 moves over
+30 steps), not at its first ``Nc`` steps with the last input held over the rest. Ahead of a
+rising curvature that held input is a compromise the car feels at once: a counter-steer before
+a bend, a pre-steer at a drive-off (3.6° commanded at 0.1 m/s after the ``switch-back``'s cusp
+where the path needed ≈ 1°). The rate limit of a later move covers the model steps since the
+one before; the QP keeps its 20 variables.
+
 **Time-varying linearisation.** The Jacobians of each model step are taken at that step's
 operating point on the plan — the planned speed and the reference heading — not once at the
 current state (:func:`~leafgate.control.model.prediction_matrices_ltv`). Before a cusp or the goal
@@ -58,7 +67,14 @@ angle the path's curvature needs there, at the steering-rate limit with the brak
 on the wrong lock (after a cusp) would leave the path at once. Once the car has passed a
 segment's end point it brakes to rest (status ``stopping``) and never creeps on to correct the
 heading; the next segment (or the finish) starts from where it stopped. While finished or
-aligning the wheel holds or ramps monotonically: no chatter at standstill.
+aligning the wheel holds or ramps monotonically: no chatter at standstill. A brake hold left at
+rest when the MPC takes over (a cusp reached off the next segment's start, where there is no
+aligning) is released first, at the jerk limit with the wheel held (status ``releasing``): a
+car at rest does not roll back under its brake, so the hold is no acceleration to plan with.
+At rest the first model step is linearised at the plan's speed of the next one, not at 0: the
+incremental model carries a steering move only through the step it is made in (its effect is
+∝ v), so at v = 0 the first move would do nothing in the prediction and the MPC would put off
+turning the wheel, and driving off, tick after tick.
 
 **Never against the gear.** The QP's linear model would let the predicted speed change sign:
 a brake hold at rest (after a cusp the hold is ``−direction · hold_decel``) or any braking
@@ -113,6 +129,7 @@ from leafgate.control.model import (
     grouped_by_output,
     kinematic_first_increment,
     linearise_along,
+    move_steps,
     prediction_matrices_ltv,
     rk4_step,
     steer_lag_factor,
@@ -174,7 +191,10 @@ class MpcController:
         self._q_out = np.repeat(q, Np)  # the same weights with the rows grouped by output
         self._q2 = 2.0 * self._q_out
         self._R2 = np.diag(2.0 * self.r_bar)
-        self._kinematic = None if self.steer_model else KinematicPrediction(Np, Nc, self.Ts, self.L)
+        self._moves = move_steps(Np, Nc, cfg.moves == "spread")  # the step each move acts from
+        self._kinematic = (
+            None if self.steer_model else KinematicPrediction(Np, Nc, self.Ts, self.L, self._moves)
+        )
         self._to_path = np.zeros((N_STATES, 3))  # global → path frame, rotation set per tick
         self._to_path[3, 2] = 1.0  # heading error = reference heading − heading at s0
         self.steps: FloatArray = self.Ts * np.arange(
@@ -191,7 +211,7 @@ class MpcController:
         # (module notes): direction · v_k ≥ v_low,k, k = 1 … Np. The speed rows of the prediction
         # are the same for both models and every tick, v_k = v_free,k + Σ_{j<k} Ts (k − j) Δa_j,
         # so each direction has one constant M (rows −direction · S_v); only γ varies.
-        lag = np.arange(1, Np + 1)[:, None] - np.arange(Nc)[None, :]
+        lag = np.arange(1, Np + 1)[:, None] - self._moves[None, :]
         self._speed_rows: FloatArray = np.where(lag > 0, self.Ts * lag, 0.0)  # (Np, Nc)
         speed_S = np.zeros((Np, Nc * m))
         speed_S[:, 0::2] = self._speed_rows
@@ -199,13 +219,15 @@ class MpcController:
         self.M = self._M_dir[1]  # the constraint matrix of the current direction
         self.tan_max = math.tan(cfg.steer_max)
         rate = np.array([cfg.jerk_max, cfg.steer_rate_max])  # per second
-        self.du_max: FloatArray = np.concatenate((rate * period, np.tile(rate * self.Ts, Nc - 1)))
+        gaps = np.diff(self._moves)[:, None]  # model steps between two moves
+        self.du_max: FloatArray = np.concatenate((rate * period, (gaps * rate * self.Ts).ravel()))
         self._du_first = (float(rate[0] * period), float(rate[1] * period))
         # the acceleration along the gear raised as fast as the jerk limits allow, move by move
         # (above the last command), and what input j adds to the speed at step k: Ts for each
         # model step it is held before k (the last move is held to the horizon's end)
-        self._ramp: FloatArray = self._du_first[0] + rate[0] * self.Ts * np.arange(Nc)
-        held = np.minimum(np.arange(Np)[:, None], Nc - 1) == np.arange(Nc)[None, :]  # (Np, Nc)
+        self._ramp: FloatArray = self._du_first[0] + rate[0] * self.Ts * self._moves
+        acting = np.searchsorted(self._moves, np.arange(Np), side="right") - 1  # move per step
+        held = acting[:, None] == np.arange(Nc)[None, :]  # (Np, Nc)
         self._held: FloatArray = self.Ts * np.cumsum(held, axis=0)
         # γ = γ₀ + G u_prev, with γ₀ per driving direction (the signed accel limits flip)
         tile_eye = np.tile(np.eye(m), (Nc, 1))
@@ -335,6 +357,10 @@ class MpcController:
         aligning = self._align_at_start(seg, s0, abs(pose.speed), steer_angle, t0, bias)
         if aligning is not None:
             return aligning
+        if abs(pose.speed) <= self.cfg.stop_speed and direction * a_prev < -_DRIVE_ACCEL:
+            # at rest a brake hold is no acceleration (the car does not roll back under its
+            # brake): released before the MPC plans, which then starts from a = 0
+            return self._release(direction, t0)
         # the model acts with the effective inputs: the commands plus the disturbances
         a_eff, t_eff = a_prev + drag, t_prev + bias
         pts, ref, kin = self._reference(seg, s0, start, a_eff, t_eff)
@@ -508,7 +534,7 @@ class MpcController:
         op = np.empty((2, self.Np))  # speed and heading of each step's operating point
         op[:, 1:] = ref[2:, :-1]
         v_op, heading_op = op[0], op[1]  # indexing: cheaper than unpacking the array
-        v_op[0] = v0
+        v_op[0] = v0 if abs(v0) > self.cfg.stop_speed else op[0, 1]
         heading_op[0] = th0
         if self._kinematic is not None:
             # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
@@ -722,7 +748,7 @@ class MpcController:
         A, B = linearise_along(v_op, heading_op, np.full(self.Np, tan_actual), Ts, L)
         A, B = augment_steer_lag(A, B, self._alpha, Ts, v_op, L)
         increment = steer_lag_increment(state, u_prev, Ts, L, self._alpha)
-        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc)
+        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc, self._moves)
         dx_k = np.linalg.solve(A[0], increment)  # A Δx̃ₖ = the next step's increment
         n = A.shape[1]
         free = (F[:, :n] @ dx_k).reshape(self.Np, self.ny).T.ravel()
@@ -786,20 +812,27 @@ class MpcController:
         tan_target = _clip(curvature - bias, self.tan_max)
         target = math.atan(tan_target)
         tol = self.cfg.align_tolerance
-        step_a = self._du_first[0]
         if abs(steer_angle - target) <= tol and abs(self._u_prev[1] - tan_target) <= tol:
             if abs(self._u_prev[0]) <= 1e-9:
                 return None  # wheel there, brake released: the MPC drives off from a = 0
-            # Release the brake hold at the jerk limit with the wheel held still, so the
-            # command stream stays inside the jerk bound and the MPC starts from what was sent.
-            accel = _clamp(0.0, self._u_prev[0] - step_a, self._u_prev[0] + step_a)
-            tan_cmd = float(self._u_prev[1])
-            status = "releasing"
-        else:
-            step = self._du_first[1]
-            tan_cmd = _clamp(tan_target, self._u_prev[1] - step, self._u_prev[1] + step)
-            accel = self._ramp_to_hold(direction)
-            status = "aligning"
+            return self._release(direction, t0)
+        step = self._du_first[1]
+        tan_cmd = _clamp(tan_target, self._u_prev[1] - step, self._u_prev[1] + step)
+        accel = self._ramp_to_hold(direction)
+        return self._at_rest(accel, tan_cmd, direction, "aligning", t0)
+
+    def _release(self, direction: int, t0: float) -> ControlOutput:
+        """At rest: release the brake hold at the jerk limit with the wheel held still, so the
+        command stream stays inside the jerk bound and the MPC starts from what was sent."""
+        assert self._u_prev is not None
+        step_a = self._du_first[0]
+        accel = _clamp(0.0, self._u_prev[0] - step_a, self._u_prev[0] + step_a)
+        return self._at_rest(accel, float(self._u_prev[1]), direction, "releasing", t0)
+
+    def _at_rest(
+        self, accel: float, tan_cmd: float, direction: int, status: str, t0: float
+    ) -> ControlOutput:
+        """A command given at rest without the MPC (aligning, releasing), applied."""
         self._apply(accel, tan_cmd)
         return ControlOutput(
             steer_angle=math.atan(tan_cmd),
