@@ -336,6 +336,8 @@ class OsqpBackend:
             "eps_rel": eps,
             "max_iter": max_iter,
             "polishing": True,  # active-set polish: exact first moves when it succeeds
+            "polish_refine_iter": 10,  # OSQP's 3 left polish failing on a flat-cost QP of the
+            # spread moves (ADMM's answer: the same cost to 1e-12, the first move 1.04e-6 off)
             "warm_starting": True,
         }
         self._lower = np.full(self.m, -np.inf)
