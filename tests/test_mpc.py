@@ -44,7 +44,9 @@ def test_unconstrained_step_is_the_closed_form_optimum() -> None:
         Q = np.diag(ctrl.q_bar)
         E = 2.0 * (G.T @ Q @ G + np.diag(ctrl.r_bar))
         f = -2.0 * G.T @ Q @ err
-        gamma = np.concatenate((np.full(2 * n, 1.0), ctrl.du_max, ctrl.du_max))
+        gamma = np.concatenate(
+            (np.full(2 * n, 1.0), ctrl.du_max, ctrl.du_max, np.full(ctrl.Np, 1.0))
+        )  # the input limits, then the speed rows (never against the gear)
         result = ctrl._solve(E, f, gamma)
         closed = np.linalg.solve(G.T @ Q @ G + np.diag(ctrl.r_bar), G.T @ Q @ err)
         assert result.converged and result.iterations == 0

@@ -24,6 +24,10 @@ class MpcConfig:
     sample_time: float = 0.1  # s, discretisation step of the prediction model
     prediction_horizon: int = 30  # Np: 3 s preview at 0.1 s, ≈ 6 m at parking speed
     control_horizon: int = 10  # Nc
+    moves: Literal["spread", "consecutive"] = "spread"  # the model steps the Nc moves act at:
+    # spread over the prediction horizon (move blocking), or its first Nc steps (the paper, whose
+    # held last input is a compromise felt at once ahead of a rising curvature: counter-steers
+    # before a bend, a pre-steer at a drive-off)
     solver: Literal["daqp", "hildreth", "osqp"] = "daqp"  # DAQP: exact dual active set, the
     # default; Hildreth: the paper's solver (capped at max_iterations); OSQP: ADMM
     max_iterations: int = 100  # Hildreth sweeps. The paper caps at 38; with the steering

@@ -293,8 +293,28 @@ def steer_lag_increment(
     )
 
 
+def move_steps(Np: int, Nc: int, spread: bool) -> npt.NDArray[np.intp]:
+    """The model steps at which the ``Nc`` moves act: ``0 … Nc − 1`` (the paper), or spread
+    over the prediction horizon (move blocking) — consecutive at first, then farther apart,
+    the last one near the horizon's end: ``j + round((Np − Nc)(j / (Nc − 1))²)``.
+
+    With consecutive moves the last input is held over the ``Np − Nc`` steps left; ahead of a
+    rising curvature that held input is a compromise the car feels at once (a pre-steer at a
+    drive-off, a counter-steer before a bend). Spread moves can follow the path over the whole
+    horizon with the same number of variables.
+    """
+    j = np.arange(Nc)
+    if not spread or Nc < 2:
+        return j
+    return j + np.rint((Np - Nc) * (j / (Nc - 1)) ** 2).astype(np.intp)
+
+
 def prediction_matrices_ltv(
-    A: FloatArray, B: FloatArray, C: FloatArray, Nc: int
+    A: FloatArray,
+    B: FloatArray,
+    C: FloatArray,
+    Nc: int,
+    moves: npt.NDArray[np.intp] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """``Y = F [Δx₀; y₀] + S ΔU`` of the augmented model with step-dependent ``Aₖ``, ``Bₖ``.
 
@@ -309,10 +329,13 @@ def prediction_matrices_ltv(
     ``Bₖ`` equal this is :func:`prediction_matrices`. One loop of ``Np`` 4×4 products, the rest
     batched.
 
+    With ``moves`` (:func:`move_steps`) move j acts from step ``moves[j]`` on instead of j.
+
     :param A: (Np, n, n), ``B``: (Np, n, m), ``C``: (q, n)
     :returns: ``F`` of shape (Np·q, n+q) and ``S`` of shape (Np·q, Nc·m)
     """
     Np, n, _ = A.shape
+    b = np.arange(Nc) if moves is None else moves
     q = C.shape[0]
     P = np.empty((Np + 1, n, n))
     P[0] = np.eye(n)
@@ -327,12 +350,12 @@ def prediction_matrices_ltv(
     F = np.empty((Np, q, n + q))
     F[:, :, :n] = CQ[1:]
     F[:, :, n:] = np.eye(q)
-    G = np.linalg.solve(P[1 : Nc + 1], B[:Nc]).astype(np.float64, copy=False)  # P_{j+1}⁻¹ B_j
-    S = _ltv_input_blocks(CQ, G.transpose(1, 0, 2))
+    G = np.linalg.solve(P[b + 1], B[b]).astype(np.float64, copy=False)  # P_{j+1}⁻¹ B_j
+    S = _ltv_input_blocks(CQ, G.transpose(1, 0, 2), b)
     return F.reshape(Np * q, n + q), S
 
 
-def _ltv_input_blocks(CQ: FloatArray, G: FloatArray) -> FloatArray:
+def _ltv_input_blocks(CQ: FloatArray, G: FloatArray, b: npt.NDArray[np.intp]) -> FloatArray:
     """``S`` from ``C Qₖ`` (k = 0…Np) and ``Gⱼ = Pⱼ₊₁⁻¹ Bⱼ``: block (k, j) = C (Qₖ − Qⱼ) Gⱼ, k > j.
 
     All products ``C Qₖ Gⱼ`` come from one 2-D matrix product; the subtracted ``C Qⱼ Gⱼ`` are
@@ -340,22 +363,23 @@ def _ltv_input_blocks(CQ: FloatArray, G: FloatArray) -> FloatArray:
 
     :param CQ: (Np+1, q, n)
     :param G: (n, Nc, m), the moves side by side
+    :param b: (Nc,) the step each move acts from (j without move blocking)
     :returns: (Np·q, Nc·m)
     """
     Np1, q, n = CQ.shape
     _, Nc, m = G.shape
     R = (CQ.reshape(Np1 * q, n) @ G.reshape(n, Nc * m)).reshape(Np1, q, Nc, m)
     j = np.arange(Nc)
-    diag = R[j, :, j, :]  # (Nc, q, m): C Qⱼ Gⱼ
+    diag = R[b, :, j, :]  # (Nc, q, m): C Q_bⱼ Gⱼ
     S = R[1:] - diag.transpose(1, 0, 2)
-    S *= _ltv_mask(Np1 - 1, Nc)
+    S *= _ltv_mask(Np1 - 1, tuple(b.tolist()))
     return S.reshape((Np1 - 1) * q, Nc * m)
 
 
 @functools.lru_cache(maxsize=8)
-def _ltv_mask(Np: int, Nc: int) -> FloatArray:
-    """(Np, 1, Nc, 1): 1 where output k = row + 1 depends on move j (k > j), else 0."""
-    mask = (np.arange(Np)[:, None] >= np.arange(Nc)[None, :]).astype(np.float64)
+def _ltv_mask(Np: int, b: tuple[int, ...]) -> FloatArray:
+    """(Np, 1, Nc, 1): 1 where output k = row + 1 depends on move j (k > bⱼ), else 0."""
+    mask = (np.arange(Np)[:, None] >= np.array(b)[None, :]).astype(np.float64)
     mask = mask[:, None, :, None]
     mask.setflags(write=False)
     return mask
@@ -392,14 +416,29 @@ class KinematicPrediction:
     stacks them by step; the QP's ``E`` and ``f`` do not depend on the order). ``S`` is
     returned transposed, (moves × outputs), as the QP uses it.
 
+    With ``moves`` (:func:`move_steps`) move j acts from step ``bⱼ = moves[j]`` on: its block
+    is ``Σ_{m=bⱼ+1..k} Pₘ Gⱼ`` with ``Gⱼ = P_{bⱼ+1}⁻¹ B_{bⱼ}``.
+
     :param Np: prediction horizon, steps
     :param Nc: control horizon, moves
     :param Ts: model sample time, s
     :param wheelbase: L, m
+    :param moves: (Nc,) the step each move acts from; None: ``0 … Nc − 1`` (the paper)
     """
 
-    def __init__(self, Np: int, Nc: int, Ts: float, wheelbase: float) -> None:
+    def __init__(
+        self,
+        Np: int,
+        Nc: int,
+        Ts: float,
+        wheelbase: float,
+        moves: npt.NDArray[np.intp] | None = None,
+    ) -> None:
         self.Np, self.Nc, self.Ts, self.L = Np, Nc, Ts, wheelbase
+        b = np.arange(Nc) if moves is None else np.asarray(moves)
+        # the step each move acts from (:func:`move_steps`), as a slice when consecutive
+        consecutive = bool(np.array_equal(b, np.arange(Nc)))
+        self._b: slice | npt.NDArray[np.intp] = slice(0, Nc) if consecutive else b
         step = np.arange(Np, dtype=np.float64)
         before = (step[:, None] < step[None, :] + 1.0).astype(np.float64)  # l < m, m = 1…Np
         # h @ weights: Σ_{l<m} Ts hₗ and Σ_{l<m} Ts l hₗ (Ts folded in here, once)
@@ -410,10 +449,10 @@ class KinematicPrediction:
         for o in range(N_STATES):
             self._p_identity[o, o] = 1.0
         # rows: move j's two inputs (row 2j + u), then the free response; columns (o, m).
-        # Move j acts on the outputs k ≥ j + 1 only, i.e. Pₘ with m ≥ j + 1.
+        # Move j acts on the outputs k ≥ bⱼ + 1 only, i.e. Pₘ with m ≥ bⱼ + 1.
         mask = np.ones((2 * Nc + 1, N_STATES, Np))
         for j in range(Nc):
-            mask[2 * j : 2 * j + 2, :, :j] = 0.0
+            mask[2 * j : 2 * j + 2, :, : b[j]] = 0.0
         self._mask = mask.reshape(2 * Nc + 1, N_STATES * Np)
         self._upper = (step[:, None] <= step[None, :]).astype(np.float64)  # Σ_{m≤k}
         # Work buffers reused every call (the results never alias them): the identity entries
@@ -462,16 +501,17 @@ class KinematicPrediction:
         # rows 2j, 2j+1: the columns of Gⱼ = Pⱼ₊₁⁻¹ Bⱼ, Bⱼ = [Ts e₂, (Ts vⱼ / L) e₃]; last: Δx₀
         #   acceleration: Ts [P₀₃P₃₂ − P₀₂, P₁₃P₃₂ − P₁₂, 1, −P₃₂]
         #   steering:     −g [P₀₃, P₁₃, 0, −1],  g = Ts vⱼ / L
-        p3 = P[3, :2, :Nc]  # [P₀₃; P₁₃] of P₁ … P_Nc
-        p32 = P[2, 3, :Nc]
+        b = self._b
+        p3 = P[3, :2][:, b]  # [P₀₃; P₁₃] of P_{bⱼ+1}
+        p32 = P[2, 3, b]
         G = self._G  # column 2 preset (Ts for the acceleration, 0 for the steering)
         a, s = G[0:-1:2], G[1::2]  # the acceleration and the steering columns of each Gⱼ
         col = p3 * p32
-        col -= P[2, :2, :Nc]
+        col -= P[2, :2][:, b]
         col *= Ts
         a[:, :2] = col.T
         np.multiply(p32, -Ts, out=a[:, 3])
-        neg_g = speed[:Nc] * -(Ts / self.L)
+        neg_g = speed[b] * -(Ts / self.L)
         np.multiply(p3, neg_g, out=s[:, :2].T)
         np.negative(neg_g, out=s[:, 3])
         G[-1] = dx0

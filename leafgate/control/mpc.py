@@ -10,7 +10,8 @@ Each control tick:
    (eq. 15–19) with the four kinematic states as outputs (see :mod:`leafgate.control.model` for
    why the frame is path-aligned and why ``x`` is an output);
 3. prediction ``Y = F x + S ΔU`` (eq. 22–26) and the QP ``½ΔUᵀEΔU + ΔUᵀf, MΔU ≤ γ``
-   (eq. 28–31) with output weights ``Q`` and input-change weights ``R̄``;
+   (eq. 28–31) with output weights ``Q`` and input-change weights ``R̄``; ``M`` holds the
+   input limits of eq. 30 and rows that keep the predicted speed from going against the gear;
 4. solve — the unconstrained optimum (eq. 29) when no constraint is violated, else DAQP (the
    default), Hildreth or OSQP — and apply the first move, clipped to the hard limits whatever
    the solver returned.
@@ -36,6 +37,15 @@ does not exist at a 50 Hz tick. leafgate uses the increment the model itself giv
 next step with the current input, ``A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁)``, so the first predicted output is
 exactly the Euler step from the measured state. No history, no clock.
 
+**Spread moves** (``moves: spread``, the default; ``consecutive`` is the paper's). The ``Nc``
+moves act at model steps spread over the prediction horizon (move blocking,
+:func:`~leafgate.control.model.move_steps`: 0, 1, 3, 5, 8, 11, 15, 19, 24, 29 for 10 moves over
+30 steps), not at its first ``Nc`` steps with the last input held over the rest. Ahead of a
+rising curvature that held input is a compromise the car feels at once: a counter-steer before
+a bend, a pre-steer at a drive-off (3.6° commanded at 0.1 m/s after the ``switch-back``'s cusp
+where the path needed ≈ 1°). The rate limit of a later move covers the model steps since the
+one before; the QP keeps its 20 variables.
+
 **Time-varying linearisation.** The Jacobians of each model step are taken at that step's
 operating point on the plan — the planned speed and the reference heading — not once at the
 current state (:func:`~leafgate.control.model.prediction_matrices_ltv`). Before a cusp or the goal
@@ -57,7 +67,28 @@ angle the path's curvature needs there, at the steering-rate limit with the brak
 on the wrong lock (after a cusp) would leave the path at once. Once the car has passed a
 segment's end point it brakes to rest (status ``stopping``) and never creeps on to correct the
 heading; the next segment (or the finish) starts from where it stopped. While finished or
-aligning the wheel holds or ramps monotonically: no chatter at standstill.
+aligning the wheel holds or ramps monotonically: no chatter at standstill. A brake hold left at
+rest when the MPC takes over (a cusp reached off the next segment's start, where there is no
+aligning) is released first, at the jerk limit with the wheel held (status ``releasing``): a
+car at rest does not roll back under its brake, so the hold is no acceleration to plan with.
+At rest the first model step is linearised at the plan's speed of the next one, not at 0: the
+incremental model carries a steering move only through the step it is made in (its effect is
+∝ v), so at v = 0 the first move would do nothing in the prediction and the MPC would put off
+turning the wheel, and driving off, tick after tick.
+
+**Never against the gear.** The QP's linear model would let the predicted speed change sign:
+a brake hold at rest (after a cusp the hold is ``−direction · hold_decel``) or any braking
+would carry the car backward in D. The car does not roll back under its brake, so the QP has
+one more row per predicted speed: ``direction · v_k ≥ min(0, v_fast,k) − 10⁻⁵ m/s``, where
+``v_fast,k`` is the speed reached by raising the acceleration along the gear as fast as the
+jerk and amplitude limits allow. That input sequence satisfies every other constraint, so the
+QP is always feasible; while a hold is left (``v_fast,k < 0``) the rows force it to be released
+at the jerk limit, and after that the plan may stop but never reverse. The speed rows of the
+prediction depend on the acceleration moves alone (``v_k = v_free,k + Σ_{j<k} Ts (k − j) Δa_j``,
+both models), so ``M`` is constant per direction and only ``γ`` changes per tick. A car the MPC
+keeps at rest with no hold left for ``_BLOCKED_TIME`` (its plan would roll back, or stays at
+rest: e.g. a cusp reached 0.8 m and 30° off a 1 m forward move) gets ``converged=False`` and
+status ``blocked: …`` naming the offset, so the gateway stops with the cause.
 
 **Speed bound.** Whatever the QP asks, the car never goes faster than the plan's speed at its
 own place on the path plus ``speed_margin``, nor faster than ``max_speed`` (the maneuver limit).
@@ -98,6 +129,7 @@ from leafgate.control.model import (
     grouped_by_output,
     kinematic_first_increment,
     linearise_along,
+    move_steps,
     prediction_matrices_ltv,
     rk4_step,
     steer_lag_factor,
@@ -116,6 +148,11 @@ from leafgate.geometry import wrap_angle as _wrap
 from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
 _GOVERN_TIME = 0.5  # s, time constant with which a car above the speed bound is slowed
+_BLOCKED_TIME = 1.0  # s, the MPC keeping the car at rest this long (no hold left) stops it
+_DRIVE_ACCEL = 0.01  # m/s², at rest a command along the gear above this drives off (below
+# −this, a brake hold is still being released)
+_SPEED_SLACK = 1e-5  # m/s, the speed rows' bound lies this far below the unavoidable speed, so
+# that rounding never makes the QP infeasible when that bound forces the fastest release
 _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a clip (solver
 # tolerances leave smaller excursions, which are clipped but not counted)
 
@@ -154,7 +191,10 @@ class MpcController:
         self._q_out = np.repeat(q, Np)  # the same weights with the rows grouped by output
         self._q2 = 2.0 * self._q_out
         self._R2 = np.diag(2.0 * self.r_bar)
-        self._kinematic = None if self.steer_model else KinematicPrediction(Np, Nc, self.Ts, self.L)
+        self._moves = move_steps(Np, Nc, cfg.moves == "spread")  # the step each move acts from
+        self._kinematic = (
+            None if self.steer_model else KinematicPrediction(Np, Nc, self.Ts, self.L, self._moves)
+        )
         self._to_path = np.zeros((N_STATES, 3))  # global → path frame, rotation set per tick
         self._to_path[3, 2] = 1.0  # heading error = reference heading − heading at s0
         self.steps: FloatArray = self.Ts * np.arange(
@@ -166,11 +206,29 @@ class MpcController:
         #   u_prev + Σ_{i≤j} Δu_i ≤ u_max,  −(…) ≤ −u_min,  Δu_j ≤ du_max,  −Δu_j ≤ −du_min
         cum = np.kron(np.tril(np.ones((Nc, Nc))), np.eye(m))
         eye = np.eye(Nc * m)
-        self.M = np.vstack((cum, -cum, eye, -eye))
+        box = np.vstack((cum, -cum, eye, -eye))
+        # and the predicted speeds never against the gear beyond what cannot be avoided
+        # (module notes): direction · v_k ≥ v_low,k, k = 1 … Np. The speed rows of the prediction
+        # are the same for both models and every tick, v_k = v_free,k + Σ_{j<k} Ts (k − j) Δa_j,
+        # so each direction has one constant M (rows −direction · S_v); only γ varies.
+        lag = np.arange(1, Np + 1)[:, None] - self._moves[None, :]
+        self._speed_rows: FloatArray = np.where(lag > 0, self.Ts * lag, 0.0)  # (Np, Nc)
+        speed_S = np.zeros((Np, Nc * m))
+        speed_S[:, 0::2] = self._speed_rows
+        self._M_dir = {d: np.vstack((box, -d * speed_S)) for d in (1, -1)}
+        self.M = self._M_dir[1]  # the constraint matrix of the current direction
         self.tan_max = math.tan(cfg.steer_max)
         rate = np.array([cfg.jerk_max, cfg.steer_rate_max])  # per second
-        self.du_max: FloatArray = np.concatenate((rate * period, np.tile(rate * self.Ts, Nc - 1)))
+        gaps = np.diff(self._moves)[:, None]  # model steps between two moves
+        self.du_max: FloatArray = np.concatenate((rate * period, (gaps * rate * self.Ts).ravel()))
         self._du_first = (float(rate[0] * period), float(rate[1] * period))
+        # the acceleration along the gear raised as fast as the jerk limits allow, move by move
+        # (above the last command), and what input j adds to the speed at step k: Ts for each
+        # model step it is held before k (the last move is held to the horizon's end)
+        self._ramp: FloatArray = self._du_first[0] + rate[0] * self.Ts * self._moves
+        acting = np.searchsorted(self._moves, np.arange(Np), side="right") - 1  # move per step
+        held = acting[:, None] == np.arange(Nc)[None, :]  # (Np, Nc)
+        self._held: FloatArray = self.Ts * np.cumsum(held, axis=0)
         # γ = γ₀ + G u_prev, with γ₀ per driving direction (the signed accel limits flip)
         tile_eye = np.tile(np.eye(m), (Nc, 1))
         self._gamma_u = np.vstack((-tile_eye, tile_eye, np.zeros((2 * Nc * m, m))))
@@ -192,7 +250,9 @@ class MpcController:
             period, self.L, cfg.disturbance_tau_steer, cfg.disturbance_tau_accel
         )
         self._osqp: OsqpBackend | None = None
-        self._daqp = DaqpBackend(self.M) if cfg.solver == "daqp" else None
+        self._osqp_M = self.M  # the constraint matrix OSQP holds (same pattern both ways)
+        self._daqp_dir = {d: DaqpBackend(M) for d, M in self._M_dir.items()}
+        self._daqp = self._daqp_dir[1] if cfg.solver == "daqp" else None
         if cfg.solver == "osqp":
             E0 = np.eye(Nc * m)
             self._osqp = OsqpBackend(E0, self.M, eps=cfg.osqp_tolerance)
@@ -210,6 +270,9 @@ class MpcController:
         self._lam: FloatArray | None = None
         self._finished = False
         self._aligned = False  # the wheel has been turned for the current segment's start
+        self._tick = 0  # calls of step since the reset
+        self._standing = 0  # consecutive MPC ticks that kept the car at rest (see _blocked)
+        self._standing_tick = -1  # the tick that last counted
         # tan δ commands sent and not yet acting on the wheel (steering-aware model), oldest first
         self._in_flight: deque[float] = deque(maxlen=max(self._dead_ticks, 1))
         if self._osqp is not None:
@@ -259,6 +322,7 @@ class MpcController:
         self, pose: Pose, steer_angle: float, trajectory: Trajectory, t0: float
     ) -> ControlOutput:
         """One control tick: the checks, then the paper's steps 1–4 (module notes)."""
+        self._tick += 1
         if trajectory is not self._traj:
             self._set_trajectory(trajectory)
         path, prog = self._path, self._progress
@@ -293,6 +357,10 @@ class MpcController:
         aligning = self._align_at_start(seg, s0, abs(pose.speed), steer_angle, t0, bias)
         if aligning is not None:
             return aligning
+        if abs(pose.speed) <= self.cfg.stop_speed and direction * a_prev < -_DRIVE_ACCEL:
+            # at rest a brake hold is no acceleration (the car does not roll back under its
+            # brake): released before the MPC plans, which then starts from a = 0
+            return self._release(direction, t0)
         # the model acts with the effective inputs: the commands plus the disturbances
         a_eff, t_eff = a_prev + drag, t_prev + bias
         pts, ref, kin = self._reference(seg, s0, start, a_eff, t_eff)
@@ -305,8 +373,7 @@ class MpcController:
         ref -= y0
         err = ref.ravel() - free  # Rs − F x
         E, f = self._qp_terms(ST, err)
-        _, _, gamma0, _ = self._limits[direction]
-        gamma = gamma0 + self._gamma_u @ u_prev
+        gamma = self._constraint_bounds(direction, u_prev, a_prev, kin[2], free)
         # f is finite only if S and the errors are (a non-finite entry of S reaches every f
         # it touches, even times a zero weight or error), and then so is E. (np.add.reduce is
         # what f.sum() calls, without its Python wrapper; np.float64 is a float.)
@@ -467,7 +534,7 @@ class MpcController:
         op = np.empty((2, self.Np))  # speed and heading of each step's operating point
         op[:, 1:] = ref[2:, :-1]
         v_op, heading_op = op[0], op[1]  # indexing: cheaper than unpacking the array
-        v_op[0] = v0
+        v_op[0] = v0 if abs(v0) > self.cfg.stop_speed else op[0, 1]
         heading_op[0] = th0
         if self._kinematic is not None:
             # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
@@ -483,6 +550,34 @@ class MpcController:
         # the lag acts on tan δ + bias alike: shift the actual and the commanded angle
         u_eff = np.array([a_eff, t_eff])
         return self._predict_steer_lag(kin, tan_actual, u_eff, v_op, heading_op)
+
+    def _constraint_bounds(
+        self, direction: int, u_prev: FloatArray, a_prev: float, v0: float, free: FloatArray
+    ) -> FloatArray:
+        """``γ`` of this tick (and ``M`` of the direction made current): the input limits, and
+        the bounds of the speed rows, ``direction · v_k ≥ min(0, v_fast,k) − ε``.
+
+        ``v_fast,k`` is the speed (along the gear) at step k with the acceleration raised as fast
+        as the jerk and amplitude limits allow from the command sent last tick. So the QP may
+        not plan a roll-back against the gear (its linear model would let a brake hold, or a
+        stop, carry the car backward), except the part that raising the acceleration at once
+        cannot avoid: that input sequence meets every other constraint, the QP stays feasible.
+        """
+        if self.M is not self._M_dir[direction]:
+            self.M = self._M_dir[direction]
+            if self._daqp is not None:
+                self._daqp = self._daqp_dir[direction]
+        _, _, gamma0, _ = self._limits[direction]
+        Np = self.Np
+        v_free = free[2 * Np : 3 * Np] + v0  # no move: the free response's speeds
+        v_free *= direction
+        w_prev = direction * a_prev
+        raised = np.minimum(self._ramp, self.cfg.accel_max - w_prev)  # the drive limit
+        low = self._held @ raised  # the speeds the fastest rise adds, along the gear
+        low += v_free
+        np.minimum(low, 0.0, out=low)
+        low -= _SPEED_SLACK
+        return np.concatenate((gamma0 + self._gamma_u @ u_prev, v_free - low))
 
     def _speed_bound(self, seg: Segment, s0: float, speed: float) -> float:
         """The speed bound, m/s: the plan's speed at the car's place ``s0`` plus the margin, and
@@ -561,8 +656,12 @@ class MpcController:
         if direction * speed_cmd > v_cap:
             speed_cmd = direction * v_cap
             limited = True
+        blocked = self._blocked(result, y0, v0, a_prev, a_cmd, speed_cmd, direction)
+        converged = result.converged and not blocked
         if not result.converged:
             status = "not-converged"
+        elif blocked:
+            status = blocked
         elif clips:
             status = "clipped"
         elif limited:
@@ -574,7 +673,7 @@ class MpcController:
             accel=a_cmd,
             speed=speed_cmd,
             gear=Gear.D if direction > 0 else Gear.R,
-            converged=result.converged,
+            converged=converged,
             iterations=result.iterations,
             clips=clips,
             cost=cost,
@@ -583,6 +682,52 @@ class MpcController:
             status=status,
             solve_time=time.perf_counter() - t0,
             **self._where(),
+        )
+
+    def _blocked(
+        self,
+        result: QpResult,
+        y0: FloatArray,
+        v0: float,
+        a_prev: float,
+        a_cmd: float,
+        speed_cmd: float,
+        direction: int,
+    ) -> str:
+        """Why the MPC does not drive the car off, once it has kept it at rest for
+        ``_BLOCKED_TIME`` with no brake hold left to release; else ``""``.
+
+        From far off the plan (a cusp reached 0.8 m and 30° off it) the QP's optimum may be to
+        roll back against the gear; the speed rows forbid that, and the plan then stays at rest
+        tick after tick. Said so, the gateway stops with the cause instead of a bare no-progress.
+        """
+        if self.cfg.mode == "velocity":
+            drives = direction * speed_cmd > self.cfg.stop_speed
+        else:
+            drives = direction * a_cmd > _DRIVE_ACCEL
+        standing = (
+            abs(v0) <= self.cfg.stop_speed
+            and not drives
+            and direction * a_prev >= -_DRIVE_ACCEL  # else a brake hold is being released
+        )
+        if not standing:
+            self._standing = 0
+            return ""
+        self._standing = self._standing + 1 if self._standing_tick == self._tick - 1 else 1
+        self._standing_tick = self._tick
+        waited = self._standing * self.period
+        if waited < _BLOCKED_TIME - 1e-9:
+            return ""
+        rows = self.M.shape[0] - self.Np  # the speed rows come last
+        why = (
+            "its plan would roll back against the gear"
+            if (result.lam[rows:] > 0.0).any()
+            else "its plan stays at rest"
+        )
+        lateral, heading = float(y0[1, 0]), float(y0[3, 0])
+        return (
+            f"blocked: at rest {abs(lateral):.2f} m and {math.degrees(abs(heading)):.0f}° off "
+            f"the path for {waited:.1f} s, the MPC does not drive off ({why})"
         )
 
     def _predict_steer_lag(
@@ -603,7 +748,7 @@ class MpcController:
         A, B = linearise_along(v_op, heading_op, np.full(self.Np, tan_actual), Ts, L)
         A, B = augment_steer_lag(A, B, self._alpha, Ts, v_op, L)
         increment = steer_lag_increment(state, u_prev, Ts, L, self._alpha)
-        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc)
+        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc, self._moves)
         dx_k = np.linalg.solve(A[0], increment)  # A Δx̃ₖ = the next step's increment
         n = A.shape[1]
         free = (F[:, :n] @ dx_k).reshape(self.Np, self.ny).T.ravel()
@@ -667,20 +812,27 @@ class MpcController:
         tan_target = _clip(curvature - bias, self.tan_max)
         target = math.atan(tan_target)
         tol = self.cfg.align_tolerance
-        step_a = self._du_first[0]
         if abs(steer_angle - target) <= tol and abs(self._u_prev[1] - tan_target) <= tol:
             if abs(self._u_prev[0]) <= 1e-9:
                 return None  # wheel there, brake released: the MPC drives off from a = 0
-            # Release the brake hold at the jerk limit with the wheel held still, so the
-            # command stream stays inside the jerk bound and the MPC starts from what was sent.
-            accel = _clamp(0.0, self._u_prev[0] - step_a, self._u_prev[0] + step_a)
-            tan_cmd = float(self._u_prev[1])
-            status = "releasing"
-        else:
-            step = self._du_first[1]
-            tan_cmd = _clamp(tan_target, self._u_prev[1] - step, self._u_prev[1] + step)
-            accel = self._ramp_to_hold(direction)
-            status = "aligning"
+            return self._release(direction, t0)
+        step = self._du_first[1]
+        tan_cmd = _clamp(tan_target, self._u_prev[1] - step, self._u_prev[1] + step)
+        accel = self._ramp_to_hold(direction)
+        return self._at_rest(accel, tan_cmd, direction, "aligning", t0)
+
+    def _release(self, direction: int, t0: float) -> ControlOutput:
+        """At rest: release the brake hold at the jerk limit with the wheel held still, so the
+        command stream stays inside the jerk bound and the MPC starts from what was sent."""
+        assert self._u_prev is not None
+        step_a = self._du_first[0]
+        accel = _clamp(0.0, self._u_prev[0] - step_a, self._u_prev[0] + step_a)
+        return self._at_rest(accel, float(self._u_prev[1]), direction, "releasing", t0)
+
+    def _at_rest(
+        self, accel: float, tan_cmd: float, direction: int, status: str, t0: float
+    ) -> ControlOutput:
+        """A command given at rest without the MPC (aligning, releasing), applied."""
         self._apply(accel, tan_cmd)
         return ControlOutput(
             steer_angle=math.atan(tan_cmd),
@@ -724,7 +876,10 @@ class MpcController:
         if self._daqp is not None:
             return self._daqp.solve(E, f, gamma)
         if self._osqp is not None:
-            return self._osqp.solve(E, f, gamma)
+            if self._osqp_M is self.M:
+                return self._osqp.solve(E, f, gamma)
+            self._osqp_M = self.M  # the direction changed: the speed rows flip their sign
+            return self._osqp.solve(E, f, gamma, M=self.M)
         result = hildreth(
             E,
             f,

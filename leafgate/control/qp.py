@@ -4,8 +4,9 @@ Three backends return the same :class:`QpResult`:
 
 - :class:`DaqpBackend` — DAQP (Arnström, Bemporad, Axehill), an exact dual active-set solver
   written for the small dense QPs of MPC: the default. A ``M`` of the MPC's shape
-  ``[C; −C; I; −I]`` is passed as two-sided constraints ``lo ≤ C x ≤ hi`` with simple bounds
-  ``lo ≤ x ≤ hi`` (a quarter of the rows); any other ``M`` as ``M x ≤ γ``.
+  ``[C; −C; I; −I; D]`` is passed as two-sided constraints ``lo ≤ C x ≤ hi`` with simple bounds
+  ``lo ≤ x ≤ hi`` (a quarter of the first rows) and the rows ``D`` (the MPC's speed rows, if
+  any) one-sided; any other ``M`` as ``M x ≤ γ``.
 
 - :func:`hildreth` — Hildreth's dual coordinate-ascent procedure as in Wang's ``QPhild``: the
   unconstrained optimum is returned when it is feasible; otherwise the dual
@@ -335,6 +336,8 @@ class OsqpBackend:
             "eps_rel": eps,
             "max_iter": max_iter,
             "polishing": True,  # active-set polish: exact first moves when it succeeds
+            "polish_refine_iter": 10,  # OSQP's 3 left polish failing on a flat-cost QP of the
+            # spread moves (ADMM's answer: the same cost to 1e-12, the first move 1.04e-6 off)
             "warm_starting": True,
         }
         self._lower = np.full(self.m, -np.inf)
@@ -370,9 +373,10 @@ class OsqpBackend:
 class DaqpBackend:
     """DAQP for ``min ½ xᵀE x + xᵀf  s.t.  M x ≤ γ`` with a fixed ``M``.
 
-    When ``M`` is ``[C; −C; I; −I]`` (the MPC's cumulative input limits and rate limits) the
-    QP goes to DAQP as ``γ₃ ≥ x ≥ −γ₄`` (simple bounds) and ``γ₁ ≥ C x ≥ −γ₂``; otherwise as
-    the one-sided ``M x ≤ γ``. Multipliers are mapped back to the rows of ``M``.
+    When ``M`` starts with ``[C; −C; I; −I]`` (the MPC's cumulative input limits and rate
+    limits) the QP goes to DAQP as ``γ₃ ≥ x ≥ −γ₄`` (simple bounds) and ``γ₁ ≥ C x ≥ −γ₂``, and
+    any rows ``D`` after those (the MPC's speed rows) as the one-sided ``D x ≤ γ₅``; otherwise
+    as the one-sided ``M x ≤ γ``. Multipliers are mapped back to the rows of ``M``.
 
     :param M: the constraint matrix
     :param max_iter: active-set iteration cap (DAQP's ``iter_limit``)
@@ -387,24 +391,30 @@ class DaqpBackend:
         self.m, self.n = M.shape
         n = self.n
         self._structured = False
-        if self.m == 4 * n:
+        if self.m >= 4 * n:
             C = M[:n]
             eye = np.eye(n)
             self._structured = bool(
                 np.array_equal(M[n : 2 * n], -C)
                 and np.array_equal(M[2 * n : 3 * n], eye)
-                and np.array_equal(M[3 * n :], -eye)
+                and np.array_equal(M[3 * n : 4 * n], -eye)
             )
-        self._A = np.ascontiguousarray(M[:n] if self._structured else M)
-        self._lower = np.full(self.m, -1e30)
+        if self._structured:
+            self._A = np.ascontiguousarray(np.vstack((M[:n], M[4 * n :])))
+            self._lower = np.full(self.m - 2 * n, -1e30)  # bounds, C, then D (one-sided)
+        else:
+            self._A = np.ascontiguousarray(M)
+            self._lower = np.full(self.m, -1e30)
         self._settings: dict[str, Any] = {"iter_limit": max_iter, "primal_tol": primal_tol}
 
     def solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
         """Solve one QP (DAQP sets up its workspace per call: no state between ticks)."""
         n = self.n
         if self._structured:
-            upper = np.concatenate((gamma[2 * n : 3 * n], gamma[:n]))
-            lower = np.concatenate((-gamma[3 * n :], -gamma[n : 2 * n]))
+            upper = np.concatenate((gamma[2 * n : 3 * n], gamma[:n], gamma[4 * n :]))
+            lower = self._lower.copy()
+            lower[:n] = -gamma[3 * n : 4 * n]
+            lower[n : 2 * n] = -gamma[n : 2 * n]
         else:
             upper, lower = np.asarray(gamma, dtype=np.float64), self._lower
         x, _, flag, info = daqp.solve(E, f, self._A, upper, lower, **self._settings)
@@ -413,8 +423,9 @@ class DaqpBackend:
         lam = np.zeros(self.m)
         if self._structured:  # DAQP: λ > 0 on an active upper bound, λ < 0 on a lower one
             up, down = np.maximum(lam_d, 0.0), np.maximum(-lam_d, 0.0)
-            lam[2 * n : 3 * n], lam[3 * n :] = up[:n], down[:n]
-            lam[:n], lam[n : 2 * n] = up[n:], down[n:]
+            lam[2 * n : 3 * n], lam[3 * n : 4 * n] = up[:n], down[:n]
+            lam[:n], lam[n : 2 * n] = up[n : 2 * n], down[n : 2 * n]
+            lam[4 * n :] = up[2 * n :]
         else:
             lam[:] = np.maximum(lam_d, 0.0)
         converged = int(flag) == self.OPTIMAL and bool(np.all(np.isfinite(x)))
