@@ -267,9 +267,10 @@ class Gateway:
         self._clear_sent = False  # a CLEAR_OVERRIDE frame went out in this engagement
         self._override_latched = False  # the ECU latched an override we have not cleared
         self._enable_sent = False  # the last commands carried ENABLE=1
-        # the last commands carried ENABLE=0: the ECU engages on a 0→1 edge it has seen, so
-        # ENABLE=1 goes out only after such a tick (an engage on the gateway's first tick waits one)
-        self._disable_sent = False
+        # commands went out on an earlier tick: before an engage they carry ENABLE=0 (STANDBY),
+        # and the ECU engages only on a 0→1 edge it has seen, so an engage on the gateway's very
+        # first tick waits one tick before ENABLE=1
+        self._frames_sent = False
         self._fault_braking = False  # in FAULT, still braking with ENABLE=1
         self._rest_since: float | None = None  # s, since when |v| is below standstill speed
         self._stop_reason = ""
@@ -329,9 +330,7 @@ class Gateway:
         gear_change = False
         if m.state == GatewayState.STOPPING and at_rest:
             m.fire(Event.AT_REST, now, f"at rest after a controlled stop ({self._stop_reason})")
-        # the controller drives once ENABLE=0 has gone out before (the ECU needs the edge)
-        wire_ready = self._enable_sent or self._disable_sent
-        driving = self._phase in (EngagePhase.ENABLING, EngagePhase.ACTIVE) and wire_ready
+        driving = self._phase in (EngagePhase.ENABLING, EngagePhase.ACTIVE) and self._frames_sent
         if m.state == GatewayState.ENGAGED and driving:
             output = self._run_controller(wd)
             if not output.converged or not _finite_output(output):
@@ -376,7 +375,7 @@ class Gateway:
         else:
             self.gate.seed(steer, long)
         self._enable_sent = steer.enable or long.enable
-        self._disable_sent = not (steer.enable or long.enable)
+        self._frames_sent = True
 
         system = self._system_command(now, clear_faults)
         if reply is not None and inputs.request is not None:
