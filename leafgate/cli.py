@@ -123,6 +123,7 @@ trajectory files (--trajectory, publish-trajectory):
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
+    from leafgate.sim.metrics import collision
     from leafgate.sim.plots import plot_drive
     from leafgate.sim.runner import Injection, run, run_direct
 
@@ -241,6 +242,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if not metrics.get("finished"):  # an injected fault too: the drive did not finish
         reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
+        return EXIT_ERROR
+    hit = collision(metrics)
+    if hit is not None:  # the route was driven, through a parked car or over the kerb
+        print(f"leafgate: {scenario.name}: collision: {hit}", file=sys.stderr)
         return EXIT_ERROR
     return 0
 

@@ -20,7 +20,7 @@ from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim import runner
 from leafgate.sim.metrics import path_steer_sign_changes, route_goal_misses
 from leafgate.sim.runner import FINISH_TOLERANCE, RollingWindow, default_model, run
-from leafgate.sim.scenarios import get_scenario, offset_start
+from leafgate.sim.scenarios import Scenario, clearance, get_scenario, offset_start
 
 LIBRARY = (
     "switch-back",
@@ -33,16 +33,13 @@ LIBRARY = (
 )
 FEASIBLE = tuple(n for n in LIBRARY if n != "tight-hairpin")
 
-#: Goals not met on this branch, each with its measured figure (session 5, s5-routes). Strict:
-#: a fix makes the test pass, and the mark must then go.
-KNOWN_MISSES = {
-    ("envelope", "parallel-park", -0.9, "kinematic"): "the first reverse S-bend (R = 5 m, the "
-    "car turns no tighter than 4.7 m) cannot absorb 0.9 m and 25°: the car reaches the first cusp "
-    "0.94 m and 33° off the 1.15 m pull-forward move, which no forward drive can correct (the "
-    "MPC's optimum would roll back against the gear); the MPC stops it: 'blocked: at rest 0.94 m "
-    "and 33° off the path'",
-    ("envelope", "parallel-park", -0.9, "steer-lag"): "as on the kinematic plant: blocked at "
-    "the first cusp, 1.31 m and 31° off the pull-forward move",
+#: Goals not met on this branch, each with its measured figure. Strict: a fix makes the test
+#: pass, and the mark must then go.
+KNOWN_MISSES: dict[tuple[object, ...], str] = {
+    ("envelope", "parallel-park", 0.9, "steer-lag"): "finishes, but the body's rear corner "
+    "comes 0.028 m over the kerb line at t = 15.3 s: the lagging wheel ends the first reverse "
+    "S-bend 0.09 m nearer the kerb and 4° more turned than the kinematic plant's run (which keeps "
+    "0.10 m); the plan keeps 0.11 m",
 }
 
 
@@ -50,6 +47,13 @@ def _marks(*key: object) -> list[pytest.MarkDecorator]:
     """A strict xfail naming the figure when :data:`KNOWN_MISSES` lists ``key``."""
     reason = KNOWN_MISSES.get(key)
     return [pytest.mark.xfail(strict=True, reason=reason)] if reason else []
+
+
+def _inside(sc: Scenario) -> tuple[float, str] | None:
+    """The overlap (m) and the obstacle when ``sc`` starts with the car's body inside one."""
+    s = sc.start
+    near = clearance(sc.name, np.array([s.x]), np.array([s.y]), np.array([s.heading]))
+    return (-near[0], near[1].name) if near is not None and near[0] < 0.0 else None
 
 
 def _length(traj: Trajectory) -> float:
@@ -244,13 +248,24 @@ def test_rolling_window_plans_are_the_next_30_m_from_the_car() -> None:
     assert len(plan.value) == 4 and plan.value.x[-1] == route.x[-1]
 
 
+ENVELOPE_CORNERS = [
+    (n, lat, math.copysign(25.0, lat))
+    for n in ("corner", "parallel-park", "figure-eight")
+    for lat in (0.9, -0.9)
+]
+
+
+def _standing(name: str, lateral: float, heading_deg: float) -> bool:
+    return _inside(offset_start(get_scenario(name), lateral, math.radians(heading_deg))) is None
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name, lateral, heading_deg, plant",
     [
-        pytest.param(n, lat, math.copysign(25.0, lat), p, marks=_marks("envelope", n, lat, p))
-        for n in ("corner", "parallel-park", "figure-eight")
-        for lat in (0.9, -0.9)
+        pytest.param(n, lat, h, p, marks=_marks("envelope", n, lat, p))
+        for n, lat, h in ENVELOPE_CORNERS
+        if _standing(n, lat, h)
         for p in ("kinematic", "steer-lag")
     ],
 )
@@ -260,6 +275,39 @@ def test_engage_envelope_starts_are_not_aborted(
     sc = offset_start(get_scenario(name), lateral, math.radians(heading_deg))
     m = run(_config(plant), sc).metrics
     assert m["finished"], m.get("not_finished_reason")
+    assert m.get("clearance_min_m", 1.0) >= 0.0, (
+        m["clearance_min_obstacle"],
+        m["clearance_min_t_s"],
+    )
+
+
+def test_envelope_corners_inside_a_parked_car_are_no_standing_starts() -> None:
+    # The parallel-park start is 0.33 m beside the parked car ahead of the slot: 0.9 m to the
+    # right of it and turned 25° right, the car's body stands 1.9 m deep inside that car; turned
+    # 25° left, 0.8 m; and 0.9 m to the left turned 25° right, its nose is 0.24 m inside it.
+    # These corners are left out of the envelope runs; tools/route_goals.py lists them apart.
+    park = get_scenario("parallel-park")
+    assert _inside(park) is None
+    inside = {
+        (lat, h): _inside(offset_start(park, lat, math.radians(h)))
+        for lat in (0.9, -0.9)
+        for h in (25.0, -25.0)
+    }
+    assert inside[(0.9, 25.0)] is None
+    assert inside[(0.9, -25.0)] == (
+        pytest.approx(0.24, abs=0.01),
+        "the parked car ahead of the slot",
+    )
+    assert inside[(-0.9, 25.0)] == (
+        pytest.approx(0.83, abs=0.01),
+        "the parked car ahead of the slot",
+    )
+    assert inside[(-0.9, -25.0)] == (
+        pytest.approx(1.92, abs=0.01),
+        "the parked car ahead of the slot",
+    )
+    # only that: every other corner of this test's grid is a standing start and is driven
+    assert [c for c in ENVELOPE_CORNERS if not _standing(*c)] == [("parallel-park", -0.9, -25.0)]
 
 
 # --- the simulator's honesty -------------------------------------------------------------------

@@ -14,7 +14,7 @@ import pytest
 from leafgate import cli
 from leafgate.config import parse_overrides
 from leafgate.replay import rerun
-from leafgate.sim.scenarios import SCENARIOS
+from leafgate.sim.scenarios import OBSTACLES, SCENARIOS, Box
 
 pytestmark = pytest.mark.slow
 
@@ -105,6 +105,23 @@ def test_sim_exits_non_zero_with_the_reason_when_the_maneuver_does_not_finish(
     assert rc == 1
     assert "not finished" in err and "STOPPING at t = 3.1" in err and "localization" in err
     assert json.loads((tmp_path / "metrics.json").read_text())["finished"] is False
+
+
+def test_sim_exits_non_zero_when_the_car_drove_through_an_obstacle(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A route driven to its end is not a maneuver done when the car's body went into something
+    # on the way: a box 0.5 m left of the straight's centre line, 10–12 m along it (the Leaf is
+    # 0.885 m wide each side of it, so its body passes 0.385 m deep into the box).
+    box = Box(10.0, 12.0, 0.5, 2.0, "a test wall")
+    monkeypatch.setitem(OBSTACLES, "straight", (box,))
+    rc = _sim("--scenario", "straight", "--out", str(tmp_path))
+    err = capsys.readouterr().err
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["finished"] is True  # the route itself was driven
+    assert metrics["clearance_min_m"] == pytest.approx(-0.385, abs=0.02)
+    assert rc == 1
+    assert "collision: the car's body went 0.3" in err and "into a test wall at t =" in err
 
 
 def test_sim_set_applies_dotted_overrides(tmp_path: Path) -> None:

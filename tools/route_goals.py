@@ -7,7 +7,10 @@
    reversals more than the path's; speed never 0.2 m/s above the plan's; the infeasible hairpin
    is judged on speed only, and on never being reported finished away from its end).
 2. ``envelope`` — every scenario × starts at the corners of {±0.9 m} × {±25°} from its first
-   waypoint × {kinematic, steer-lag}: how many runs were aborted (did not finish) and why.
+   waypoint × {kinematic, steer-lag}: how many runs were aborted (did not finish) and why. A
+   start where the car's body would stand inside an obstacle of the scene (a parked car, the
+   kerb; :func:`leafgate.sim.scenarios.clearance`) is no standing start: it is listed apart,
+   with the obstacle and the overlap, and still driven and reported.
 3. ``rolling`` — the hairpin and U-turn routes sent as a planner's rolling window (the next
    30 m, re-sent every 0.5 s and every 1 s) on the kinematic plant.
 
@@ -27,7 +30,7 @@ from typing import Any
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.metrics import route_goal_misses
 from leafgate.sim.runner import FINISH_TOLERANCE, RollingWindow, default_model, run
-from leafgate.sim.scenarios import SCENARIOS, get_scenario, offset_start
+from leafgate.sim.scenarios import SCENARIOS, clearance, get_scenario, offset_start
 
 PLANTS = ("kinematic", "steer-lag", "dynamic")
 ENVELOPE_PLANTS = ("kinematic", "steer-lag")
@@ -48,6 +51,8 @@ KEEP = (
     "route_length_m",
     "duration_s",
     "wall_time_s",
+    "clearance_min_m",
+    "clearance_min_obstacle",
 )
 
 
@@ -62,12 +67,16 @@ def _one(task: dict[str, Any]) -> dict[str, Any]:
     scenario = get_scenario(task["scenario"])
     if task.get("lateral") is not None:
         scenario = offset_start(scenario, task["lateral"], math.radians(task["heading_deg"]))
+    s = scenario.start
+    inside = clearance(scenario.name, [s.x], [s.y], [s.heading])
     window = None
     if task.get("window_period") is not None:
         window = RollingWindow(30.0, task["window_period"])
     result = run(config_for(task["plant"]), scenario, window=window)
     m = result.metrics
-    out = {**task, **{k: m.get(k) for k in KEEP}, "feasible": scenario.feasible}
+    out = {**task, **{k: m.get(k) for k in KEEP if k in m}, "feasible": scenario.feasible}
+    if inside is not None and inside[0] < 0.0:
+        out["start_inside"] = {"obstacle": inside[1].name, "overlap_m": round(-inside[0], 3)}
     out["missed"] = route_goal_misses(m, task["plant"], scenario.feasible)
     if not scenario.feasible and m["finished"] and m["final_position_error_m"] > FINISH_TOLERANCE:
         out["missed"].append("reported finished away from its end")
@@ -104,7 +113,10 @@ def main() -> int:
     route_out = results[:n_routes]
     rolling_out = results[n_routes : n_routes + n_rolling]
     envelope_out = results[n_routes + n_rolling :]
-    aborted = [r for r in envelope_out if not r["finished"]]
+    impossible = [r for r in envelope_out if "start_inside" in r]
+    possible = [r for r in envelope_out if "start_inside" not in r]
+    aborted = [r for r in possible if not r["finished"]]
+    where = ("scenario", "plant", "lateral", "heading_deg")
     report = {
         "wall_time_s": round(time.perf_counter() - t0, 1),
         "routes": {
@@ -121,11 +133,19 @@ def main() -> int:
         if args.skip_envelope
         else {
             "runs": len(envelope_out),
+            "standing_starts": len(possible),
             "aborted": len(aborted),
             "aborted_runs": [
-                {k: r[k] for k in ("scenario", "plant", "lateral", "heading_deg")}
-                | {"reason": r["not_finished_reason"]}
-                for r in aborted
+                {k: r[k] for k in where} | {"reason": r["not_finished_reason"]} for r in aborted
+            ],
+            "goals_missed": [
+                {k: r[k] for k in where} | {"missed": r["missed"]} for r in possible if r["missed"]
+            ],
+            "starts_inside_an_obstacle": [
+                {k: r[k] for k in where}
+                | r["start_inside"]
+                | {"finished": r["finished"], "reason": r.get("not_finished_reason")}
+                for r in impossible
             ],
         },
     }

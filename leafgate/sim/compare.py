@@ -36,22 +36,13 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from leafgate.errors import ConfigError
 from leafgate.jsonconv import to_json
 from leafgate.progress import Progress
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.plots import Trace, plot_drive
 from leafgate.sim.runner import SimResult, run, run_direct
-from leafgate.sim.scenarios import (
-    LEAF_LENGTH,
-    LEAF_REAR_OVERHANG,
-    LEAF_WIDTH,
-    OBSTACLES,
-    SCENARIOS,
-    get_scenario,
-)
+from leafgate.sim.scenarios import OBSTACLES, SCENARIOS, footprint, get_scenario
 
 #: Controllers of the comparison: name → (controller kind, MPC prediction model).
 CONTROLLERS: dict[str, tuple[str, str]] = {
@@ -330,16 +321,7 @@ def _layout_plot(path: Path, scenario: str, traces: list[Trace], plant: str) -> 
     for tr in traces:
         ax.plot(tr.x, tr.y, lw=1.3, label=tr.label)
     x, y, h = float(traj.x[-1]), float(traj.y[-1]), float(traj.heading[-1])
-    corners = np.array(
-        [
-            (LEAF_LENGTH - LEAF_REAR_OVERHANG, LEAF_WIDTH / 2),
-            (LEAF_LENGTH - LEAF_REAR_OVERHANG, -LEAF_WIDTH / 2),
-            (-LEAF_REAR_OVERHANG, -LEAF_WIDTH / 2),
-            (-LEAF_REAR_OVERHANG, LEAF_WIDTH / 2),
-        ]
-    )
-    rot = np.array([[math.cos(h), -math.sin(h)], [math.sin(h), math.cos(h)]])
-    ax.add_patch(Polygon(corners @ rot.T + (x, y), fill=False, ec="tab:blue", lw=1.5))
+    ax.add_patch(Polygon(footprint(x, y, h), fill=False, ec="tab:blue", lw=1.5))
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
     ax.set_xlabel("x [m]")

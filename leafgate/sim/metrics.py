@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from leafgate.geometry import wrap_angle
 from leafgate.messages import FloatArray, Trajectory
+from leafgate.sim.scenarios import clearance
 
 STEER_RATE_DEADBAND = 0.01  # rad/s, rate changes smaller than this are not a sign change
 
@@ -185,6 +187,35 @@ def tracking_metrics(
     }
 
 
+def clearance_metrics(
+    scenario_name: str, t: FloatArray, x: FloatArray, y: FloatArray, heading: FloatArray
+) -> dict[str, Any]:
+    """How close the car's body came to the scene's obstacles (parked cars, kerb, walls): the
+    smallest gap, m (negative: it went that deep into one), which obstacle and when; empty for a
+    scene without obstacles."""
+    near = clearance(scenario_name, x, y, heading)
+    if near is None:
+        return {}
+    gap, box, i = near
+    return {
+        "clearance_min_m": gap,
+        "clearance_min_obstacle": box.name,
+        "clearance_min_t_s": float(t[i]),
+    }
+
+
+def collision(metrics: dict[str, Any]) -> str | None:
+    """What the car's body hit, as a sentence, when :func:`clearance_metrics` says it went into
+    an obstacle; None when it kept clear or the scene has none."""
+    gap = metrics.get("clearance_min_m")
+    if gap is None or gap >= 0.0:
+        return None
+    return (
+        f"the car's body went {-gap:.2f} m into {metrics['clearance_min_obstacle']} at "
+        f"t = {metrics['clearance_min_t_s']:.1f} s"
+    )
+
+
 # --- the goals of issue 13 for the route library -------------------------------------------------
 
 GOAL_LATERAL_KINEMATIC = 0.05  # m, max lateral error on the kinematic plant
@@ -195,13 +226,13 @@ GOAL_EXTRA_SIGN_CHANGES = 2  # steering reversals beyond the path's own, lag pla
 GOAL_OVERSPEED = 0.2  # m/s above the plan's speed, on every route (the infeasible one too)
 
 
-def route_goal_misses(metrics: dict[str, object], plant: str, feasible: bool) -> list[str]:
+def route_goal_misses(metrics: dict[str, Any], plant: str, feasible: bool) -> list[str]:
     """Which goals a run missed (empty: all met), each naming the figure and its limit.
 
     Feasible routes must finish; on the kinematic plant within 5 cm laterally, 5 cm and 1° at
     the goal; on the steer-lag and dynamic plants within 15 cm with at most two steering
     reversals more than the path's. Every route, the infeasible one too, keeps the speed within
-    0.2 m/s of the plan's.
+    0.2 m/s of the plan's, and in a scene with obstacles clear of them (:func:`collision`).
     """
 
     def num(key: str) -> float:
@@ -210,6 +241,9 @@ def route_goal_misses(metrics: dict[str, object], plant: str, feasible: bool) ->
         return float(value)
 
     misses = []
+    hit = collision(metrics)
+    if hit is not None:
+        misses.append(hit)
     if num("overspeed_max_mps") > GOAL_OVERSPEED:
         misses.append(f"overspeed {num('overspeed_max_mps'):.2f} m/s > {GOAL_OVERSPEED} m/s")
     if not feasible:

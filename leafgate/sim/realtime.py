@@ -43,7 +43,7 @@ from leafgate.messages import GatewayState, Pose
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.ecu import INJECTION_KINDS as ECU_INJECTION_KINDS
 from leafgate.sim.ecu import SimulatedEcu, run_ecu_realtime
-from leafgate.sim.metrics import path_errors, tracking_metrics
+from leafgate.sim.metrics import clearance_metrics, path_errors, tracking_metrics
 from leafgate.sim.names import TO_SIM_ECU
 from leafgate.sim.plots import Trace
 from leafgate.sim.scenarios import Scenario
@@ -534,6 +534,7 @@ def run_realtime(
     rows = np.asarray(trace.rows, dtype=np.float64)
     ts, x, y, heading, speed, steer = (rows[:, i].copy() for i in range(6))
     metrics: dict[str, Any] = tracking_metrics(scenario.trajectory, ts, x, y, heading, speed, steer)
+    metrics.update(clearance_metrics(scenario.name, ts, x, y, heading))
     runtime = runtime_box[0]
     loop = runtime.stats.summary()
     metrics.update(

@@ -50,7 +50,7 @@ from leafgate.runtime.loop import Runtime
 from leafgate.runtime.receiver import CanReceiver
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.ecu import SimulatedEcu
-from leafgate.sim.metrics import Projector, path_errors, tracking_metrics
+from leafgate.sim.metrics import Projector, clearance_metrics, path_errors, tracking_metrics
 from leafgate.sim.names import TO_SIM
 from leafgate.sim.plant import STANDSTILL_SPEED, SpeedController, gear_direction, make_plant
 from leafgate.sim.plots import Trace
@@ -302,6 +302,7 @@ def _finish(
     metrics["solve_time_median_s"] = float(np.median(solve))
     metrics["solve_time_p99_s"] = float(np.percentile(solve, 99))
     metrics.update(extra)
+    metrics.update(clearance_metrics(scenario.name, arr["t"], arr["x"], arr["y"], arr["heading"]))
     metrics["finished"], reason = finish_verdict(metrics, bool(extra["finished"]), why_not)
     if reason:
         metrics["not_finished_reason"] = reason

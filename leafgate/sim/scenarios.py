@@ -147,6 +147,78 @@ class Box:
     x_max: float
     y_min: float
     y_max: float
+    name: str = "an obstacle"  # as a sentence names it: "the parked car ahead"
+
+    def corners(self) -> FloatArray:
+        """(4, 2): the corners, counter-clockwise."""
+        return np.array(
+            [
+                (self.x_min, self.y_min),
+                (self.x_max, self.y_min),
+                (self.x_max, self.y_max),
+                (self.x_min, self.y_max),
+            ]
+        )
+
+
+def footprints(x: FloatArray, y: FloatArray, heading: FloatArray) -> FloatArray:
+    """(n, 4, 2): the corners of the Leaf's body (no mirrors), in order around it, with its rear
+    axle at ``(x[i], y[i])`` and heading ``heading[i]``."""
+    front = LEAF_LENGTH - LEAF_REAR_OVERHANG
+    along = np.array([front, front, -LEAF_REAR_OVERHANG, -LEAF_REAR_OVERHANG])
+    across = np.array([LEAF_WIDTH / 2, -LEAF_WIDTH / 2, -LEAF_WIDTH / 2, LEAF_WIDTH / 2])
+    c, s = np.cos(heading)[:, None], np.sin(heading)[:, None]
+    return np.stack(
+        (x[:, None] + c * along - s * across, y[:, None] + s * along + c * across), axis=-1
+    )
+
+
+def footprint(x: float, y: float, heading: float) -> FloatArray:
+    """(4, 2): :func:`footprints` of one pose."""
+    return footprints(np.array([x]), np.array([y]), np.array([heading]))[0]
+
+
+def gaps(cars: FloatArray, box: Box) -> FloatArray:
+    """(n,): the separating-axis gap between each car rectangle of ``cars`` (n, 4, 2; as
+    :func:`footprints`) and ``box``, m: the distance along the axis that separates them best;
+    negative when they overlap, then minus the depth along the axis that parts them with the
+    least push. Two rectangles have four such axes: the box's x and y, and the car's own two."""
+    rect = box.corners()
+    edge1 = cars[:, 1] - cars[:, 0]  # the car's front edge: across the car
+    edge2 = cars[:, 2] - cars[:, 1]  # its right side: along it
+    axes = [np.broadcast_to(np.array(v, dtype=float), edge1.shape) for v in ((1, 0), (0, 1))]
+    axes += [e / np.hypot(e[:, :1], e[:, 1:]) for e in (edge1, edge2)]
+    best = np.full(cars.shape[0], -np.inf)
+    for axis in axes:
+        a = np.einsum("nkd,nd->nk", cars, axis)  # the car's corners on the axis
+        b = rect @ axis.T  # (4, n): the box's
+        sep = np.maximum(a.min(axis=1) - b.max(axis=0), b.min(axis=0) - a.max(axis=1))
+        np.maximum(best, sep, out=best)
+    return best
+
+
+def gap(car: FloatArray, box: Box) -> float:
+    """:func:`gaps` of one car rectangle (4, 2)."""
+    return float(gaps(car[None], box)[0])
+
+
+def clearance(
+    scenario_name: str, x: FloatArray, y: FloatArray, heading: FloatArray
+) -> tuple[float, Box, int] | None:
+    """The Leaf's smallest gap (:func:`gaps`) to the obstacles of ``scenario_name`` over the
+    poses ``(x[i], y[i], heading[i])``: the gap, the obstacle and the pose's index; None when
+    the scenario has no obstacles (or there are no poses)."""
+    boxes = OBSTACLES.get(scenario_name, ())
+    if not boxes or len(x) == 0:
+        return None
+    cars = footprints(np.asarray(x, float), np.asarray(y, float), np.asarray(heading, float))
+    nearest: tuple[float, Box, int] | None = None
+    for box in boxes:
+        g = gaps(cars, box)
+        i = int(np.argmin(g))
+        if nearest is None or g[i] < nearest[0]:
+            nearest = (float(g[i]), box, i)
+    return nearest
 
 
 @dataclass(frozen=True)
@@ -236,17 +308,19 @@ def _maneuver(
     return Scenario(name, description, traj, start, duration=time_budget(traj))
 
 
-#: Obstacles of the parking scenarios (for plots and the clearance test), m.
+#: Obstacles of the parking scenarios (plots, clearances of plans, starts and drives), m.
 PARALLEL_SLOT = (
-    Box(-4.5, 0.0, 0.2, 1.97),  # the parked car behind the slot, 0.2 m from the kerb
-    Box(6.0, 10.5, 0.2, 1.97),  # the parked car ahead: the slot is 6.0 m long
-    Box(-5.0, 11.0, -1.0, 0.0),  # the kerb (y < 0)
+    # 0.2 m from the kerb; the slot between the two parked cars is 6.0 m long
+    Box(-4.5, 0.0, 0.2, 1.97, "the parked car behind the slot"),
+    Box(6.0, 10.5, 0.2, 1.97, "the parked car ahead of the slot"),
+    Box(-5.0, 11.0, -1.0, 0.0, "the kerb"),  # y < 0
 )
 PERPENDICULAR_BAY = (
-    Box(-2.135, -0.365, -4.8, -0.35),  # a Leaf parked in the bay to the left, centred
-    Box(2.865, 4.635, -4.8, -0.35),  # and one in the bay to the right
-    Box(-5.0, 11.0, -6.0, -5.0),  # the wall at the back of the 5 m deep bays
-    Box(-5.0, 11.0, 6.5, 7.5),  # the far side of the 6.5 m wide aisle
+    # Leafs parked centred in the bays either side; the bays are 5 m deep, the aisle 6.5 m wide
+    Box(-2.135, -0.365, -4.8, -0.35, "the Leaf in the bay to the left"),
+    Box(2.865, 4.635, -4.8, -0.35, "the Leaf in the bay to the right"),
+    Box(-5.0, 11.0, -6.0, -5.0, "the wall at the back of the bays"),
+    Box(-5.0, 11.0, 6.5, 7.5, "the far side of the aisle"),
 )
 OBSTACLES: dict[str, tuple[Box, ...]] = {
     "parallel-park": PARALLEL_SLOT,
