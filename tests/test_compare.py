@@ -18,7 +18,7 @@ from leafgate.sim.compare import (
     drive_config,
     run_compare,
 )
-from leafgate.sim.scenarios import SCENARIOS, get_scenario
+from leafgate.sim.scenarios import OBSTACLES, SCENARIOS, Box, get_scenario
 
 pytestmark = pytest.mark.slow
 
@@ -60,6 +60,19 @@ def test_report_holds_the_table_the_numbers_and_the_plots(tmp_path: Path) -> Non
         # the paper's Figs. 2-4 pair: plain vs steering-aware MPC on the full vehicle plant
         assert (tmp_path / "paper-fig2-4" / "s-curve" / f"{name}.png").stat().st_size > 0
     assert "paper-fig2-4/s-curve/steering.png" in text
+
+
+def test_report_says_when_a_drive_went_into_an_obstacle(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a wall across the straight's left half, 0.5 m from its centre line: every car passes it
+    # with its body 0.385 m deep in it (the Leaf is 0.885 m wide each side)
+    monkeypatch.setitem(OBSTACLES, "straight", (Box(10.0, 12.0, 0.5, 2.0, "a test wall"),))
+    kw = {"scenarios": ["straight"], "plants": ["kinematic"], "direct": True, "workers": 1}
+    report = run_compare(LeafgateConfig(), tmp_path, controllers=["mpc"], **kw)
+    assert report["runs"][0]["metrics"]["clearance_min_m"] < 0.0
+    text = (tmp_path / "report.md").read_text(encoding="utf-8")
+    assert "| yes; 0.38 m into a test wall |" in text or "| yes; 0.39 m into a test wall |" in text
 
 
 def test_unknown_names_are_config_errors_listing_the_known_ones(tmp_path: Path) -> None:

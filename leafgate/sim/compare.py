@@ -378,9 +378,10 @@ def _markdown(
                 cells = [_cell(m, key, f, fmt) for key, _, f, fmt in COLUMNS]
                 if c == best:
                     cells[1] = f"**{cells[1]}**"
-                lines.append(
-                    "| " + " | ".join([p, c, *cells, "yes" if m.get("finished") else "no"]) + " |"
-                )
+                done = "yes" if m.get("finished") else "no"
+                if m.get("clearance_min_m", 0.0) < 0.0:  # the body went into an obstacle
+                    done += f"; {-m['clearance_min_m']:.2f} m into {m['clearance_min_obstacle']}"
+                lines.append("| " + " | ".join([p, c, *cells, done]) + " |")
         lines.append("")
         links = [
             f"[{k.split('/', 1)[1]}]({v})" for k, v in figures.items() if k.startswith(f"{s}/")
