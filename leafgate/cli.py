@@ -630,7 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Drive a built-in scenario or your own trajectory file through the whole "
         "gateway on a simulated clock. Writes metrics.json, trace.csv (one row per control "
         "tick) and plots to --out; exits 1 with the reason on stderr when the maneuver did "
-        "not finish.",
+        "not finish, or when the car's body went into a parked car, kerb or wall of the scene.",
         epilog=f"scenarios: {', '.join(SCENARIOS)}.\n"
         f"controllers: {', '.join(CONTROLLERS)}.\n"
         f"injections: {injection_names(INJECTION_KINDS, TO_SIM)}.\n"
