@@ -65,6 +65,8 @@ class _RecordingController(MpcController):
         result = super()._solve(E, f, gamma)
         if self.record and result.iterations > 0:
             assert self._last_terms is not None
+            # the solver rows re-solve every QP with one M: the S-curve is driven forward only
+            assert self.M is self._M_dir[1], "a QP of the reverse direction"
             self.qps.append((E.copy(), f.copy(), gamma.copy()))
             self.terms.append((self._last_terms[0].copy(), self._last_terms[1].copy()))
         return result
