@@ -65,3 +65,21 @@ def test_projection_follows_a_path_that_doubles_back() -> None:
     np.testing.assert_allclose(np.abs(err.lateral[25:]), 0.15, atol=1e-9)  # on the second leg
     np.testing.assert_allclose(err.speed_ref[:20], 1.0)
     np.testing.assert_allclose(err.speed_ref[25:], -1.0)
+
+
+def test_projection_does_not_skip_the_move_between_two_reverse_moves() -> None:
+    """Parallel parking: reverse, a 1.15 m pull forward, reverse 0.65 m into the slot. The last
+    move lies beside the end of the first, so a car still reversing at the end of the first
+    move, a little off it, is nearer the last one: the projection stays on the first move (it
+    gets to the last only through the forward one), and the planned speed there is the first
+    move's, not the goal's 0 (which judged a reversing car 0.5 m/s too fast)."""
+    traj = get_scenario("parallel-park").trajectory
+    first_end = int(np.flatnonzero(np.diff(np.sign(traj.speed)) != 0)[0])  # the first cusp
+    n = first_end + 1
+    # along the first move, 0.15 m to the side of its waypoints (towards the last move), reversing
+    x = traj.x[:n] + 0.15 * np.sin(traj.heading[:n])
+    y = traj.y[:n] - 0.15 * np.cos(traj.heading[:n])
+    err = path_errors(traj, x, y, traj.heading[:n], np.full(n, -0.5))
+    first_length = float(np.sum(np.hypot(np.diff(traj.x[:n]), np.diff(traj.y[:n]))))
+    assert err.progress.max() <= first_length + 1e-9
+    assert np.all(err.speed_ref[: n - 4] <= -0.2)  # reversing as planned, not at rest

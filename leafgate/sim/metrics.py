@@ -53,7 +53,9 @@ class Projector:
     themselves at cusps, cross themselves and close on their start, and a plain nearest-segment
     search would jump to another part of the route. With a speed given, only segments planned
     in the vehicle's direction of travel are candidates (the two legs of a cusp have opposite
-    speed signs).
+    speed signs). Nor does it skip a move: it reaches the move after next only through the next
+    one (a parking maneuver's two reverse moves lie side by side, the forward move between them
+    is short, and a car reversing off the first one is not on the last).
     """
 
     def __init__(self, traj: Trajectory) -> None:
@@ -62,6 +64,16 @@ class Projector:
         self.seg_dir = np.sign(traj.speed[:-1] + traj.speed[1:])  # planned direction of each
         gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
         self.s = np.concatenate(([0.0], np.cumsum(gaps)))  # m, arc length at each waypoint
+        # the move of each segment: a new one where the planned direction changes (a segment
+        # between two waypoints at rest, direction 0, belongs to the move before it)
+        signed = self.seg_dir.copy()
+        nonzero = np.flatnonzero(signed)
+        if nonzero.size:
+            signed[: nonzero[0]] = signed[nonzero[0]]  # waypoints at rest at the start
+        for i in range(1, len(signed)):
+            if signed[i] == 0.0:
+                signed[i] = signed[i - 1]
+        self.move = np.concatenate(([0], np.cumsum(signed[1:] != signed[:-1])))
         self.k = 0  # the segment of the last projection
         self.moving_dir = 0.0
 
@@ -76,6 +88,7 @@ class Projector:
         """The next sample: segment ``k``, parameter ``t`` on it, squared distance, error."""
         lo, hi = max(0, self.k - PROJECTION_SLACK), min(self.n_seg, self.k + PROJECTION_WINDOW)
         dist2, t, ex, ey = _segment_distances(self.traj, x, y, lo, hi)
+        dist2 = np.where(self.move[lo:hi] > self.move[self.k] + 1, np.inf, dist2)
         if speed is not None:
             if abs(speed) > DIRECTION_SPEED:
                 self.moving_dir = math.copysign(1.0, speed)
