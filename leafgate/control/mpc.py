@@ -16,9 +16,10 @@ Each control tick:
    default), Hildreth or OSQP — and apply the first move, clipped to the hard limits whatever
    the solver returned.
 
-**Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: the
-kinematic model's ``S`` and free response come in closed form (:class:`~leafgate.control.
-model.KinematicPrediction`, ``A − I`` is nilpotent), the prediction's rows are grouped by output
+**Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: both
+models' ``S`` and free response come in closed form (:class:`~leafgate.control.
+model.KinematicPrediction`: the kinematic ``A − I`` is nilpotent, the steering lag adds a
+triangular block), the prediction's rows are grouped by output
 (contiguous rows; ``E`` and ``f`` do not depend on the row order), ``E`` is factored once
 (Cholesky) for the unconstrained optimum and Hildreth, and the reference comes from one query
 (:meth:`~leafgate.control.reference.ReferencePath.horizon`). ``tools/bench_mpc.py`` measures it.
@@ -125,15 +126,11 @@ from leafgate.control.model import (
     N_STATES,
     N_STATES_STEER,
     KinematicPrediction,
-    augment_steer_lag,
-    grouped_by_output,
     kinematic_first_increment,
-    linearise_along,
     move_steps,
-    prediction_matrices_ltv,
     rk4_step,
     steer_lag_factor,
-    steer_lag_increment,
+    steer_lag_first_increment,
 )
 from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
 from leafgate.control.reference import (
@@ -192,8 +189,9 @@ class MpcController:
         self._q2 = 2.0 * self._q_out
         self._R2 = np.diag(2.0 * self.r_bar)
         self._moves = move_steps(Np, Nc, cfg.moves == "spread")  # the step each move acts from
-        self._kinematic = (
-            None if self.steer_model else KinematicPrediction(Np, Nc, self.Ts, self.L, self._moves)
+        # S and the free response in closed form, for either model (steer_alpha: the lag's α)
+        self._predict = KinematicPrediction(
+            Np, Nc, self.Ts, self.L, self._moves, self._alpha if self.steer_model else None
         )
         self._to_path = np.zeros((N_STATES, 3))  # global → path frame, rotation set per tick
         self._to_path[3, 2] = 1.0  # heading error = reference heading − heading at s0
@@ -536,9 +534,9 @@ class MpcController:
         v_op, heading_op = op[0], op[1]  # indexing: cheaper than unpacking the array
         v_op[0] = v0 if abs(v0) > self.cfg.stop_speed else op[0, 1]
         heading_op[0] = th0
-        if self._kinematic is not None:
-            # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
-            Ts, L = self.Ts, self.L
+        # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
+        Ts, L = self.Ts, self.L
+        if not self.steer_model:
             increment = (
                 Ts * (v0 * math.cos(th0)),
                 Ts * (v0 * math.sin(th0)),
@@ -546,10 +544,14 @@ class MpcController:
                 Ts * (v0 * t_eff / L),
             )
             dx_k = kinematic_first_increment(increment, v0, th0, t_eff, Ts, L)
-            return self._kinematic(v_op, heading_op, t_eff, dx_k)
-        # the lag acts on tan δ + bias alike: shift the actual and the commanded angle
-        u_eff = np.array([a_eff, t_eff])
-        return self._predict_steer_lag(kin, tan_actual, u_eff, v_op, heading_op)
+            return self._predict(v_op, heading_op, t_eff, dx_k)
+        # steering-aware: the car turns with the actual wheel, linearised there; the lag acts
+        # on tan δ + bias alike (the actual and the commanded angle shifted by the bias)
+        state = (kin[0], kin[1], v0, th0, tan_actual)
+        dx = steer_lag_first_increment(
+            state, (a_eff, t_eff), float(v_op[0]), th0, Ts, L, self._alpha
+        )
+        return self._predict(v_op, heading_op, tan_actual, dx)
 
     def _constraint_bounds(
         self, direction: int, u_prev: FloatArray, a_prev: float, v0: float, free: FloatArray
@@ -729,30 +731,6 @@ class MpcController:
             f"blocked: at rest {abs(lateral):.2f} m and {math.degrees(abs(heading)):.0f}° off "
             f"the path for {waited:.1f} s, the MPC does not drive off ({why})"
         )
-
-    def _predict_steer_lag(
-        self,
-        kin: list[float],
-        tan_actual: float,
-        u_prev: FloatArray,
-        v_op: FloatArray,
-        heading_op: FloatArray,
-    ) -> tuple[FloatArray, FloatArray]:
-        """``Sᵀ`` and the free response ``F x − y₀`` of the steering-aware model (rows by output).
-
-        The general time-varying prediction (:func:`~leafgate.control.model.
-        prediction_matrices_ltv`); the lag state makes ``A − I`` non-nilpotent.
-        """
-        Ts, L = self.Ts, self.L
-        state = np.array([*kin, tan_actual])
-        A, B = linearise_along(v_op, heading_op, np.full(self.Np, tan_actual), Ts, L)
-        A, B = augment_steer_lag(A, B, self._alpha, Ts, v_op, L)
-        increment = steer_lag_increment(state, u_prev, Ts, L, self._alpha)
-        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc, self._moves)
-        dx_k = np.linalg.solve(A[0], increment)  # A Δx̃ₖ = the next step's increment
-        n = A.shape[1]
-        free = (F[:, :n] @ dx_k).reshape(self.Np, self.ny).T.ravel()
-        return grouped_by_output(S, self.Np).T, free
 
     def _apply(self, accel: float, tan_delta: float) -> None:
         """Remember the command sent this tick (and queue it while it is in the dead time)."""
