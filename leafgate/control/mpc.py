@@ -216,6 +216,7 @@ class MpcController:
         self._M_dir = {d: np.vstack((box, -d * speed_S)) for d in (1, -1)}
         self.M = self._M_dir[1]  # the constraint matrix of the current direction
         self.tan_max = math.tan(cfg.steer_max)
+        self._n_u = Nc * m  # QP variables
         rate = np.array([cfg.jerk_max, cfg.steer_rate_max])  # per second
         gaps = np.diff(self._moves)[:, None]  # model steps between two moves
         self.du_max: FloatArray = np.concatenate((rate * period, (gaps * rate * self.Ts).ravel()))
@@ -227,19 +228,18 @@ class MpcController:
         acting = np.searchsorted(self._moves, np.arange(Np), side="right") - 1  # move per step
         held = acting[:, None] == np.arange(Nc)[None, :]  # (Np, Nc)
         self._held: FloatArray = self.Ts * np.cumsum(held, axis=0)
-        # γ = γ₀ + G u_prev, with γ₀ per driving direction (the signed accel limits flip)
-        tile_eye = np.tile(np.eye(m), (Nc, 1))
-        self._gamma_u = np.vstack((-tile_eye, tile_eye, np.zeros((2 * Nc * m, m))))
-        # per direction: u_lo, u_hi, γ₀ and the acceleration limits (a_min, a_max) as floats
+        # γ = [u_hi − u_prev, …; u_prev − u_lo, …; du_max; du_max; speed rows], per driving
+        # direction (the signed accel limits flip): a template holds the constant rows
+        # per direction: u_lo, u_hi, the γ template and the acceleration limits as floats
         self._limits: dict[int, tuple[FloatArray, FloatArray, FloatArray, tuple[float, float]]] = {}
         for direction in (1, -1):
             a_min, a_max = self._accel_limits(direction)
             u_lo = np.array([a_min, -self.tan_max])
             u_hi = np.array([a_max, self.tan_max])
-            gamma0 = np.concatenate(
-                (np.tile(u_hi, Nc), -np.tile(u_lo, Nc), self.du_max, self.du_max)
+            template = np.concatenate(
+                (np.zeros(2 * Nc * m), self.du_max, self.du_max, np.zeros(Np))
             )
-            self._limits[direction] = (u_lo, u_hi, gamma0, (a_min, a_max))
+            self._limits[direction] = (u_lo, u_hi, template, (a_min, a_max))
 
         # the multipliers of a feasible unconstrained optimum: all zero, one read-only array
         self._no_multipliers = np.zeros(self.M.shape[0])
@@ -569,7 +569,7 @@ class MpcController:
             self.M = self._M_dir[direction]
             if self._daqp is not None:
                 self._daqp = self._daqp_dir[direction]
-        _, _, gamma0, _ = self._limits[direction]
+        u_lo, u_hi, template, _ = self._limits[direction]
         Np = self.Np
         v_free = free[2 * Np : 3 * Np] + v0  # no move: the free response's speeds
         v_free *= direction
@@ -579,7 +579,12 @@ class MpcController:
         low += v_free
         np.minimum(low, 0.0, out=low)
         low -= _SPEED_SLACK
-        return np.concatenate((gamma0 + self._gamma_u @ u_prev, v_free - low))
+        gamma = template.copy()  # the rate rows; the others written in place (views)
+        n_u = self._n_u
+        np.subtract(u_hi, u_prev, out=gamma[:n_u].reshape(-1, N_INPUTS))  # each Σ Δu ≤ these
+        np.subtract(u_prev, u_lo, out=gamma[n_u : 2 * n_u].reshape(-1, N_INPUTS))
+        np.subtract(v_free, low, out=gamma[4 * n_u :])
+        return gamma
 
     def _speed_bound(self, seg: Segment, s0: float, speed: float) -> float:
         """The speed bound, m/s: the plan's speed at the car's place ``s0`` plus the margin, and
