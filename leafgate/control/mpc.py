@@ -271,6 +271,7 @@ class MpcController:
         self._tick = 0  # calls of step since the reset
         self._standing = 0  # consecutive MPC ticks that kept the car at rest (see _blocked)
         self._standing_tick = -1  # the tick that last counted
+        self._s_pose = 0.0  # m, arc length of the pose's projection this tick (the progress's)
         # tan δ commands sent and not yet acting on the wheel (steering-aware model), oldest first
         self._in_flight: deque[float] = deque(maxlen=max(self._dead_ticks, 1))
         if self._osqp is not None:
@@ -351,7 +352,10 @@ class MpcController:
         bias = dist.bias  # tan δ: the car turns as with tan δ + bias
         drag = direction * dist.accel  # signed d(v)/dt added to the command
         start = self._start_state(pose, steer_angle, direction, bias, drag)
-        s0 = path.project(seg, prog.index, start[0], start[1])
+        if start[0] == pose.x and start[1] == pose.y:  # no dead time to predict over
+            s0 = self._s_pose  # this tick's projection of the pose, found by the progress
+        else:
+            s0 = path.project(seg, prog.index, start[0], start[1])
         aligning = self._align_at_start(seg, s0, abs(pose.speed), steer_angle, t0, bias)
         if aligning is not None:
             return aligning
@@ -418,13 +422,13 @@ class MpcController:
         assert prog is not None and self._u_prev is not None
         seg = prog.segment
         if not self._finished:
-            prog.update(pose.x, pose.y, pose.heading)
+            self._s_pose = prog.update(pose.x, pose.y, pose.heading)
         at_rest = abs(pose.speed) <= cfg.stop_speed
         passed = prog.passed  # progress has reached the end (not a half-plane test)
         if at_rest and not self._finished and prog.ended(pose.x, pose.y, cfg.goal_tolerance):
             if prog.next_segment():  # a cusp: drive the next segment, in the other direction
                 seg = prog.segment
-                prog.update(pose.x, pose.y, pose.heading)
+                self._s_pose = prog.update(pose.x, pose.y, pose.heading)
                 # The brake holds the car through the gear change: in the new direction that
                 # hold has the other sign of d(v)/dt. Starting from it keeps every later move
                 # (and the drive-off) inside the jerk bound.
