@@ -550,12 +550,13 @@ class KinematicPrediction:
         #   acceleration: Ts [P₀₃P₃₂ − P₀₂, P₁₃P₃₂ − P₁₂, 1, −P₃₂]
         #   steering:     −g [P₀₃, P₁₃, 0, −1],  g = Ts vⱼ / L
         b = self._b
-        p3 = P[3, :2][:, b]  # [P₀₃; P₁₃] of P_{bⱼ+1}
-        p32 = P[2, 3, b]
+        Pb = P[2:4, :, b]  # columns 2 and 3 of P_{bⱼ+1}, in one indexing call
+        p3 = Pb[1, :2]  # [P₀₃; P₁₃]
+        p32 = Pb[0, 3]
         G = self._G  # column 2 preset (Ts for the acceleration, 0 for the steering)
         a, s = G[0:-1:2], G[1::2]  # the acceleration and the steering columns of each Gⱼ
         col = p3 * p32
-        col -= P[2, :2][:, b]
+        col -= Pb[0, :2]  # [P₀₂; P₁₂]
         col *= Ts
         a[:, :2] = col.T
         np.multiply(p32, -Ts, out=a[:, 3])

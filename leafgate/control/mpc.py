@@ -228,9 +228,9 @@ class MpcController:
         acting = np.searchsorted(self._moves, np.arange(Np), side="right") - 1  # move per step
         held = acting[:, None] == np.arange(Nc)[None, :]  # (Np, Nc)
         self._held: FloatArray = self.Ts * np.cumsum(held, axis=0)
-        # γ = [u_hi − u_prev, …; u_prev − u_lo, …; du_max; du_max; speed rows], per driving
-        # direction (the signed accel limits flip): a template holds the constant rows
-        # per direction: u_lo, u_hi, the γ template and the acceleration limits as floats
+        # γ = [u_hi − u_prev (Nc times); u_prev − u_lo (Nc times); du_max; du_max; speed rows].
+        # Per driving direction (the signed accel limits flip): u_lo, u_hi, a template of γ
+        # holding its constant rows, and the acceleration limits (a_min, a_max) as floats
         self._limits: dict[int, tuple[FloatArray, FloatArray, FloatArray, tuple[float, float]]] = {}
         for direction in (1, -1):
             a_min, a_max = self._accel_limits(direction)
