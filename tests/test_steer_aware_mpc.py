@@ -125,6 +125,24 @@ def test_closed_form_lag_prediction_equals_the_recursion(
     np.testing.assert_allclose(free_closed, expected_free, atol=1e-12)
 
 
+def test_lag_prediction_results_survive_the_next_call() -> None:
+    """The lag's work buffers are reused between calls; the returned arrays are not them."""
+    Np, Nc = 30, 10
+    alpha = steer_lag_factor(Ts, 0.3)
+    rng = np.random.default_rng(8)
+    predict = KinematicPrediction(Np, Nc, Ts, L, move_steps(Np, Nc, True), steer_alpha=alpha)
+    args = (rng.uniform(0.0, 3.0, Np), rng.uniform(-1.0, 1.0, Np), 0.2, tuple(rng.normal(size=5)))
+    ST, free = predict(*args)
+    ST_copy, free_copy = ST.copy(), free.copy()
+    predict(rng.uniform(-3.0, 0.0, Np), rng.uniform(-1.0, 1.0, Np), -0.4, rng.normal(size=5))
+    np.testing.assert_array_equal(ST, ST_copy)
+    np.testing.assert_array_equal(free, free_copy)
+    fresh = KinematicPrediction(Np, Nc, Ts, L, move_steps(Np, Nc, True), steer_alpha=alpha)
+    fresh_ST, fresh_free = fresh(*args)
+    np.testing.assert_array_equal(ST, fresh_ST)
+    np.testing.assert_array_equal(free, fresh_free)
+
+
 def test_lag_first_increment_inverts_the_jacobian() -> None:
     alpha = steer_lag_factor(Ts, 0.3)
     rng = np.random.default_rng(5)
