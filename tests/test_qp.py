@@ -232,6 +232,25 @@ def test_daqp_solves_the_mpc_box_qp_exactly(seed: int) -> None:
     assert (M @ result.x <= gamma + 1e-8).all()
 
 
+@pytest.mark.parametrize("seed", range(20))
+def test_daqp_multipliers_belong_to_the_rows_of_m(seed: int) -> None:
+    """DAQP sees the box rows as bounds and two-sided rows; the multipliers it returns are
+    mapped back to M's rows, the extra one-sided rows (the MPC's speed rows) included: the
+    KKT conditions of ``M x ≤ γ`` hold with them."""
+    E, f, M, gamma = _box_qp(seed)
+    rng = np.random.default_rng(100 + seed)
+    D = rng.normal(size=(4, M.shape[1]))
+    M = np.vstack((M, D))
+    gamma = np.concatenate((gamma, rng.uniform(0.0, 0.5, size=4)))
+    backend = DaqpBackend(M)
+    assert backend._structured
+    result = backend.solve(E, f, gamma)
+    assert result.converged
+    assert (result.lam >= 0.0).all() and (result.lam > 0.0).any()
+    np.testing.assert_allclose(E @ result.x + f + M.T @ result.lam, 0.0, atol=1e-8)
+    np.testing.assert_allclose(result.lam * (M @ result.x - gamma), 0.0, atol=1e-8)
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_daqp_on_a_general_constraint_matrix(seed: int) -> None:
     E, f, M, gamma = _random_qp(seed)

@@ -16,12 +16,16 @@ from leafgate.config import VehicleConfig, from_mapping
 from leafgate.config.control import ControllerConfig, MpcConfig
 from leafgate.config.sim import PlantConfig, SimConfig
 from leafgate.control.model import (
+    KinematicPrediction,
     augment_steer_lag,
+    grouped_by_output,
     linearise,
     linearise_along,
+    move_steps,
     prediction_matrices,
     prediction_matrices_ltv,
     steer_lag_factor,
+    steer_lag_first_increment,
     steer_lag_increment,
 )
 from leafgate.control.mpc import MpcController
@@ -71,6 +75,86 @@ def test_ltv_prediction_equals_the_step_by_step_recursion() -> None:
     np.testing.assert_allclose(
         F @ np.concatenate((dx, y)) + S @ dU, np.concatenate(expected), atol=1e-12
     )
+
+
+def _lag_prediction_by_recursion(
+    A: np.ndarray, B: np.ndarray, moves: np.ndarray, dx: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """S (rows by step) and the free response of the lag model, step by step: each move's
+    column propagated by the Jacobians from the step it acts at, no inverse of a product."""
+    Np, Nc = A.shape[0], len(moves)
+    S = np.zeros((Np * 4, 2 * Nc))
+    for j, b in enumerate(moves):
+        col, acc = B[b].copy(), np.zeros((5, 2))
+        for m in range(b + 1, Np + 1):
+            if m > b + 1:
+                col = A[m - 1] @ col
+            acc += col
+            S[4 * (m - 1) : 4 * m, 2 * j : 2 * j + 2] = acc[:4]
+    free, state, acc_x = [], dx.copy(), np.zeros(5)
+    for k in range(Np):
+        state = A[k] @ state  # Pₖ₊₁ Δx₀
+        acc_x += state
+        free.append(acc_x[:4].copy())
+    return S, np.concatenate(free)
+
+
+@pytest.mark.parametrize("tau", [0.3, 0.1, 0.05])
+@pytest.mark.parametrize("sizes", [(30, 10, True), (30, 10, False), (7, 3, True), (1, 1, False)])
+def test_closed_form_lag_prediction_equals_the_recursion(
+    tau: float, sizes: tuple[int, int, bool]
+) -> None:
+    """KinematicPrediction with the steering lag gives the lag model's S and free response,
+    to rounding, also for a fast actuator: β⁻ᵐ (e⁶⁰ at τ = 0.05 s over 30 steps) never enters.
+    The general LTV prediction inverts prefix products and loses digits there."""
+    Np, Nc, spread = sizes
+    moves = move_steps(Np, Nc, spread)
+    alpha = steer_lag_factor(Ts, tau)
+    rng = np.random.default_rng(round(100 * tau) + Np)
+    speed, heading = rng.uniform(-3.0, 3.0, Np), rng.uniform(-1.0, 1.0, Np)
+    tan_actual = 0.2
+    A, B = linearise_along(speed, heading, np.full(Np, tan_actual), Ts, L)
+    A, B = augment_steer_lag(A, B, alpha, Ts, speed, L)
+    dx = rng.normal(size=5)
+    S, free = _lag_prediction_by_recursion(A, B, moves, dx)
+    predict = KinematicPrediction(Np, Nc, Ts, L, moves, steer_alpha=alpha)
+    ST, free_closed = predict(speed, heading, tan_actual, tuple(dx))
+    scale = max(1.0, float(np.abs(S).max()))
+    np.testing.assert_allclose(ST.T, grouped_by_output(S, Np), atol=1e-13 * scale)
+    expected_free = grouped_by_output(free[:, None], Np).ravel()
+    np.testing.assert_allclose(free_closed, expected_free, atol=1e-12)
+
+
+def test_lag_prediction_results_survive_the_next_call() -> None:
+    """The lag's work buffers are reused between calls; the returned arrays are not them."""
+    Np, Nc = 30, 10
+    alpha = steer_lag_factor(Ts, 0.3)
+    rng = np.random.default_rng(8)
+    predict = KinematicPrediction(Np, Nc, Ts, L, move_steps(Np, Nc, True), steer_alpha=alpha)
+    args = (rng.uniform(0.0, 3.0, Np), rng.uniform(-1.0, 1.0, Np), 0.2, tuple(rng.normal(size=5)))
+    ST, free = predict(*args)
+    ST_copy, free_copy = ST.copy(), free.copy()
+    predict(rng.uniform(-3.0, 0.0, Np), rng.uniform(-1.0, 1.0, Np), -0.4, rng.normal(size=5))
+    np.testing.assert_array_equal(ST, ST_copy)
+    np.testing.assert_array_equal(free, free_copy)
+    fresh = KinematicPrediction(Np, Nc, Ts, L, move_steps(Np, Nc, True), steer_alpha=alpha)
+    fresh_ST, fresh_free = fresh(*args)
+    np.testing.assert_array_equal(ST, fresh_ST)
+    np.testing.assert_array_equal(free, fresh_free)
+
+
+def test_lag_first_increment_inverts_the_jacobian() -> None:
+    alpha = steer_lag_factor(Ts, 0.3)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        state = rng.uniform(-1.0, 1.0, 5) * np.array([5.0, 5.0, 3.0, 3.0, 0.5])
+        u = rng.uniform(-1.0, 1.0, 2) * np.array([2.0, 0.5])
+        v_op, th_op = rng.uniform(-3.0, 3.0), rng.uniform(-1.0, 1.0)
+        A, B = linearise_along(np.array([v_op]), np.array([th_op]), state[4:], Ts, L)
+        A, _ = augment_steer_lag(A, B, alpha, Ts, np.array([v_op]), L)
+        dx = steer_lag_first_increment(tuple(state), tuple(u), v_op, th_op, Ts, L, alpha)
+        increment = steer_lag_increment(state, u, Ts, L, alpha)
+        np.testing.assert_allclose(A[0] @ np.array(dx), increment, atol=1e-14)
 
 
 def test_ltv_prediction_with_constant_jacobians_is_the_papers() -> None:

@@ -419,11 +419,34 @@ class KinematicPrediction:
     With ``moves`` (:func:`move_steps`) move j acts from step ``bⱼ = moves[j]`` on: its block
     is ``Σ_{m=bⱼ+1..k} Pₘ Gⱼ`` with ``Gⱼ = P_{bⱼ+1}⁻¹ B_{bⱼ}``.
 
+    **Steering lag** (``steer_alpha`` given: :func:`augment_steer_lag`, state ``[x, y, v, θ,
+    t]``, ``t`` the actual tan δ with ``t⁺ = β t + α t_cmd``, ``β = 1 − α``). Each Jacobian is
+    block triangular, ``Aₗ = [[Kₗ, gₗ e₃], [0, β]]`` with ``Kₗ`` the kinematic one above (``e``
+    at the actual tan δ) and ``gₗ = Ts vₗ / L``, so ``Pₘ = [[K̂ₘ, cₘ], [0, βᵐ]]`` with ``K̂ₘ`` the
+    kinematic prefix product and ``cₘ = Σ_{l<m} βˡ gₗ Kₘ₋₁ ⋯ Kₗ₊₁ e₃``. Every ``Kₚ`` maps ``e₃``
+    to ``e₃ + bₚ e₀ + dₚ e₁`` and leaves ``e₀``, ``e₁`` alone, hence, with ``Tₘ = Σ_{l<m} βˡ
+    gₗ``::
+
+        cₘ = [Σ_{p<m} bₚ Tₚ, Σ_{p<m} dₚ Tₚ, 0, Tₘ]
+
+    — two more weighted sums; they carry ``Δx₀``'s ``t`` entry (the caller gives it,
+    :func:`steer_lag_first_increment`). The acceleration column of ``Gⱼ`` is the kinematic one
+    (with a zero ``t`` entry). The command reaches only ``t``, ``Bⱼ e₁ = α e₄``, and its block
+    is taken without ``Pₘ⁻¹`` (whose ``β⁻ᵐ``, e¹⁰ at τ = 0.3 s, would cancel against ``cₘ``): with
+    ``s = bⱼ + 1``, ``Pₘ Pₛ⁻¹ = Aₘ₋₁ ⋯ Aₛ`` and the same argument give, for ``m ≥ s``::
+
+        C Pₘ Gⱼ e₁ = α [Σ_{p<m} bₚ Dⱼ,ₚ, Σ_{p<m} dₚ Dⱼ,ₚ, 0, Dⱼ,ₘ],  Dⱼ,ₘ = Σ_{s≤l<m} βˡ⁻ˢ gₗ
+
+    — one product of the speeds with a constant weight matrix per move, and one more for the
+    sums over p.
+
     :param Np: prediction horizon, steps
     :param Nc: control horizon, moves
     :param Ts: model sample time, s
     :param wheelbase: L, m
     :param moves: (Nc,) the step each move acts from; None: ``0 … Nc − 1`` (the paper)
+    :param steer_alpha: α of the steering lag per model step (:func:`steer_lag_factor`); None:
+        the plain kinematic model
     """
 
     def __init__(
@@ -433,8 +456,11 @@ class KinematicPrediction:
         Ts: float,
         wheelbase: float,
         moves: npt.NDArray[np.intp] | None = None,
+        steer_alpha: float | None = None,
     ) -> None:
         self.Np, self.Nc, self.Ts, self.L = Np, Nc, Ts, wheelbase
+        self.steer_alpha = steer_alpha
+        n = N_STATES if steer_alpha is None else N_STATES_STEER  # inputs of the output rows
         b = np.arange(Nc) if moves is None else np.asarray(moves)
         # the step each move acts from (:func:`move_steps`), as a slice when consecutive
         consecutive = bool(np.array_equal(b, np.arange(Nc)))
@@ -444,8 +470,9 @@ class KinematicPrediction:
         # h @ weights: Σ_{l<m} Ts hₗ and Σ_{l<m} Ts l hₗ (Ts folded in here, once)
         self._weights = np.hstack((Ts * before, Ts * step[:, None] * before))
         self._m = step + 1.0  # m = 1 … Np
-        # Pₘ transposed and flattened per m: [i, o, m] = Pₘ[o, i]; the identity is constant
-        self._p_identity = np.zeros((N_STATES, N_STATES, Np))
+        # Pₘ's output rows transposed and flattened per m: [i, o, m] = Pₘ[o, i] (o < 4, i < n);
+        # the identity is constant
+        self._p_identity = np.zeros((n, N_STATES, Np))
         for o in range(N_STATES):
             self._p_identity[o, o] = 1.0
         # rows: move j's two inputs (row 2j + u), then the free response; columns (o, m).
@@ -458,24 +485,38 @@ class KinematicPrediction:
         # Work buffers reused every call (the results never alias them): the identity entries
         # of P and the constant entries of G are written here once, the rest per call.
         self._P = self._p_identity.copy()
-        self._G = np.zeros((2 * Nc + 1, N_STATES))
+        self._G = np.zeros((2 * Nc + 1, n))
         self._G[0:-1:2, 2] = Ts  # entry 2 of each acceleration column (Ts · 1)
         self._e_col = np.empty((2, 1))  # [−e, e]: the tan δ factor of P₀₂ and P₁₂
         self._sign_col = np.array([[-1.0], [1.0]])  # bₗ = −Ts vₗ sin θₗ, dₗ = +Ts vₗ cos θₗ
+        if steer_alpha is not None:
+            beta = 1.0 - steer_alpha
+            # v @ this = Tₘ = Σ_{l<m} βˡ Ts vₗ / L (m = 1…Np); and Σ_{p<m} Ts wₚ as a product
+            self._lag_weights = (Ts / wheelbase) * beta ** step[:, None] * before
+            self._ts_before = Ts * before
+            self._t_prev = np.zeros(Np)  # Tₚ, p = 0 … Np − 1 (T₀ = 0)
+            # v @ this = α Dⱼ,ₘ for every move j and m = 1 … Np (row j·Np + m − 1); α folded in
+            s_j = (b + 1.0)[:, None]  # (Nc, 1): s = bⱼ + 1
+            lag = step[:, None, None] - s_j[None]  # l − s, (Np, Nc, 1)
+            acts = (lag >= 0.0) & (before[:, None, :] > 0.0)  # s ≤ l < m
+            weights = np.where(acts, steer_alpha * (Ts / wheelbase) * beta**lag, 0.0)
+            self._move_weights = weights.reshape(Np, Nc * Np)
+            self._d_prev = np.zeros((Nc, Np))  # α Dⱼ,ₚ, p = 0 … Np − 1 (Dⱼ,₀ = 0)
 
     def __call__(
         self,
         speed: FloatArray,
         heading: FloatArray,
         tan_delta: float,
-        dx0: FloatArray | tuple[float, float, float, float],
+        dx0: FloatArray | tuple[float, ...],
     ) -> tuple[FloatArray, FloatArray]:
         """``Sᵀ`` and the free response at the operating points ``(speed[l], heading[l], tan δ)``.
 
         :param speed: (Np,) m/s, operating speed of each step
         :param heading: (Np,) rad, operating heading of each step
-        :param tan_delta: operating tan δ of every step
-        :param dx0: (4,) the augmented state's increment ``Δx₀`` (an array or a tuple)
+        :param tan_delta: operating tan δ of every step (with the steering lag: the actual one)
+        :param dx0: (4,) the augmented state's increment ``Δx₀`` (an array or a tuple); (5,)
+            with the steering lag
         :returns: ``Sᵀ`` of shape (Nc·2, 4·Np) and ``F [Δx₀; y₀] − y₀`` of shape (4·Np,), both
             grouped by output (column / entry ``o·Np + k − 1`` is output o at step k)
         """
@@ -497,28 +538,47 @@ class KinematicPrediction:
         P[2, :2] += sums[:2, :Np]  # P₀₂ = Σ aₗ + e Σ l bₗ, P₁₂ = Σ cₗ + e Σ l dₗ
         np.multiply(sums[2:, :Np], self._sign_col, out=P[3, :2])  # P₀₃ = Σ bₗ, P₁₃ = Σ dₗ
         np.multiply(self._m, e, out=P[2, 3])  # P₃₂ = e m
+        lag = self.steer_alpha is not None
+        if lag:  # column 4, cₘ: P₃₄ = Tₘ, then P₀₄ = Σ_{p<m} bₚ Tₚ and P₁₄ = Σ_{p<m} dₚ Tₚ
+            np.matmul(speed, self._lag_weights, out=P[4, 3])
+            t_prev = self._t_prev
+            t_prev[1:] = P[4, 3, :-1]
+            t_prev = h[2:] * t_prev  # vₚ sin θₚ Tₚ, vₚ cos θₚ Tₚ
+            np.multiply(t_prev @ self._ts_before, self._sign_col, out=P[4, :2])
 
         # rows 2j, 2j+1: the columns of Gⱼ = Pⱼ₊₁⁻¹ Bⱼ, Bⱼ = [Ts e₂, (Ts vⱼ / L) e₃]; last: Δx₀
         #   acceleration: Ts [P₀₃P₃₂ − P₀₂, P₁₃P₃₂ − P₁₂, 1, −P₃₂]
         #   steering:     −g [P₀₃, P₁₃, 0, −1],  g = Ts vⱼ / L
         b = self._b
-        p3 = P[3, :2][:, b]  # [P₀₃; P₁₃] of P_{bⱼ+1}
-        p32 = P[2, 3, b]
+        Pb = P[2:4, :, b]  # columns 2 and 3 of P_{bⱼ+1}, in one indexing call
+        p3 = Pb[1, :2]  # [P₀₃; P₁₃]
+        p32 = Pb[0, 3]
         G = self._G  # column 2 preset (Ts for the acceleration, 0 for the steering)
         a, s = G[0:-1:2], G[1::2]  # the acceleration and the steering columns of each Gⱼ
         col = p3 * p32
-        col -= P[2, :2][:, b]
+        col -= Pb[0, :2]  # [P₀₂; P₁₂]
         col *= Ts
         a[:, :2] = col.T
         np.multiply(p32, -Ts, out=a[:, 3])
-        neg_g = speed[b] * -(Ts / self.L)
-        np.multiply(p3, neg_g, out=s[:, :2].T)
-        np.negative(neg_g, out=s[:, 3])
+        if not lag:  # Bⱼ e₁ = g e₃: −g [P₀₃, P₁₃, 0, −1]; with the lag, PG's rows below
+            neg_g = speed[b] * -(Ts / self.L)
+            np.multiply(p3, neg_g, out=s[:, :2].T)
+            np.negative(neg_g, out=s[:, 3])
         G[-1] = dx0
 
         # Pₘ Gⱼ for every m and j, kept where m ≥ j + 1, summed over m ≤ k
-        PG = G @ P.reshape(N_STATES, N_STATES * Np)
+        PG = G @ P.reshape(P.shape[0], N_STATES * Np)
         PG *= self._mask
+        if lag:  # the command's rows: α [Σ_{p<m} bₚ Dⱼ,ₚ, Σ_{p<m} dₚ Dⱼ,ₚ, 0, Dⱼ,ₘ] (class notes)
+            steer = PG[1::2].reshape(Nc, N_STATES, Np)
+            D = (speed @ self._move_weights).reshape(Nc, Np)
+            steer[:, 3] = D
+            d_prev = self._d_prev
+            d_prev[:, 1:] = D[:, :-1]
+            hd = h[2:, None, :] * d_prev  # (2, Nc, Np): vₚ sin θₚ Dⱼ,ₚ, vₚ cos θₚ Dⱼ,ₚ
+            xy = (hd.reshape(2 * Nc, Np) @ self._ts_before).reshape(2, Nc, Np)
+            np.negative(xy[0], out=steer[:, 0])
+            steer[:, 1] = xy[1]
         # the sum over m ≤ k as a product with a triangle of ones: one BLAS call, where a
         # cumulative sum along the short rows costs several times more
         out = (PG.reshape(-1, Np) @ self._upper).reshape(2 * Nc + 1, N_STATES * Np)
@@ -556,3 +616,28 @@ def kinematic_first_increment(
     e = (Ts / wheelbase) * tan_delta
     w3 = z3 - e * z2  # θ row: the only entry N feeds back into x and y a second time
     return (z0 - a * z2 - b * w3, z1 - c * z2 - d * w3, z2, w3)
+
+
+def steer_lag_first_increment(
+    state: tuple[float, float, float, float, float],
+    u: tuple[float, float],
+    speed: float,
+    heading: float,
+    Ts: float,
+    wheelbase: float,
+    alpha: float,
+) -> tuple[float, float, float, float, float]:
+    """``Δx̃`` with ``A Δx̃ = z`` for the steering-aware model (:func:`augment_steer_lag`).
+
+    ``z`` is one model step's change of ``state = [x, y, v, θ, t]`` with ``u = [a, t_cmd]``
+    held (:func:`steer_lag_increment`); ``A`` is the Jacobian at the operating ``speed`` and
+    ``heading`` and the actual ``t``. ``A = [[K, g e₃], [0, β]]`` (``g = Ts v / L``, ``β = 1 −
+    α``) is block triangular: ``Δt = z_t / β``, then the kinematic part solves ``K Δx = z − g e₃
+    Δt`` (:func:`kinematic_first_increment`). Float operations only, no 5×5 solve.
+    """
+    _, _, v, theta, t = state
+    a, t_cmd = u
+    dt = alpha * (t_cmd - t) / (1.0 - alpha)
+    z3 = Ts * v * t / wheelbase - (Ts * speed / wheelbase) * dt
+    z = (Ts * v * math.cos(theta), Ts * v * math.sin(theta), Ts * a, z3)
+    return (*kinematic_first_increment(z, speed, heading, t, Ts, wheelbase), dt)

@@ -16,9 +16,10 @@ Each control tick:
    default), Hildreth or OSQP — and apply the first move, clipped to the hard limits whatever
    the solver returned.
 
-**Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: the
-kinematic model's ``S`` and free response come in closed form (:class:`~leafgate.control.
-model.KinematicPrediction`, ``A − I`` is nilpotent), the prediction's rows are grouped by output
+**Cost per tick.** The step runs every 20 ms, so it is written for few numpy calls: both
+models' ``S`` and free response come in closed form (:class:`~leafgate.control.
+model.KinematicPrediction`: the kinematic ``A − I`` is nilpotent, the steering lag adds a
+triangular block), the prediction's rows are grouped by output
 (contiguous rows; ``E`` and ``f`` do not depend on the row order), ``E`` is factored once
 (Cholesky) for the unconstrained optimum and Hildreth, and the reference comes from one query
 (:meth:`~leafgate.control.reference.ReferencePath.horizon`). ``tools/bench_mpc.py`` measures it.
@@ -125,15 +126,11 @@ from leafgate.control.model import (
     N_STATES,
     N_STATES_STEER,
     KinematicPrediction,
-    augment_steer_lag,
-    grouped_by_output,
     kinematic_first_increment,
-    linearise_along,
     move_steps,
-    prediction_matrices_ltv,
     rk4_step,
     steer_lag_factor,
-    steer_lag_increment,
+    steer_lag_first_increment,
 )
 from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
 from leafgate.control.reference import (
@@ -192,8 +189,9 @@ class MpcController:
         self._q2 = 2.0 * self._q_out
         self._R2 = np.diag(2.0 * self.r_bar)
         self._moves = move_steps(Np, Nc, cfg.moves == "spread")  # the step each move acts from
-        self._kinematic = (
-            None if self.steer_model else KinematicPrediction(Np, Nc, self.Ts, self.L, self._moves)
+        # S and the free response in closed form, for either model (steer_alpha: the lag's α)
+        self._predict = KinematicPrediction(
+            Np, Nc, self.Ts, self.L, self._moves, self._alpha if self.steer_model else None
         )
         self._to_path = np.zeros((N_STATES, 3))  # global → path frame, rotation set per tick
         self._to_path[3, 2] = 1.0  # heading error = reference heading − heading at s0
@@ -218,6 +216,7 @@ class MpcController:
         self._M_dir = {d: np.vstack((box, -d * speed_S)) for d in (1, -1)}
         self.M = self._M_dir[1]  # the constraint matrix of the current direction
         self.tan_max = math.tan(cfg.steer_max)
+        self._n_u = Nc * m  # QP variables
         rate = np.array([cfg.jerk_max, cfg.steer_rate_max])  # per second
         gaps = np.diff(self._moves)[:, None]  # model steps between two moves
         self.du_max: FloatArray = np.concatenate((rate * period, (gaps * rate * self.Ts).ravel()))
@@ -229,19 +228,18 @@ class MpcController:
         acting = np.searchsorted(self._moves, np.arange(Np), side="right") - 1  # move per step
         held = acting[:, None] == np.arange(Nc)[None, :]  # (Np, Nc)
         self._held: FloatArray = self.Ts * np.cumsum(held, axis=0)
-        # γ = γ₀ + G u_prev, with γ₀ per driving direction (the signed accel limits flip)
-        tile_eye = np.tile(np.eye(m), (Nc, 1))
-        self._gamma_u = np.vstack((-tile_eye, tile_eye, np.zeros((2 * Nc * m, m))))
-        # per direction: u_lo, u_hi, γ₀ and the acceleration limits (a_min, a_max) as floats
+        # γ = [u_hi − u_prev (Nc times); u_prev − u_lo (Nc times); du_max; du_max; speed rows].
+        # Per driving direction (the signed accel limits flip): u_lo, u_hi, a template of γ
+        # holding its constant rows, and the acceleration limits (a_min, a_max) as floats
         self._limits: dict[int, tuple[FloatArray, FloatArray, FloatArray, tuple[float, float]]] = {}
         for direction in (1, -1):
             a_min, a_max = self._accel_limits(direction)
             u_lo = np.array([a_min, -self.tan_max])
             u_hi = np.array([a_max, self.tan_max])
-            gamma0 = np.concatenate(
-                (np.tile(u_hi, Nc), -np.tile(u_lo, Nc), self.du_max, self.du_max)
+            template = np.concatenate(
+                (np.zeros(2 * Nc * m), self.du_max, self.du_max, np.zeros(Np))
             )
-            self._limits[direction] = (u_lo, u_hi, gamma0, (a_min, a_max))
+            self._limits[direction] = (u_lo, u_hi, template, (a_min, a_max))
 
         # the multipliers of a feasible unconstrained optimum: all zero, one read-only array
         self._no_multipliers = np.zeros(self.M.shape[0])
@@ -273,6 +271,7 @@ class MpcController:
         self._tick = 0  # calls of step since the reset
         self._standing = 0  # consecutive MPC ticks that kept the car at rest (see _blocked)
         self._standing_tick = -1  # the tick that last counted
+        self._s_pose = 0.0  # m, arc length of the pose's projection this tick (the progress's)
         # tan δ commands sent and not yet acting on the wheel (steering-aware model), oldest first
         self._in_flight: deque[float] = deque(maxlen=max(self._dead_ticks, 1))
         if self._osqp is not None:
@@ -353,7 +352,10 @@ class MpcController:
         bias = dist.bias  # tan δ: the car turns as with tan δ + bias
         drag = direction * dist.accel  # signed d(v)/dt added to the command
         start = self._start_state(pose, steer_angle, direction, bias, drag)
-        s0 = path.project(seg, prog.index, start[0], start[1])
+        if start[0] == pose.x and start[1] == pose.y:  # no dead time to predict over
+            s0 = self._s_pose  # this tick's projection of the pose, found by the progress
+        else:
+            s0 = path.project(seg, prog.index, start[0], start[1])
         aligning = self._align_at_start(seg, s0, abs(pose.speed), steer_angle, t0, bias)
         if aligning is not None:
             return aligning
@@ -420,13 +422,13 @@ class MpcController:
         assert prog is not None and self._u_prev is not None
         seg = prog.segment
         if not self._finished:
-            prog.update(pose.x, pose.y, pose.heading)
+            self._s_pose = prog.update(pose.x, pose.y, pose.heading)
         at_rest = abs(pose.speed) <= cfg.stop_speed
         passed = prog.passed  # progress has reached the end (not a half-plane test)
         if at_rest and not self._finished and prog.ended(pose.x, pose.y, cfg.goal_tolerance):
             if prog.next_segment():  # a cusp: drive the next segment, in the other direction
                 seg = prog.segment
-                prog.update(pose.x, pose.y, pose.heading)
+                self._s_pose = prog.update(pose.x, pose.y, pose.heading)
                 # The brake holds the car through the gear change: in the new direction that
                 # hold has the other sign of d(v)/dt. Starting from it keeps every later move
                 # (and the drive-off) inside the jerk bound.
@@ -536,9 +538,9 @@ class MpcController:
         v_op, heading_op = op[0], op[1]  # indexing: cheaper than unpacking the array
         v_op[0] = v0 if abs(v0) > self.cfg.stop_speed else op[0, 1]
         heading_op[0] = th0
-        if self._kinematic is not None:
-            # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
-            Ts, L = self.Ts, self.L
+        # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁), the next step's increment (module notes)
+        Ts, L = self.Ts, self.L
+        if not self.steer_model:
             increment = (
                 Ts * (v0 * math.cos(th0)),
                 Ts * (v0 * math.sin(th0)),
@@ -546,10 +548,14 @@ class MpcController:
                 Ts * (v0 * t_eff / L),
             )
             dx_k = kinematic_first_increment(increment, v0, th0, t_eff, Ts, L)
-            return self._kinematic(v_op, heading_op, t_eff, dx_k)
-        # the lag acts on tan δ + bias alike: shift the actual and the commanded angle
-        u_eff = np.array([a_eff, t_eff])
-        return self._predict_steer_lag(kin, tan_actual, u_eff, v_op, heading_op)
+            return self._predict(v_op, heading_op, t_eff, dx_k)
+        # steering-aware: the car turns with the actual wheel, linearised there; the lag acts
+        # on tan δ + bias alike (the actual and the commanded angle shifted by the bias)
+        state = (kin[0], kin[1], v0, th0, tan_actual)
+        dx = steer_lag_first_increment(
+            state, (a_eff, t_eff), float(v_op[0]), th0, Ts, L, self._alpha
+        )
+        return self._predict(v_op, heading_op, tan_actual, dx)
 
     def _constraint_bounds(
         self, direction: int, u_prev: FloatArray, a_prev: float, v0: float, free: FloatArray
@@ -567,7 +573,7 @@ class MpcController:
             self.M = self._M_dir[direction]
             if self._daqp is not None:
                 self._daqp = self._daqp_dir[direction]
-        _, _, gamma0, _ = self._limits[direction]
+        u_lo, u_hi, template, _ = self._limits[direction]
         Np = self.Np
         v_free = free[2 * Np : 3 * Np] + v0  # no move: the free response's speeds
         v_free *= direction
@@ -577,7 +583,12 @@ class MpcController:
         low += v_free
         np.minimum(low, 0.0, out=low)
         low -= _SPEED_SLACK
-        return np.concatenate((gamma0 + self._gamma_u @ u_prev, v_free - low))
+        gamma = template.copy()  # the rate rows; the others written in place (views)
+        n_u = self._n_u
+        np.subtract(u_hi, u_prev, out=gamma[:n_u].reshape(-1, N_INPUTS))  # each Σ Δu ≤ these
+        np.subtract(u_prev, u_lo, out=gamma[n_u : 2 * n_u].reshape(-1, N_INPUTS))
+        np.subtract(v_free, low, out=gamma[4 * n_u :])
+        return gamma
 
     def _speed_bound(self, seg: Segment, s0: float, speed: float) -> float:
         """The speed bound, m/s: the plan's speed at the car's place ``s0`` plus the margin, and
@@ -729,30 +740,6 @@ class MpcController:
             f"blocked: at rest {abs(lateral):.2f} m and {math.degrees(abs(heading)):.0f}° off "
             f"the path for {waited:.1f} s, the MPC does not drive off ({why})"
         )
-
-    def _predict_steer_lag(
-        self,
-        kin: list[float],
-        tan_actual: float,
-        u_prev: FloatArray,
-        v_op: FloatArray,
-        heading_op: FloatArray,
-    ) -> tuple[FloatArray, FloatArray]:
-        """``Sᵀ`` and the free response ``F x − y₀`` of the steering-aware model (rows by output).
-
-        The general time-varying prediction (:func:`~leafgate.control.model.
-        prediction_matrices_ltv`); the lag state makes ``A − I`` non-nilpotent.
-        """
-        Ts, L = self.Ts, self.L
-        state = np.array([*kin, tan_actual])
-        A, B = linearise_along(v_op, heading_op, np.full(self.Np, tan_actual), Ts, L)
-        A, B = augment_steer_lag(A, B, self._alpha, Ts, v_op, L)
-        increment = steer_lag_increment(state, u_prev, Ts, L, self._alpha)
-        F, S = prediction_matrices_ltv(A, B, self.C, self.Nc, self._moves)
-        dx_k = np.linalg.solve(A[0], increment)  # A Δx̃ₖ = the next step's increment
-        n = A.shape[1]
-        free = (F[:, :n] @ dx_k).reshape(self.Np, self.ny).T.ravel()
-        return grouped_by_output(S, self.Np).T, free
 
     def _apply(self, accel: float, tan_delta: float) -> None:
         """Remember the command sent this tick (and queue it while it is in the dead time)."""

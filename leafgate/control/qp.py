@@ -402,6 +402,12 @@ class DaqpBackend:
         if self._structured:
             self._A = np.ascontiguousarray(np.vstack((M[:n], M[4 * n :])))
             self._lower = np.full(self.m - 2 * n, -1e30)  # bounds, C, then D (one-sided)
+            # DAQP's rows from γ (upper: γ₃, γ₁, γ₅; lower: −γ₄, −γ₂), and M's multipliers from
+            # [λ⁺; λ⁻] of DAQP's rows (λ⁺ = max(λ, 0), λ⁻ = max(−λ, 0)), as index arrays
+            k, j = self.m - 2 * n, np.arange(n)
+            self._upper_rows = np.concatenate((2 * n + j, j, np.arange(4 * n, self.m)))
+            self._lower_rows = np.concatenate((3 * n + j, n + j))
+            self._lam_rows = np.concatenate((n + j, k + n + j, j, k + j, np.arange(2 * n, k)))
         else:
             self._A = np.ascontiguousarray(M)
             self._lower = np.full(self.m, -1e30)
@@ -409,24 +415,23 @@ class DaqpBackend:
 
     def solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
         """Solve one QP (DAQP sets up its workspace per call: no state between ticks)."""
-        n = self.n
         if self._structured:
-            upper = np.concatenate((gamma[2 * n : 3 * n], gamma[:n], gamma[4 * n :]))
+            upper = gamma.take(self._upper_rows)
             lower = self._lower.copy()
-            lower[:n] = -gamma[3 * n : 4 * n]
-            lower[n : 2 * n] = -gamma[n : 2 * n]
+            np.negative(gamma.take(self._lower_rows), out=lower[: 2 * self.n])
         else:
             upper, lower = np.asarray(gamma, dtype=np.float64), self._lower
         x, _, flag, info = daqp.solve(E, f, self._A, upper, lower, **self._settings)
         x = np.asarray(x, dtype=np.float64)
         lam_d = np.asarray(info["lam"], dtype=np.float64)
-        lam = np.zeros(self.m)
         if self._structured:  # DAQP: λ > 0 on an active upper bound, λ < 0 on a lower one
-            up, down = np.maximum(lam_d, 0.0), np.maximum(-lam_d, 0.0)
-            lam[2 * n : 3 * n], lam[3 * n : 4 * n] = up[:n], down[:n]
-            lam[:n], lam[n : 2 * n] = up[n : 2 * n], down[n : 2 * n]
-            lam[4 * n :] = up[2 * n :]
+            k = lam_d.shape[0]
+            both = np.empty(2 * k)
+            np.maximum(lam_d, 0.0, out=both[:k])
+            np.negative(lam_d, out=both[k:])
+            np.maximum(both[k:], 0.0, out=both[k:])
+            lam = both.take(self._lam_rows)
         else:
-            lam[:] = np.maximum(lam_d, 0.0)
-        converged = int(flag) == self.OPTIMAL and bool(np.all(np.isfinite(x)))
+            lam = np.maximum(lam_d, 0.0)
+        converged = int(flag) == self.OPTIMAL and bool(np.isfinite(x).all())
         return QpResult(x, converged, int(info["iterations"]), lam)
