@@ -194,6 +194,11 @@ def test_model_is_selected_by_config_and_checked() -> None:
     assert not MpcController(MpcConfig(), VehicleConfig(), PERIOD).steer_model
     with pytest.raises(ConfigError, match="model"):
         from_mapping(MpcConfig, {"model": "dynamic"}, "s.yaml")
+    # a lag so fast that 1 − α is 0 in floats: refused at load, not a division by zero per tick
+    fast = {"model": "kinematic_steer_lag", "steer_tau": 0.0001}
+    with pytest.raises(ConfigError, match=r"steer_tau must be at least sample_time / 10 = 0.01 s"):
+        from_mapping(MpcConfig, fast, "s.yaml")
+    assert from_mapping(MpcConfig, {**fast, "model": "kinematic"}, "s.yaml").steer_tau == 0.0001
 
 
 def test_dead_time_is_compensated_over_the_commands_in_flight() -> None:

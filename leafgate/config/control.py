@@ -139,6 +139,14 @@ class MpcConfig:
             raise ValueError("accel_min must be negative")
         if not self.steer_max < math.pi / 2:
             raise ValueError("steer_max must be below 90°")
+        if self.model == "kinematic_steer_lag" and self.steer_tau < self.sample_time / 10.0:
+            # the prediction divides by the lag's 1 − α = exp(−Ts/τ): e⁻¹⁰ here, 0 in floats
+            # for a wheel some 700 times faster than the model step
+            raise ValueError(
+                f"steer_tau must be at least sample_time / 10 = {self.sample_time / 10.0:g} s "
+                f"with model kinematic_steer_lag, got {self.steer_tau!r} (a wheel that much "
+                "faster than the model step is the kinematic model)"
+            )
 
 
 @dataclass(frozen=True)
