@@ -197,11 +197,6 @@ def gaps(cars: FloatArray, box: Box) -> FloatArray:
     return best
 
 
-def gap(car: FloatArray, box: Box) -> float:
-    """:func:`gaps` of one car rectangle (4, 2)."""
-    return float(gaps(car[None], box)[0])
-
-
 def clearance(
     scenario_name: str, x: FloatArray, y: FloatArray, heading: FloatArray
 ) -> tuple[float, Box, int] | None:
