@@ -124,7 +124,6 @@ from leafgate.control.disturbance import DisturbanceEstimator
 from leafgate.control.model import (
     N_INPUTS,
     N_STATES,
-    N_STATES_STEER,
     KinematicPrediction,
     kinematic_first_increment,
     move_steps,
@@ -175,10 +174,8 @@ class MpcController:
         Np, Nc, m = self.Np, self.Nc, N_INPUTS
 
         self.steer_model = cfg.model == "kinematic_steer_lag"
-        n = N_STATES_STEER if self.steer_model else N_STATES
         # outputs: along-track, lateral, speed, heading error (not the actual tan δ)
-        self.C = np.eye(N_STATES, n)
-        self.ny = self.C.shape[0]
+        self.ny = N_STATES
         self._alpha = steer_lag_factor(self.Ts, cfg.steer_tau)  # per model step
         self._alpha_tick = steer_lag_factor(period, cfg.steer_tau)  # per control tick
         self._dead_ticks = round(cfg.steer_dead_time / period) if self.steer_model else 0
