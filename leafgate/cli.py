@@ -242,6 +242,17 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if not metrics.get("finished"):  # an injected fault too: the drive did not finish
         reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
+        vehicle = cfg.vehicle
+        car = vehicle.wheelbase / math.tan(vehicle.max_steer_angle)
+        plan = metrics["plan_min_turn_radius_m"]
+        if plan < car:  # say it when the plan itself cannot be driven as sent
+            x, y = metrics["plan_min_turn_radius_at"]
+            print(
+                f"leafgate: {scenario.name}: the plan turns tighter than the car can: "
+                f"radius {plan:.2f} m at ({x:.1f}, {y:.1f}) m, the car's tightest "
+                f"{car:.2f} m (vehicle wheelbase and max_steer_angle)",
+                file=sys.stderr,
+            )
         return EXIT_ERROR
     hit = collision(metrics)
     if hit is not None:  # the route was driven, through a parked car or over the kerb

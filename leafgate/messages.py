@@ -257,6 +257,8 @@ class ControlOutput:
     progress: float = 0.0  # m, arc length along the plan from its first point, over all
     # segments, monotone (never decreases while the same plan is followed)
     route_length: float = 0.0  # m, total arc length of the plan
+    deviation: float = math.nan  # m, the car's distance from the plan where it projects onto
+    # it (NaN: not known)
 
 
 T = TypeVar("T")

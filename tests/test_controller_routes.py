@@ -136,7 +136,7 @@ def _window(route: Trajectory, first: int, last: int) -> Trajectory:
 
 def test_a_plan_that_continues_the_last_keeps_the_progress_and_the_segment() -> None:
     route = routes.switch_back()
-    cusp = split_segments(route.speed)[0].end
+    cusp = split_segments(route)[0].end
     old = ReferencePath(_window(route, cusp - 40, cusp + 20))
     prog = Progress(old, window=20)
     for i in range(0, 41):  # drive the old window up to the cusp, stop there, change segment
@@ -173,7 +173,7 @@ def test_a_rolling_window_resent_at_a_cusp_does_not_restart_the_brake_release() 
     (≈ 0.5 s at the jerk limit) never finished and the car stood until the no-progress watchdog
     stopped it."""
     route = routes.switch_back()
-    cusp = split_segments(route.speed)[0].end
+    cusp = split_segments(route)[0].end
     pose = Pose(float(route.x[cusp]), float(route.y[cusp]), float(route.heading[cusp]), 0.0)
     ctrl = _mpc()
     steer, statuses = 0.0, []

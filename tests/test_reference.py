@@ -10,9 +10,11 @@ import pytest
 import yaml
 
 from leafgate.control.reference import (
+    STOP_DECEL,
     Progress,
     ReferencePath,
     _interp_scalar,
+    chord_directions,
     load_trajectory,
     split_segments,
     validate,
@@ -138,11 +140,40 @@ def test_spacing_is_reported() -> None:
 # --- segments and resampling ---
 
 
+def _back_and_forth(speed: list[float]) -> Trajectory:
+    """Waypoints on the x axis, heading +x, each 1 m from the last in the direction its speed
+    (or, at rest, the motion it ends) drives: a plan whose geometry agrees with its speeds."""
+    x, d = [0.0], 1.0
+    for v in speed[1:]:
+        d = math.copysign(1.0, v) if v else d
+        x.append(x[-1] + d)
+    n = len(speed)
+    return Trajectory(np.array(x), np.zeros(n), np.zeros(n), np.array(speed))
+
+
 def test_cusps_split_into_direction_segments() -> None:
-    segs = split_segments(np.array([0.0, 1.0, 1.0, 0.0, -1.0, -1.0, 0.0]))
+    segs = split_segments(_back_and_forth([0.0, 1.0, 1.0, 0.0, -1.0, -1.0, 0.0]))
     assert [(s.start, s.end, s.direction) for s in segs] == [(0, 3, 1), (3, 6, -1)]
-    segs = split_segments(np.array([1.0, 1.0, -1.0, -1.0, 2.0, 2.0]))
+    segs = split_segments(_back_and_forth([1.0, 1.0, -1.0, -1.0, 2.0, 2.0]))
     assert [(s.start, s.end, s.direction) for s in segs] == [(0, 1, 1), (1, 3, -1), (3, 5, 1)]
+
+
+def test_a_cusp_without_a_waypoint_at_rest_is_placed_by_the_geometry() -> None:
+    """PythonRobotics' courses give each waypoint the speed of the chord that leaves it: the
+    chord into the cusp still carries the forward sign at its start, the reverse one at its end.
+    The cusp is where the car turns back, the chord's far end, not its start (there the car
+    would have to reverse to a point ahead of it, and made no progress)."""
+    x = np.array([0.0, 1.0, 2.0, 3.0, 2.0, 1.0])  # forward to x = 3, then back
+    n = len(x)
+    speed = np.array([1.0, 1.0, 1.0, -1.0, -1.0, 0.0])  # the sign of the chord leaving each
+    traj = Trajectory(x, np.zeros(n), np.zeros(n), speed)
+    assert chord_directions(traj).tolist() == [1.0, 1.0, 1.0, -1.0, -1.0]
+    segs = split_segments(traj)
+    assert [(s.start, s.end, s.direction) for s in segs] == [(0, 3, 1), (3, 5, -1)]
+    # the same speeds on a plan whose chord at the flip runs backward: the cusp is its start
+    x2 = np.array([0.0, 1.0, 2.0, 1.0, 0.0, -1.0])
+    segs = split_segments(Trajectory(x2, np.zeros(n), np.zeros(n), speed))
+    assert [(s.start, s.end, s.direction) for s in segs] == [(0, 2, 1), (2, 5, -1)]
 
 
 def test_cubic_resampling_reproduces_a_cubic_path() -> None:
@@ -269,3 +300,34 @@ def test_a_stop_just_short_of_a_cusp_ends_the_segment() -> None:
         prog.update(float(traj.x[i]), 0.5, 0.0)
     assert not prog.ended(float(traj.x[-1]), 0.5, 0.15)
     assert prog.ended(float(traj.x[-1]), 0.05, 0.15)
+
+
+def test_the_reference_speed_stands_at_a_cusp_without_a_waypoint_at_rest() -> None:
+    """Both segments share the cusp waypoint: the reverse one must not write its speed over
+    the forward one's end (its horizon then asked for −1 m/s at the end of a forward drive,
+    and the MPC would not drive the last half metre on)."""
+    x = np.array([0.0, 1.0, 2.0, 3.0, 2.0, 1.0, 0.0])
+    n = len(x)
+    speed = np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0, 0.0])  # the chord leaving each
+    path = ReferencePath(Trajectory(x, np.zeros(n), np.zeros(n), speed))
+    forward, reverse = path.segments
+    assert forward.end == reverse.start == 3
+    assert path.speed[3] == 0.0
+    assert path.speed_at(forward, float(path.s[3])) == 0.0
+    assert path.speed_at(reverse, float(path.s[3])) == 0.0
+
+
+def test_the_reference_speed_slows_in_time_for_a_stop_the_plan_leaves_too_late() -> None:
+    """A plan at 2.8 m/s up to a waypoint 1 m before its goal asks for 3.9 m/s² of braking:
+    the reference never needs more than STOP_DECEL, and a plan within it is kept as sent."""
+    x = np.arange(0.0, 21.0)
+    n = len(x)
+    late = np.full(n, 2.8)
+    late[-1] = 0.0
+    path = ReferencePath(Trajectory(x, np.zeros(n), np.zeros(n), late))
+    to_end = path.s[-1] - path.s
+    assert np.all(path.speed <= np.sqrt(2.0 * STOP_DECEL * to_end) + 1e-12)
+    assert path.speed[0] == 2.8 and path.speed[-2] == pytest.approx(math.sqrt(2.0 * STOP_DECEL))
+    gentle = np.minimum(2.8, np.sqrt(STOP_DECEL * to_end))  # half the braking: unchanged
+    path = ReferencePath(Trajectory(x, np.zeros(n), np.zeros(n), gentle))
+    assert np.array_equal(path.speed, gentle)

@@ -88,7 +88,7 @@ def test_routes_are_sent_as_a_planner_sends_them(name: str) -> None:
 
 def test_switch_back_is_110_m_forward_through_a_hairpin_then_60_m_in_reverse() -> None:
     traj = get_scenario("switch-back").trajectory
-    segs = split_segments(traj.speed)
+    segs = split_segments(traj)
     assert [s.direction for s in segs] == [1, -1]
     fwd = Trajectory(*(a[: segs[0].end + 1] for a in (traj.x, traj.y, traj.heading, traj.speed)))
     rev = Trajectory(*(a[segs[1].start :] for a in (traj.x, traj.y, traj.heading, traj.speed)))
@@ -136,7 +136,7 @@ def test_corner_is_90_degrees_of_5_m_radius() -> None:
 
 def test_cusp_retrace_reverse_leg_is_the_forward_leg_backwards_exactly() -> None:
     traj = get_scenario("cusp-retrace").trajectory
-    (fwd, rev) = split_segments(traj.speed)
+    (fwd, rev) = split_segments(traj)
     assert fwd.end == rev.start and fwd.direction == 1 and rev.direction == -1
     n = fwd.end
     assert rev.end - rev.start == n

@@ -63,7 +63,9 @@ def test_projection_follows_a_path_that_doubles_back() -> None:
     err = path_errors(traj, x, y, np.zeros(40), speed)
     np.testing.assert_allclose(err.lateral[:20], 0.25, atol=1e-9)  # left of the first leg
     np.testing.assert_allclose(np.abs(err.lateral[25:]), 0.15, atol=1e-9)  # on the second leg
-    np.testing.assert_allclose(err.speed_ref[:20], 1.0)
+    # the plan stands at its cusp (5, 0): on the last chord into it, from x = 4.5, the planned
+    # speed falls to zero
+    np.testing.assert_allclose(err.speed_ref[:20], np.minimum(1.0, (5.0 - x[:20]) / 0.5))
     np.testing.assert_allclose(err.speed_ref[25:], -1.0)
 
 
@@ -83,3 +85,15 @@ def test_projection_does_not_skip_the_move_between_two_reverse_moves() -> None:
     first_length = float(np.sum(np.hypot(np.diff(traj.x[:n]), np.diff(traj.y[:n]))))
     assert err.progress.max() <= first_length + 1e-9
     assert np.all(err.speed_ref[: n - 4] <= -0.2)  # reversing as planned, not at rest
+
+
+def test_the_planned_speed_is_zero_at_a_cusp_without_a_waypoint_at_rest() -> None:
+    """PythonRobotics' speeds (+v up to the waypoint before the cusp, −v from the cusp on) read
+    linearly would cross zero half-way along the chord into the cusp, and a car braking to it
+    as planned read as overspeeding; the plan stands at its cusp, as the controller's does."""
+    x = np.array([0.0, 1.0, 2.0, 3.0, 2.0, 1.0, 0.0])
+    n = len(x)
+    speed = np.array([1.0, 1.0, 1.0, -1.0, -1.0, -1.0, 0.0])
+    traj = Trajectory(x, np.zeros(n), np.zeros(n), speed)
+    errors = path_errors(traj, np.array([2.5, 3.0]), np.zeros(2), np.zeros(2))
+    assert errors.speed_ref.tolist() == [0.5, 0.0]  # read linearly: [0.0, -1.0]

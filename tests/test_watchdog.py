@@ -645,6 +645,27 @@ def test_progress_watchdog_ignores_controllers_without_a_route() -> None:
         assert check.ok
 
 
+def test_progress_watchdog_stops_a_car_off_the_plan_at_once() -> None:
+    """Farther from the plan than max_path_deviation: a controlled stop on that tick, naming
+    the distance; at the limit, or with the distance unknown (NaN), no verdict."""
+    wd = ProgressWatchdog(CFG)
+    limit = CFG.max_path_deviation
+    for k, d in enumerate((0.0, 0.9, limit, math.nan)):
+        assert wd.update(k * PERIOD, "plan", 0.1 * k, 30.0, 0.0, False, False, 1.0, d).ok
+    check = wd.update(0.1, "plan", 12.0, 30.0, 0.0, False, False, 1.0, limit + 0.01)
+    assert check.reaction is Reaction.STOP and check.status is Status.OFF_PLAN
+    assert check.detail == f"off the plan: {limit + 0.01:.2f} m from it at 12.0 of 30.0 m " + (
+        f"(limit {limit:g} m)"
+    )
+    assert check.value == pytest.approx(limit + 0.01)
+
+
+def test_the_deviation_limit_must_exceed_the_engage_envelope() -> None:
+    with pytest.raises(ValueError, match=r"max_path_deviation must exceed engage\.max_distance"):
+        GatewayConfig(watchdog=WatchdogConfig(max_path_deviation=1.0))
+    GatewayConfig(watchdog=WatchdogConfig(max_path_deviation=1.5))
+
+
 def _progress_rig(progress: Callable[[FakeController, Pose], float], accel: float) -> Rig:
     def script(ctl: FakeController, pose: Pose, steer: float) -> ControlOutput:
         return ControlOutput(
@@ -670,6 +691,22 @@ def test_gateway_stops_a_car_that_makes_no_progress() -> None:
     assert _first_state(rig, GatewayState.STANDBY, 5.0) > 0.0
     check = rig.results[-1].diagnostics.watchdogs[CHECK_ORDER.index("progress")]
     assert check.ok  # forgotten once the gateway no longer drives
+
+
+def test_gateway_stops_a_car_that_leaves_the_plan() -> None:
+    """The controller's deviation beyond the limit: a controlled stop, the reason in the
+    diagnostics, then STANDBY."""
+
+    def script(ctl: FakeController, pose: Pose, steer: float) -> ControlOutput:
+        off = 1.0 + pose.x  # m from the plan, growing as the car drives on
+        return ControlOutput(0.0, 0.5, 1.0, progress=pose.x, route_length=17.5, deviation=off)
+
+    rig = Rig(FakeController(script))
+    rig.engage()
+    _first_state(rig, GatewayState.STOPPING, 10.0)
+    reason = rig.results[-1].diagnostics.reason
+    assert reason.startswith("off the plan: 2.0") and "(limit 2 m)" in reason
+    assert _first_state(rig, GatewayState.STANDBY, 10.0) > 0.0
 
 
 def test_gateway_keeps_driving_a_car_that_progresses() -> None:

@@ -55,6 +55,10 @@ class WatchdogConfig:
     # stop and the plan's last no_progress_distance excepted) → STOP
     no_progress_time: float = 3.0  # s
     no_progress_distance: float = 0.1  # m
+    # Engaged, the car farther than this from the plan (where it projects onto it) → STOP: the
+    # planner checked a corridor along its path, not where the car has gone (geometry tighter
+    # than the car can turn). Above the engage envelope's max_distance.
+    max_path_deviation: float = 2.0  # m
 
     def __post_init__(self) -> None:
         positive(
@@ -75,6 +79,7 @@ class WatchdogConfig:
             "max_receive_lag",
             "no_progress_time",
             "no_progress_distance",
+            "max_path_deviation",
         )
         if self.trajectory_max_age is not None:
             positive(self, "trajectory_max_age")
@@ -175,6 +180,11 @@ class GatewayConfig:
             raise ValueError("rt_priority must lie in 0–99 (0: normal scheduling)")
         if self.stop.jerk > self.safety.max_jerk:
             raise ValueError("stop.jerk must not exceed safety.max_jerk (the gate would clamp it)")
+        if self.watchdog.max_path_deviation <= self.engage.max_distance:
+            raise ValueError(
+                "watchdog.max_path_deviation must exceed engage.max_distance (a car engaged at "
+                "the edge of the envelope would be stopped at once)"
+            )
 
     @property
     def period(self) -> float:

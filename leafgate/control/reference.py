@@ -239,6 +239,7 @@ def validate(traj: Trajectory, source: str, rows: Sequence[int] | None = None) -
     return Spacing(float(gaps.min()), float(np.median(gaps)), float(gaps.max()))
 
 
+STOP_DECEL = 1.0  # m/s², the reference speed needs no harder braking to stop at a segment's end
 MAX_HEADING_STEP = math.pi / 2  # rad between neighbouring kept waypoints: more is a flip
 
 
@@ -331,27 +332,69 @@ class Segment:
     direction: int
 
 
-def directions(speed: FloatArray) -> FloatArray:
-    """Driving direction of each waypoint: the sign of its speed.
+def chord_directions(traj: Trajectory) -> FloatArray:
+    """The driving direction (+1 forward, −1 reverse) of each chord ``i → i + 1`` of the plan:
+    the one rule for where a plan changes direction, used by the controller, the rolling-window
+    check, the metrics and the plots.
 
-    A zero speed belongs to the motion it ends (the previous non-zero speed); leading zeros take
-    the first non-zero speed; an all-zero profile is forward.
+    A chord is driven in the direction of the speed at its end: a zero speed belongs to the
+    motion it ends (Autoware puts a waypoint at rest on the cusp), and waypoints at rest before
+    the first motion take its direction. Where the sign flips from one waypoint to the next
+    with no waypoint at rest between them, the speeds alone cannot say which of the two is the
+    cusp: planners differ (PythonRobotics' courses give each waypoint the speed of the chord
+    that leaves it, so the chord into the cusp still carries the old sign). The chord's own
+    geometry then decides: when it runs along both of its waypoints' headings the way the old
+    motion went, it belongs to the old motion and the cusp is its far end.
     """
+    speed = traj.speed
     sign = np.sign(speed)
     nonzero = np.flatnonzero(sign)
     if nonzero.size == 0:
-        return np.ones_like(speed)
+        return np.ones(max(len(speed) - 1, 0))
     # index of the last non-zero at or before each point (or the first non-zero)
     last = np.maximum.accumulate(np.where(sign != 0, np.arange(len(speed)), -1))
     last[last < 0] = nonzero[0]
-    return sign[last]
+    chords = sign[last][1:]
+    # chord i flips the direction although waypoint i still moves the old way: its geometry
+    flips = np.flatnonzero(sign[1:] * sign[:-1] < 0.0)
+    for i in flips.tolist():
+        old = sign[i]
+        dx, dy = traj.x[i + 1] - traj.x[i], traj.y[i + 1] - traj.y[i]
+        along = [
+            dx * math.cos(h) + dy * math.sin(h) for h in (traj.heading[i], traj.heading[i + 1])
+        ]
+        if all(old * a > 0.0 for a in along):
+            chords[i] = old
+    return chords
 
 
-def split_segments(speed: FloatArray) -> list[Segment]:
+def tightest_turn(traj: Trajectory) -> tuple[float, int]:
+    """The radius of the plan's tightest turn, m (inf: straight), and the waypoint it starts
+    at: per chord, its length over the heading change along it."""
+    if len(traj) < 2:
+        return math.inf, 0
+    gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
+    turn = np.abs(np.angle(np.exp(1j * np.diff(traj.heading))))  # wrapped to [0, π]
+    with np.errstate(divide="ignore"):
+        radius = np.where(turn > 0.0, gaps / turn, np.inf)
+    i = int(np.argmin(radius))
+    return float(radius[i]), i
+
+
+def directions(traj: Trajectory) -> FloatArray:
+    """Driving direction of each waypoint: that of the chord arriving at it (the first
+    waypoint: of the chord leaving it), by :func:`chord_directions`."""
+    chords = chord_directions(traj)
+    if chords.size == 0:
+        return np.ones(len(traj))
+    return np.concatenate((chords[:1], chords))
+
+
+def split_segments(traj: Trajectory) -> list[Segment]:
     """Split at cusps. Consecutive segments share the cusp waypoint (end of one, start of next)."""
-    dirs = directions(speed)
+    dirs = directions(traj)
     changes = np.flatnonzero(dirs[1:] != dirs[:-1])  # direction changes after these points
-    bounds = [0, *[int(c) for c in changes], len(speed) - 1]
+    bounds = [0, *[int(c) for c in changes], len(traj) - 1]
     return [
         Segment(a, b, int(dirs[a + 1]))  # the shared start point carries the old direction
         for a, b in itertools.pairwise(bounds)
@@ -384,15 +427,18 @@ class ReferencePath:
         profile starting at rest still reaches ahead
     """
 
-    def __init__(self, traj: Trajectory, creep_speed: float = 0.3) -> None:
+    def __init__(
+        self, traj: Trajectory, creep_speed: float = 0.3, stop_decel: float = STOP_DECEL
+    ) -> None:
         self.traj = traj
         n = len(traj)
         self.n = n
         gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
         self.s = np.concatenate(([0.0], np.cumsum(gaps)))  # m, arc length of each waypoint
-        self.segments = split_segments(traj.speed)
+        self.segments = split_segments(traj)
         heading = np.unwrap(traj.heading)
-        # signed speed clipped to each segment's direction, zero at each segment's end
+        # signed speed clipped to each segment's direction, zero at each segment's end and at
+        # its start after a cusp (the two share that waypoint)
         speed = np.zeros(n)
         # s, planned time from the trajectory's start. Cumulative over the segments so that it
         # increases strictly within each one: consecutive segments share their cusp waypoint,
@@ -401,7 +447,13 @@ class ReferencePath:
         for seg in self.segments:
             sl = slice(seg.start, seg.end + 1)
             mag = np.maximum(seg.direction * traj.speed[sl], 0.0)
+            # no faster than a stop at ``stop_decel`` reaches the segment's end (zero there):
+            # a plan that keeps its speed up to a cusp or its goal is slowed in time
+            to_end = self.s[seg.end] - self.s[sl]
+            np.minimum(mag, np.sqrt(2.0 * stop_decel * to_end), out=mag)
             mag[-1] = 0.0
+            if seg.start > 0:  # a cusp: the car stands there, also as the next segment starts
+                mag[0] = 0.0
             speed[sl] = seg.direction * mag
             mean = np.maximum(0.5 * (mag[1:] + mag[:-1]), creep_speed)
             time[seg.start + 1 : seg.end + 1] = time[seg.start] + np.cumsum(
@@ -614,6 +666,7 @@ class Progress:
         self.index = path.segments[0].start  # the waypoint nearest the car (diagnostic)
         self.s = float(path.s[path.segments[0].start])  # m, progress on the current segment
         self.beyond = -math.inf  # m, along-track distance past the segment's end (< 0: before)
+        self.deviation = math.nan  # m, the car's distance from its projection (NaN: none yet)
         self._started = False
 
     @property
@@ -695,6 +748,9 @@ class Progress:
             self.beyond = (t - 1.0) * chord  # on the last chord: past the end when ≥ 0
         t = min(max(t, 0.0), 1.0)
         s0 = s[j] + t * chord
+        self.deviation = math.hypot(
+            x - (tx[j] + t * (tx[j + 1] - tx[j])), y - (ty[j] + t * (ty[j + 1] - ty[j]))
+        )
         if s0 > self.s:
             self.s = s0
         return s0
@@ -714,7 +770,7 @@ class Progress:
         old, new = self.path.traj, path.traj
         seg = self.segment
         near = np.hypot(old.x - new.x[0], old.y - new.y[0]) < OVERLAP_DISTANCE
-        old_dirs, new_dirs = directions(self.path.speed), directions(path.speed)
+        old_dirs, new_dirs = directions(self.path.traj), directions(path.traj)
         for j in np.flatnonzero(near).tolist():
             m = min(len(old) - j, len(new))
             if m < 2 or not (self.path.s[j] <= self.s <= self.path.s[j + m - 1]):
@@ -749,12 +805,14 @@ class Progress:
 
     def fields(self, finished: bool) -> dict[str, Any]:
         """The :class:`~leafgate.messages.ControlOutput` fields of the progress:
-        ``nearest_index``, ``progress`` (the route length once finished) and ``route_length``."""
+        ``nearest_index``, ``progress`` (the route length once finished), ``route_length`` and
+        ``deviation``."""
         length = self.route_length
         return {
             "nearest_index": self.index,
             "progress": length if finished else self.s,
             "route_length": length,
+            "deviation": self.deviation,
         }
 
     def _first_nearest(self, seg: Segment, x: float, y: float, heading: float) -> int:

@@ -628,6 +628,7 @@ class Gateway:
             standstill,
             gear_change=want != measured.gear,
             commanded_speed=out.speed,
+            deviation=out.deviation,
         )
 
     def _remaining_causes(self, now: float, wd: WatchdogReport, bus_errors: int) -> list[str]:

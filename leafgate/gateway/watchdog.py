@@ -20,6 +20,8 @@ ECU reports OVERRIDE           —                                       STANDBY
 no progress along the plan     < ``no_progress_distance`` (0.1 m) in   STOP
                                ``no_progress_time`` (3 s) while
                                engaged and commanded to move
+off the plan                   > ``max_path_deviation`` (2 m) from it  STOP
+                               while engaged
 =============================  ======================================  ===========
 
 The engagement logic decides *when* a reaction applies (staleness of inputs matters only while
@@ -64,6 +66,7 @@ class Status(enum.Enum):
     ERRORS = "errors"  # error counter at or above its threshold
     OVERRUN = "overrun"  # too many late ticks in a row
     SOURCES = "sources"  # samples from more than one publisher on the input's key
+    OFF_PLAN = "off-plan"  # the car farther from the plan than allowed
 
 
 class Reaction(enum.IntEnum):
@@ -83,7 +86,7 @@ class Check(NamedTuple):
     limit: float  # the threshold that applies (s, m or a count)
     reaction: Reaction  # what it asks for while engaged
     detail: str = ""  # human-readable reason, empty when OK
-    value: float | None = None  # jump (m), error counter or overruns in a row
+    value: float | None = None  # jump (m), error counter, overruns in a row, deviation (m)
 
     @property
     def ok(self) -> bool:
@@ -730,6 +733,7 @@ class ProgressWatchdog:
     def __init__(self, config: WatchdogConfig) -> None:
         self.time_limit = config.no_progress_time
         self.distance = config.no_progress_distance
+        self.max_deviation = config.max_path_deviation
         self._ok = Check(self.name, Status.OK, None, self.time_limit, Reaction.NONE, "", None)
         self.reset()
 
@@ -759,6 +763,7 @@ class ProgressWatchdog:
         standstill: bool,
         gear_change: bool,
         commanded_speed: float = math.inf,
+        deviation: float = math.nan,
     ) -> Check:
         """Judge one tick of an engagement in which the controller drives.
 
@@ -770,9 +775,22 @@ class ProgressWatchdog:
         :param gear_change: a gear change is pending (the gateway holds the brake for it)
         :param commanded_speed: m/s, the controller's target speed; zero while the car still
             moves is a stop being made (at a cusp, at the end, after an overshoot), not a stall
+        :param deviation: m, the car's distance from the plan (the controller's; NaN: unknown,
+            not judged): beyond ``max_path_deviation`` the car has left the plan → STOP
         """
         if not (route_length > 0.0 and math.isfinite(progress)):
             return self.idle()
+        if deviation > self.max_deviation:  # False for NaN
+            return Check(
+                self.name,
+                Status.OFF_PLAN,
+                None,
+                self.max_deviation,
+                Reaction.STOP,
+                f"off the plan: {deviation:.2f} m from it at {progress:.1f} of "
+                f"{route_length:.1f} m (limit {self.max_deviation:g} m)",
+                deviation,
+            )
         if self._steer_anchor is None:
             self._steer_anchor = steer_angle
         elif abs(steer_angle - self._steer_anchor) > STEER_SETTLE_BAND:

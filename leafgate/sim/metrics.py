@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from leafgate.control.reference import chord_directions, tightest_turn
 from leafgate.geometry import wrap_angle
 from leafgate.messages import FloatArray, Trajectory
 from leafgate.sim.scenarios import clearance
@@ -61,19 +62,11 @@ class Projector:
     def __init__(self, traj: Trajectory) -> None:
         self.traj = traj
         self.n_seg = len(traj) - 1
-        self.seg_dir = np.sign(traj.speed[:-1] + traj.speed[1:])  # planned direction of each
+        self.seg_dir = chord_directions(traj)  # the planned direction of each segment
         gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
         self.s = np.concatenate(([0.0], np.cumsum(gaps)))  # m, arc length at each waypoint
-        # the move of each segment: a new one where the planned direction changes (a segment
-        # between two waypoints at rest, direction 0, belongs to the move before it)
-        signed = self.seg_dir.copy()
-        nonzero = np.flatnonzero(signed)
-        if nonzero.size:
-            signed[: nonzero[0]] = signed[nonzero[0]]  # waypoints at rest at the start
-        for i in range(1, len(signed)):
-            if signed[i] == 0.0:
-                signed[i] = signed[i - 1]
-        self.move = np.concatenate(([0], np.cumsum(signed[1:] != signed[:-1])))
+        # the move of each segment: a new one where the planned direction changes
+        self.move = np.concatenate(([0], np.cumsum(self.seg_dir[1:] != self.seg_dir[:-1])))
         self.k = 0  # the segment of the last projection
         self.moving_dir = 0.0
 
@@ -118,6 +111,12 @@ def path_errors(
     trajectory, so the same formula holds in both directions.
     """
     proj = Projector(traj)
+    # the planned speed along each segment, and zero at a cusp (where the car stands) also
+    # when the plan gives no waypoint at rest there (the same rule as the controller's)
+    v_from, v_to = traj.speed[:-1].copy(), traj.speed[1:].copy()
+    cusps = np.flatnonzero(proj.seg_dir[1:] != proj.seg_dir[:-1]) + 1
+    v_to[cusps - 1] = 0.0
+    v_from[cusps] = 0.0
     lateral = np.empty(x.shape[0])
     heading_err = np.empty(x.shape[0])
     speed_ref = np.empty(x.shape[0])
@@ -133,7 +132,7 @@ def path_errors(
             wrap_angle(traj.heading[k + 1] - traj.heading[k])
         )
         heading_err[i] = float(wrap_angle(heading[i] - ref_heading))
-        speed_ref[i] = traj.speed[k] + tk * (traj.speed[k + 1] - traj.speed[k])
+        speed_ref[i] = v_from[k] + tk * (v_to[k] - v_from[k])
         progress[i] = proj.arc_length(k, tk)
     return PathErrors(lateral=lateral, heading=heading_err, speed_ref=speed_ref, progress=progress)
 
@@ -157,8 +156,7 @@ def path_steer_sign_changes(traj: Trajectory) -> int:
     ``steer_rate_sign_changes``.
     """
     gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
-    direction = np.sign(traj.speed[1:] + traj.speed[:-1])
-    direction[direction == 0] = 1.0
+    direction = chord_directions(traj)
     curvature = direction * np.asarray(wrap_angle(np.diff(traj.heading))) / np.maximum(gaps, 1e-9)
     mid = np.cumsum(gaps) - 0.5 * gaps  # m, arc length of each interval's middle
     if curvature.shape[0] < 2:
@@ -175,13 +173,14 @@ def tracking_metrics(
     heading: FloatArray,
     speed: FloatArray,
     steer_angle: FloatArray,
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """Lateral/heading/speed errors and steering smoothness of a run (true plant states)."""
     errors = path_errors(traj, x, y, heading, speed)
     steer_rate = np.gradient(steer_angle, t) if t.shape[0] > 1 else np.zeros_like(t)
     final_pos = math.hypot(x[-1] - traj.x[-1], y[-1] - traj.y[-1])
     final_heading = float(abs(wrap_angle(heading[-1] - traj.heading[-1])))
     route_length = float(np.sum(np.hypot(np.diff(traj.x), np.diff(traj.y))))
+    tightest = tightest_turn(traj)
     return {
         "lateral_error_max_m": float(np.max(np.abs(errors.lateral))),
         "lateral_error_rms_m": float(np.sqrt(np.mean(errors.lateral**2))),
@@ -197,6 +196,9 @@ def tracking_metrics(
         "overspeed_max_mps": float(np.max(np.abs(speed) - np.abs(errors.speed_ref))),
         "progress_m": float(np.max(errors.progress)) if errors.progress.size else 0.0,
         "route_length_m": route_length,
+        # m, the radius of the plan's tightest turn (inf: straight), and where it starts
+        "plan_min_turn_radius_m": tightest[0],
+        "plan_min_turn_radius_at": [float(traj.x[tightest[1]]), float(traj.y[tightest[1]])],
     }
 
 

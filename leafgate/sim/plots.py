@@ -65,7 +65,7 @@ def _mark_plan(ax: Any, traj: Trajectory) -> None:
 
     ax.plot(traj.x[0], traj.y[0], "o", ms=9, color=START, label="start", zorder=5)
     ax.plot(traj.x[-1], traj.y[-1], "X", ms=10, color=GOAL, label="goal", zorder=5)
-    cusps = [seg.end for seg in split_segments(traj.speed)[:-1]]
+    cusps = [seg.end for seg in split_segments(traj)[:-1]]
     if cusps:
         ax.plot(traj.x[cusps], traj.y[cusps], "D", ms=8, color=CUSP, label="cusp", zorder=5)
 

@@ -37,7 +37,7 @@ def time_budget(traj: Trajectory) -> float:
     every interval), ``CUSP_PAUSE`` per cusp and 10 s to spare, s."""
     gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
     mean = np.maximum(0.5 * np.abs(traj.speed[1:] + traj.speed[:-1]), 0.2)
-    cusps = len(split_segments(traj.speed)) - 1
+    cusps = len(split_segments(traj)) - 1
     return float(np.sum(gaps / mean)) + CUSP_PAUSE * max(cusps, 0) + 10.0
 
 
