@@ -163,8 +163,39 @@ def test_a_plan_that_continues_the_last_keeps_the_progress_and_the_segment() -> 
 
     _, same, _ = prepare_plan(new.traj, 0.3, 20, previous=prog)
     assert same is not None and same.segment.direction == -1
-    _, fresh, _ = prepare_plan(moved, 0.3, 20, previous=prog)
+    _, fresh, _ = prepare_plan(_aside(part, 0.5), 0.3, 20, previous=prog)
     assert fresh is not None and fresh.segment.direction == 1 and fresh.s == 0.0
+    # a plan over other points through the same place (re-sampled) is resumed there
+    _, resumed, _ = prepare_plan(moved, 0.3, 20, previous=prog)
+    assert resumed is not None and resumed.segment.direction == -1
+    assert resumed.s == pytest.approx(float(new.s[3]), abs=1e-9)
+
+
+def _aside(traj: Trajectory, offset: float) -> Trajectory:
+    """``traj`` moved ``offset`` m to the left of its heading: another path beside it."""
+    return Trajectory(
+        x=traj.x - offset * np.sin(traj.heading),
+        y=traj.y + offset * np.cos(traj.heading),
+        heading=traj.heading,
+        speed=traj.speed,
+    )
+
+
+def _resampled(route: Trajectory, first: int, last: int, phase: float) -> Trajectory:
+    """Waypoints ``first … last − 1`` of ``route`` as a planner re-samples them each cycle:
+    every point but the ends and the cusps moved ``phase`` (0–1) of the way to the next one,
+    so no point is the last plan's (Autoware's planners re-sample on every cycle)."""
+    part = _window(route, first, last)
+    keep = {0, len(part) - 1} | {seg.end for seg in split_segments(part)}
+    x, y, h, v = part.x.copy(), part.y.copy(), part.heading.copy(), part.speed.copy()
+    for i in range(len(part) - 1):
+        if i in keep or i + 1 in keep:
+            continue
+        x[i] += phase * (part.x[i + 1] - part.x[i])
+        y[i] += phase * (part.y[i + 1] - part.y[i])
+        h[i] += phase * math.remainder(part.heading[i + 1] - part.heading[i], 2.0 * math.pi)
+        v[i] += phase * (part.speed[i + 1] - part.speed[i])
+    return Trajectory(x=x, y=y, heading=h, speed=v)
 
 
 def test_a_rolling_window_resent_at_a_cusp_does_not_restart_the_brake_release() -> None:
@@ -180,6 +211,29 @@ def test_a_rolling_window_resent_at_a_cusp_does_not_restart_the_brake_release() 
     for k in range(150):  # 3 s at rest on the cusp, a new window every 0.5 s
         if k % 25 == 0:
             window = _window(route, cusp - 3, cusp + 60)
+        out = ctrl.step(pose, steer, window)
+        steer = out.steer_angle  # an ideal steering actuator
+        statuses.append(out.status)
+        assert out.gear == Gear.R
+    drive = [i for i, s in enumerate(statuses) if s not in ("aligning", "releasing")]
+    assert drive, statuses[-5:]
+    assert out.accel < 0.0  # driving off backwards: d(v)/dt < 0 in reverse
+
+
+def test_a_re_sampled_window_resent_at_a_cusp_is_resumed_there() -> None:
+    """A planner that re-samples every cycle and keeps 5 m behind the car: no window shares a
+    point with the last, so none was taken as continuing it. Each restarted on the segment
+    that ends at the cusp, restored the brake hold and the wheel alignment, and the car stood
+    at the cusp until the no-progress watchdog stopped it."""
+    route = routes.switch_back()
+    cusp = split_segments(route)[0].end
+    pose = Pose(float(route.x[cusp]), float(route.y[cusp]), float(route.heading[cusp]), 0.0)
+    ctrl = _mpc()
+    steer, statuses = 0.0, []
+    behind = round(5.0 / routes.SPACING)
+    for k in range(150):  # 3 s at rest on the cusp, a new window every 0.5 s
+        if k % 25 == 0:
+            window = _resampled(route, cusp - behind, cusp + 60, phase=0.1 + 0.15 * (k // 25))
         out = ctrl.step(pose, steer, window)
         steer = out.steer_angle  # an ideal steering actuator
         statuses.append(out.status)

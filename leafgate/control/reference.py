@@ -658,6 +658,8 @@ class Progress:
     REACH = 1.5  # m, on a new plan the earliest waypoint this close to the car wins (the engage
     # envelope is 1 m from the path: a car engaged there is on the earliest pass within reach)
     MATCH_HEADING = 0.01  # rad, a continued plan's waypoints match the previous plan's this well
+    RESUME_DISTANCE = 0.1  # m, a re-sampled plan passes this close to the previous progress
+    RESUME_HEADING = 0.2  # rad, and heads the same way there within this
 
     def __init__(self, path: ReferencePath, window: int) -> None:
         self.path = path
@@ -791,6 +793,53 @@ class Progress:
                     return carried
         return None
 
+    def resumed_on(self, path: ReferencePath) -> Progress | None:
+        """This progress carried over to ``path`` when that plan runs through the place the
+        progress has reached, in the same direction, without sharing its waypoints; else None.
+
+        A planner re-samples its path on every cycle (Autoware's keeps a few metres behind the
+        car, at new points each time): :meth:`continued_on` finds no common waypoint, and a
+        plan taken as new restarts on its first segment. At a cusp that segment is the one the
+        car has just finished, and each new plan sent it back to the stop, its brake hold and
+        its wheel alignment: the car never drove off. Here the progress's point on the old plan
+        is looked up on the new one: on a segment of the same direction that passes within
+        :attr:`RESUME_DISTANCE` of it, heading within :attr:`RESUME_HEADING`, the nearest.
+        """
+        if not self._started:
+            return None
+        old, seg = self.path, self.segment
+        j = min(max(bisect.bisect_right(old._s, self.s) - 1, seg.start), seg.end - 1)
+        chord = old._s[j + 1] - old._s[j]
+        t = (self.s - old._s[j]) / chord if chord > 0.0 else 0.0
+        px = old._x[j] + t * (old._x[j + 1] - old._x[j])
+        py = old._y[j] + t * (old._y[j + 1] - old._y[j])
+        heading = float(old.values[j, 2])
+        best: tuple[float, int, int, float] | None = None  # distance, segment, chord, fraction
+        for k, new_seg in enumerate(path.segments):
+            if new_seg.direction != seg.direction:
+                continue
+            a, b = new_seg.start, new_seg.end
+            ax, ay = path.traj.x[a:b], path.traj.y[a:b]
+            dx, dy = path.traj.x[a + 1 : b + 1] - ax, path.traj.y[a + 1 : b + 1] - ay
+            u = np.clip(
+                ((px - ax) * dx + (py - ay) * dy) / np.maximum(dx * dx + dy * dy, 1e-12), 0.0, 1.0
+            )
+            dist = np.hypot(px - ax - u * dx, py - ay - u * dy)
+            i = int(np.argmin(dist))
+            turn = abs(math.remainder(float(path.values[a + i, 2]) - heading, 2.0 * math.pi))
+            near = dist[i] <= self.RESUME_DISTANCE and turn <= self.RESUME_HEADING
+            if near and (best is None or dist[i] < best[0]):
+                best = (float(dist[i]), k, a + i, float(u[i]))
+        if best is None:
+            return None
+        _, k, i, u = best
+        resumed = Progress(path, self.window)
+        resumed.seg_index = k
+        resumed.s = float(path.s[i] + u * (path.s[i + 1] - path.s[i]))
+        resumed.index = i
+        resumed._started = True
+        return resumed
+
     def _same_points(
         self, path: ReferencePath, j: int, m: int, old_dirs: FloatArray, new_dirs: FloatArray
     ) -> bool:
@@ -851,7 +900,9 @@ def prepare_plan(
         if problem is not None:
             return None, None, problem
         path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
-    carried = previous.continued_on(path) if previous is not None else None
+    carried = None
+    if previous is not None:
+        carried = previous.continued_on(path) or previous.resumed_on(path)
     return path, carried or Progress(path, window), ""
 
 
