@@ -832,10 +832,10 @@ class Progress:
                 best = (float(dist[i]), k, a + i, float(u[i]))
         if best is None:
             return None
-        _, k, i, u = best
+        _, k, i, frac = best
         resumed = Progress(path, self.window)
         resumed.seg_index = k
-        resumed.s = float(path.s[i] + u * (path.s[i + 1] - path.s[i]))
+        resumed.s = float(path.s[i] + frac * (path.s[i + 1] - path.s[i]))
         resumed.index = i
         resumed._started = True
         return resumed
