@@ -159,10 +159,14 @@ def cmd_sim(args: argparse.Namespace) -> int:
         scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)
     window = None
+    if args.rolling_window is None and (args.window_behind or args.window_resample):
+        raise ConfigError("--window-behind and --window-resample need --rolling-window")
     if args.rolling_window is not None:
         from leafgate.sim.runner import RollingWindow
 
-        window = RollingWindow(args.rolling_window, args.window_period)
+        window = RollingWindow(
+            args.rolling_window, args.window_period, args.window_behind, args.window_resample
+        )
     if (injections or args.record or window) and (args.direct or args.realtime):
         raise ConfigError(
             "--inject, --record and --rolling-window need the full simulated loop "
@@ -677,6 +681,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.5,
         metavar="S",
         help="s between rolling-window plans (default 0.5)",
+    )
+    p.add_argument(
+        "--window-behind",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="each rolling-window plan also keeps M metres behind the car, as Autoware's "
+        "planners do (default 0)",
+    )
+    p.add_argument(
+        "--window-resample",
+        action="store_true",
+        help="re-sample every rolling-window plan, as a planner does on each cycle: no "
+        "waypoint repeats the last plan's",
     )
     p.add_argument("--plant", choices=PLANTS)
     p.add_argument(

@@ -222,7 +222,51 @@ def test_infeasible_hairpin_is_never_sprinted_nor_finished_before_its_end(plant:
 def test_rolling_window_is_followed_through_hairpin_and_u_turn(name: str, period: float) -> None:
     result = run(_config("kinematic"), get_scenario(name), window=RollingWindow(30.0, period))
     assert _misses(result, "kinematic") == []
-    assert result.metrics["rolling_window"] == {"length_m": 30.0, "period_s": period}
+    assert result.metrics["rolling_window"] == {
+        "length_m": 30.0,
+        "period_s": period,
+        "behind_m": 0.0,
+        "resample": False,
+    }
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["switch-back", "cusp-retrace", "parallel-park"])
+def test_a_re_sampling_planner_is_followed_through_every_cusp(name: str) -> None:
+    """Windows as Autoware's planners send them: 5 m behind the car, re-sampled on every
+    cycle, so that no plan shares a waypoint with the last. Each was taken as a new plan that
+    restarted at the cusp, and the car stood there until the no-progress watchdog stopped it
+    (switch-back: "no progress … at 5.5 of 34.8 m")."""
+    window = RollingWindow(30.0, 0.5, behind=5.0, resample=True)
+    result = run(_config("kinematic"), get_scenario(name), window=window)
+    assert _misses(result, "kinematic") == []
+
+
+def test_a_re_sampled_window_keeps_its_ends_and_cusps_and_moves_every_other_point() -> None:
+    route = get_scenario("switch-back").trajectory
+    cusp = split_segments(route)[0].end
+    planner = runner._Planner(route, RollingWindow(30.0, 0.5, behind=5.0, resample=True))
+    k = cusp - 20  # the car 20 waypoints (10 m) before the cusp
+    for i in range(k + 1):  # the planner follows the car along the route, in order
+        pose = Pose(float(route.x[i]), float(route.y[i]), float(route.heading[i]), 1.0)
+        planner.plan_at(0.0, pose)
+    first = planner.plan_at(0.5, pose).value
+    second = planner.plan_at(1.0, pose).value
+    start = int(np.flatnonzero(route.x == first.x[0])[0])  # the first point is the route's
+    assert _length(_cut(route, start, k + 1)) == pytest.approx(5.0, abs=0.5)  # 5 m behind
+    fwd = split_segments(first)[0]
+    assert (first.x[fwd.end], first.y[fwd.end]) == (route.x[cusp], route.y[cusp])  # kept
+    assert (first.x[-1], first.y[-1]) == (second.x[-1], second.y[-1])
+    kept = {0, fwd.end, len(first) - 1}
+    moved = [i for i in range(len(first)) if i not in kept and i + 1 not in kept]
+    to_route = np.hypot(first.x[moved, None] - route.x, first.y[moved, None] - route.y)
+    assert (to_route.min(axis=1) > 1e-3).all()  # no point is one of the route's
+    assert (np.hypot(first.x - second.x, first.y - second.y)[moved] > 1e-3).all()  # nor the last
+
+
+def _cut(traj: Trajectory, first: int, last: int) -> Trajectory:
+    cut = slice(first, last)
+    return Trajectory(traj.x[cut], traj.y[cut], traj.heading[cut], traj.speed[cut])
 
 
 def test_rolling_window_plans_are_the_next_30_m_from_the_car() -> None:

@@ -187,3 +187,15 @@ def test_sim_uses_the_steering_aware_model_where_the_wheel_lags(
 ) -> None:
     assert _sim("--scenario", "straight", *args, "--out", str(tmp_path)) == 0
     assert json.loads((tmp_path / "metrics.json").read_text())["model"] == model
+
+
+def test_window_options_without_a_rolling_window_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert _sim("--window-resample", "--out", str(tmp_path)) == 2
+    err = capsys.readouterr().err
+    assert (
+        err.strip()
+        .splitlines()[-1]
+        .endswith("--window-behind and --window-resample need --rolling-window")
+    )

@@ -14,7 +14,8 @@
    kerb; :func:`leafgate.sim.scenarios.clearance`) is no standing start: it is listed apart,
    with the obstacle and the overlap, and still driven and reported.
 3. ``rolling`` — the hairpin and U-turn routes sent as a planner's rolling window (the next
-   30 m, re-sent every 0.5 s and every 1 s) on the kinematic plant.
+   30 m, re-sent every 0.5 s and every 1 s) on the kinematic plant; and the routes with cusps
+   sent as Autoware's planners send them: 5 m behind the car, re-sampled on every cycle.
 
 Run: ``.venv/bin/python tools/route_goals.py [--workers 2] [--skip-envelope]``.
 """
@@ -40,6 +41,7 @@ ENVELOPE_LATERAL = 0.9  # m
 ENVELOPE_HEADING_DEG = 25.0
 ROLLING_ROUTES = ("switch-back", "u-turn")
 ROLLING_PERIODS = (0.5, 1.0)  # s
+RESAMPLED_ROUTES = ("switch-back", "u-turn", "cusp-retrace", "parallel-park")
 KEEP = (
     "finished",
     "not_finished_reason",
@@ -74,7 +76,9 @@ def _one(task: dict[str, Any]) -> dict[str, Any]:
     inside = clearance(scenario.name, [s.x], [s.y], [s.heading])
     window = None
     if task.get("window_period") is not None:
-        window = RollingWindow(30.0, task["window_period"])
+        window = RollingWindow(
+            30.0, task["window_period"], task.get("behind", 0.0), task.get("resample", False)
+        )
     result = run(config_for(task["plant"]), scenario, window=window)
     m = result.metrics
     out = {**task, **{k: m.get(k) for k in KEEP if k in m}, "feasible": scenario.feasible}
@@ -107,6 +111,10 @@ def main() -> int:
         for n in ROLLING_ROUTES
         if n in names
         for period in ROLLING_PERIODS
+    ] + [
+        {"scenario": n, "plant": "kinematic", "window_period": 0.5, "behind": 5.0, "resample": True}
+        for n in RESAMPLED_ROUTES
+        if n in names
     ]
     tasks = routes + rolling + ([] if args.skip_envelope else envelope)
     t0 = time.perf_counter()

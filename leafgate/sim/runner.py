@@ -33,7 +33,7 @@ from leafgate.can.codec import CanCodec, Decoded, EncodeError
 from leafgate.can.secoc import KEY_BYTES
 from leafgate.config.sim import SimConfig
 from leafgate.control import make_controller
-from leafgate.control.reference import MIN_POINTS
+from leafgate.control.reference import MIN_POINTS, split_segments
 from leafgate.errors import ConfigError
 from leafgate.gateway.core import END_REACHED, Gateway, GatewayInputs, StepResult
 from leafgate.messages import (
@@ -198,19 +198,28 @@ class RollingWindow:
     """A planner's rolling plan: the next ``length`` of the route, re-sent every ``period``.
 
     Each plan starts at the waypoint the car last passed (its projection on the route, followed
-    in time order and in its direction of travel) and is a new object with a new receive time,
-    as from a planner over Zenoh (the transport makes a new object of every message).
+    in time order and in its direction of travel), or ``behind`` metres before it within the
+    move the car drives (Autoware's planners keep a few metres behind the car), and is a new
+    object with a new receive time, as from a planner over Zenoh (the transport makes a new
+    object of every message). With ``resample``, every plan is re-sampled as a planner does on
+    each cycle: every waypoint but the plan's ends and its cusps moves along its chord by a new
+    fraction, so that no waypoint repeats the last plan's.
     """
 
     length: float = 30.0  # m
     period: float = 0.5  # s
+    behind: float = 0.0  # m
+    resample: bool = False
 
     def __post_init__(self) -> None:
-        if not (self.length > 0.0 and self.period > 0.0):
+        if not (self.length > 0.0 and self.period > 0.0 and self.behind >= 0.0):
             raise ConfigError(
-                f"rolling window: length and period must be positive, got {self.length!r} m "
-                f"every {self.period!r} s"
+                f"rolling window: length and period must be positive and behind not negative, "
+                f"got {self.length!r} m every {self.period!r} s, {self.behind!r} m behind"
             )
+
+
+RESAMPLE_STEP = 0.37  # the fraction of a chord each re-sampled plan moves on from the last
 
 
 class _Planner:
@@ -222,6 +231,7 @@ class _Planner:
         self.projector = Projector(route)
         self.last_sent: float | None = None
         self.plan: Stamped[Trajectory] | None = None
+        self.sent = 0  # plans sent
 
     def plan_at(self, now: float, pose: Pose) -> Stamped[Trajectory]:
         """The plan the gateway holds at ``now`` (a new one every period)."""
@@ -231,15 +241,41 @@ class _Planner:
             return self.plan
         route, proj = self.route, self.projector
         n = len(route)
-        first = min(k, n - MIN_POINTS)  # a plan has at least four waypoints
-        end_s = proj.s[first] + self.window.length
+        first = k
+        if self.window.behind > 0.0:  # back along the route, not over the cusp before
+            move_start = int(np.argmax(proj.move == proj.move[k]))
+            back = int(np.searchsorted(proj.s, proj.s[k] - self.window.behind, side="left"))
+            first = max(back, move_start)
+        first = min(first, n - MIN_POINTS)  # a plan has at least four waypoints
+        end_s = proj.s[k] + self.window.length
         last = max(int(np.searchsorted(proj.s, end_s, side="right")), first + MIN_POINTS)
         cut = slice(first, min(last, n))
         plan = Trajectory(
             x=route.x[cut], y=route.y[cut], heading=route.heading[cut], speed=route.speed[cut]
         )
+        if self.window.resample:
+            plan = _resampled(plan, (0.1 + RESAMPLE_STEP * self.sent) % 1.0)
+        self.sent += 1
         self.plan, self.last_sent = Stamped(plan, now), now
         return self.plan
+
+
+def _resampled(plan: Trajectory, fraction: float) -> Trajectory:
+    """``plan`` with every waypoint but its ends and its cusps moved ``fraction`` (0–1) of the
+    way to the next one (x, y, heading and speed alike)."""
+    keep = np.zeros(len(plan), dtype=bool)
+    keep[[0, -1]] = True
+    keep[[seg.end for seg in split_segments(plan)]] = True
+    move = ~(keep | np.r_[keep[1:], True])  # neither kept nor just before a kept one
+    nxt = np.r_[np.arange(1, len(plan)), len(plan) - 1]
+    f = np.where(move, fraction, 0.0)
+    turn = np.angle(np.exp(1j * (plan.heading[nxt] - plan.heading)))
+    return Trajectory(
+        x=plan.x + f * (plan.x[nxt] - plan.x),
+        y=plan.y + f * (plan.y[nxt] - plan.y),
+        heading=plan.heading + f * turn,
+        speed=plan.speed + f * (plan.speed[nxt] - plan.speed),
+    )
 
 
 @dataclass(frozen=True)
@@ -785,7 +821,12 @@ def _result(
         "finished": False,  # decided below
         "rolling_window": None
         if window is None
-        else {"length_m": window.length, "period_s": window.period},
+        else {
+            "length_m": window.length,
+            "period_s": window.period,
+            "behind_m": window.behind,
+            "resample": window.resample,
+        },
         **figures,
         "ecu_frames_rejected": ecu_rejected,
     }
