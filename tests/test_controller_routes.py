@@ -220,6 +220,19 @@ def test_a_rolling_window_resent_at_a_cusp_does_not_restart_the_brake_release() 
     assert out.accel < 0.0  # driving off backwards: d(v)/dt < 0 in reverse
 
 
+def test_a_re_sampled_closed_loop_is_resumed_at_its_start_not_its_end() -> None:
+    """A closed loop's end lies on its start: a re-sampled copy re-sent while the car stands
+    at the start has two passes through the car's place, equally near. Resumed on the last
+    one, the car would be at the end of its route: the first tick's "finished" of issue 13."""
+    route = routes.closed_loop()
+    old = ReferencePath(route)
+    prog = Progress(old, window=20)
+    prog.update(float(route.x[0]), float(route.y[0]), float(route.heading[0]))
+    resumed = prog.resumed_on(ReferencePath(_resampled(route, 0, len(route), phase=0.3)))
+    assert resumed is not None and resumed.s == pytest.approx(0.0, abs=1e-9)
+    assert resumed.index == 0
+
+
 def test_a_re_sampled_window_resent_at_a_cusp_is_resumed_there() -> None:
     """A planner that re-samples every cycle and keeps 5 m behind the car: no window shares a
     point with the last, so none was taken as continuing it. Each restarted on the segment

@@ -660,6 +660,7 @@ class Progress:
     MATCH_HEADING = 0.01  # rad, a continued plan's waypoints match the previous plan's this well
     RESUME_DISTANCE = 0.1  # m, a re-sampled plan passes this close to the previous progress
     RESUME_HEADING = 0.2  # rad, and heads the same way there within this
+    RESUME_TIE = 0.01  # m, passes this much farther than the nearest count as near
 
     def __init__(self, path: ReferencePath, window: int) -> None:
         self.path = path
@@ -803,7 +804,10 @@ class Progress:
         car has just finished, and each new plan sent it back to the stop, its brake hold and
         its wheel alignment: the car never drove off. Here the progress's point on the old plan
         is looked up on the new one: on a segment of the same direction that passes within
-        :attr:`RESUME_DISTANCE` of it, heading within :attr:`RESUME_HEADING`, the nearest.
+        :attr:`RESUME_DISTANCE` of it, heading within :attr:`RESUME_HEADING`: the nearest
+        such pass, and of passes as near the first (a closed loop's end lies on its start, and
+        is not where the car is; a parking maneuver's two reverse moves lie side by side, and
+        the nearer is).
         """
         if not self._started:
             return None
@@ -814,7 +818,7 @@ class Progress:
         px = old._x[j] + t * (old._x[j + 1] - old._x[j])
         py = old._y[j] + t * (old._y[j + 1] - old._y[j])
         heading = float(old.values[j, 2])
-        best: tuple[float, int, int, float] | None = None  # distance, segment, chord, fraction
+        passes: list[tuple[float, int, int, float]] = []  # distance, segment, chord, fraction
         for k, new_seg in enumerate(path.segments):
             if new_seg.direction != seg.direction:
                 continue
@@ -825,14 +829,19 @@ class Progress:
                 ((px - ax) * dx + (py - ay) * dy) / np.maximum(dx * dx + dy * dy, 1e-12), 0.0, 1.0
             )
             dist = np.hypot(px - ax - u * dx, py - ay - u * dy)
-            i = int(np.argmin(dist))
-            turn = abs(math.remainder(float(path.values[a + i, 2]) - heading, 2.0 * math.pi))
-            near = dist[i] <= self.RESUME_DISTANCE and turn <= self.RESUME_HEADING
-            if near and (best is None or dist[i] < best[0]):
-                best = (float(dist[i]), k, a + i, float(u[i]))
-        if best is None:
+            turn = np.abs(np.angle(np.exp(1j * (path.values[a:b, 2] - heading))))
+            near = (dist <= self.RESUME_DISTANCE) & (turn <= self.RESUME_HEADING)
+            # each run of near chords is one pass of the plan by the point: its nearest chord
+            starts = np.flatnonzero(near & ~np.r_[False, near[:-1]])
+            ends = np.flatnonzero(near & ~np.r_[near[1:], False]) + 1
+            for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
+                i = lo + int(np.argmin(dist[lo:hi]))
+                passes.append((float(dist[i]), k, a + i, float(u[i])))
+        if not passes:
             return None
-        _, k, i, frac = best
+        # the nearest pass; of passes as near (a closed loop's end lies on its start), the first
+        nearest = min(d for d, _, _, _ in passes)
+        _, k, i, frac = next(p for p in passes if p[0] <= nearest + self.RESUME_TIE)
         resumed = Progress(path, self.window)
         resumed.seg_index = k
         resumed.s = float(path.s[i] + frac * (path.s[i + 1] - path.s[i]))
