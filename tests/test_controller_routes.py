@@ -19,6 +19,7 @@ from leafgate.control.mpc import MpcController
 from leafgate.control.reference import Progress, ReferencePath, split_segments
 from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
 from leafgate.settings import LeafgateConfig, load_config
+from leafgate.sim import runner
 from leafgate.sim.plant import STANDSTILL_SPEED, KinematicPlant, gear_direction, make_plant
 from leafgate.sim.runner import run_direct
 from tests import routes
@@ -182,20 +183,9 @@ def _aside(traj: Trajectory, offset: float) -> Trajectory:
 
 
 def _resampled(route: Trajectory, first: int, last: int, phase: float) -> Trajectory:
-    """Waypoints ``first … last − 1`` of ``route`` as a planner re-samples them each cycle:
-    every point but the ends and the cusps moved ``phase`` (0–1) of the way to the next one,
-    so no point is the last plan's (Autoware's planners re-sample on every cycle)."""
-    part = _window(route, first, last)
-    keep = {0, len(part) - 1} | {seg.end for seg in split_segments(part)}
-    x, y, h, v = part.x.copy(), part.y.copy(), part.heading.copy(), part.speed.copy()
-    for i in range(len(part) - 1):
-        if i in keep or i + 1 in keep:
-            continue
-        x[i] += phase * (part.x[i + 1] - part.x[i])
-        y[i] += phase * (part.y[i + 1] - part.y[i])
-        h[i] += phase * math.remainder(part.heading[i + 1] - part.heading[i], 2.0 * math.pi)
-        v[i] += phase * (part.speed[i + 1] - part.speed[i])
-    return Trajectory(x=x, y=y, heading=h, speed=v)
+    """Waypoints ``first … last − 1`` of ``route`` as a planner re-samples them each cycle (the
+    simulator's planner's re-sampling, ``--window-resample``): no point is the last plan's."""
+    return runner._resampled(_window(route, first, last), phase)
 
 
 def test_a_rolling_window_resent_at_a_cusp_does_not_restart_the_brake_release() -> None:
