@@ -473,6 +473,35 @@ def test_diagnostics_arrive_as_json_objects(
     assert got[0] == {"state": "STOPPING", "age": None, "xy": [1.0, 2.0]}
 
 
+def test_a_record_delivered_as_the_watch_ends_is_counted(
+    gateway: GatewayTransport, tool: zenoh.Session, configs: Any
+) -> None:
+    # The callback is still running when the watch's time is up: the count returned must
+    # include it, and nothing may be delivered after it.
+    got: list[dict[str, Any]] = []
+    stop = threading.Event()
+
+    def slow(data: dict[str, Any]) -> None:
+        time.sleep(0.6)
+        got.append(data)
+
+    def publish() -> None:
+        while not stop.is_set():
+            gateway.publish_diagnostics({"state": GatewayState.STOPPING})
+            time.sleep(0.01)
+
+    thread = threading.Thread(target=publish)
+    thread.start()
+    try:
+        count = client.watch_diagnostics(configs[1], slow, duration=0.5, session=tool)
+        delivered = len(got)
+        time.sleep(0.7)  # a callback let through late would append by now
+    finally:
+        stop.set()
+        thread.join()
+    assert count == delivered == len(got) > 0
+
+
 def test_json_encoding_end_to_end(handler: Handler) -> None:
     port = free_port()
     gw_cfg = ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",), encoding="json")

@@ -243,7 +243,9 @@ def watch_diagnostics(
     :returns: the number of diagnostics objects delivered
     """
     count = 0
+    closed = False  # set once the subscription is gone: a late callback delivers nothing
     lock = threading.Lock()
+    delivery = threading.Lock()  # one delivery at a time, and none after ``closed``
     seen = watch if watch is not None else DiagnosticsWatch()
     holders: set[str] = set()  # Zenoh IDs holding the token now
     base = cfg.key(keys.ALIVE) + "/"
@@ -273,9 +275,12 @@ def watch_diagnostics(
             return
         if isinstance(data, dict):
             with lock:
-                count += 1
                 seen.gateways.add(zid)
-            callback(data)
+            with delivery:
+                if closed:
+                    return
+                count += 1
+                callback(data)
 
     with _session_for(cfg, session) as s:
         # The tokens first (with those already there), so the first records are judged.
@@ -288,7 +293,10 @@ def watch_diagnostics(
                 subscriber.undeclare()
         finally:
             tokens.undeclare()
-    with lock:
+    # Zenoh's undeclare does not wait for a callback already running: close the gate so the
+    # count returned is the number of objects the callback was given, now and later.
+    with delivery:
+        closed = True
         return count
 
 
