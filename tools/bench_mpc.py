@@ -7,9 +7,10 @@ standing starts — on the path (constraints inactive almost throughout), 0.8 m 
 the same run, by DAQP, Hildreth (the configured sweep cap), OSQP updated in place (the
 controller's way) and OSQP set up anew; ratios are to DAQP, and each backend's first moves are
 compared with DAQP's (converged counts and the largest difference, as measured). The whole MPC
-step is compared with the same optimisation written with cvxpy three ways (:func:`_cvxpy_rows`:
-the condensed QP handed over, the paper's problem built every step, the paper's problem with
-parameters), each row with the speed-up and whether it reaches the 100× goal (``pip install
+step is compared with the same optimisation written with cvxpy four ways (:func:`_cvxpy_rows`:
+the model handed over with the states as variables, the condensed QP handed over, the paper's
+problem built every step, the paper's problem with parameters), each row with the speed-up and
+whether it reaches the 100× goal (``pip install
 'leafgate[bench]'``; skipped, and said so, when cvxpy is missing). One untimed drive comes
 first, so that the first backend timed does not pay for the process's warm-up. Prints one JSON
 document; times in microseconds.
@@ -24,6 +25,8 @@ import json
 import math
 import platform
 import time
+import warnings
+from collections import Counter
 from typing import Any
 
 import numpy as np
@@ -33,6 +36,7 @@ import scipy.sparse as sp
 from leafgate.config import VehicleConfig
 from leafgate.config.control import MpcConfig
 from leafgate.config.sim import PlantConfig
+from leafgate.control.model import N_STATES, augment_steer_lag, linearise_along
 from leafgate.control.mpc import MpcController
 from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
 from leafgate.messages import Pose
@@ -56,12 +60,23 @@ class _RecordingController(MpcController):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.qps: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self.terms: list[tuple[np.ndarray, np.ndarray]] = []
+        self.terms: list[tuple[np.ndarray, np.ndarray, tuple]] = []
         self.record = False
-        self._last_terms: tuple[np.ndarray, np.ndarray] | None = None
+        self._last_terms: tuple[np.ndarray, np.ndarray, tuple] | None = None
+        self._last_model: tuple = ()
+        predict = self._predict
+
+        def recording(speed: np.ndarray, heading: np.ndarray, tan: float, dx0: Any) -> Any:
+            ST, free = predict(speed, heading, tan, dx0)
+            # the model the prediction was built from: operating points and Δx₀ (for the
+            # cvxpy row that hands cvxpy the model itself), and the free response
+            self._last_model = (speed.copy(), heading.copy(), tan, np.array(dx0), free.copy())
+            return ST, free
+
+        self._predict = recording  # type: ignore[assignment]
 
     def _qp_terms(self, ST: np.ndarray, err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        self._last_terms = (ST, err)
+        self._last_terms = (ST, err, self._last_model)
         return super()._qp_terms(ST, err)
 
     def _solve(self, E: np.ndarray, f: np.ndarray, gamma: np.ndarray) -> QpResult:
@@ -71,7 +86,8 @@ class _RecordingController(MpcController):
             # the solver rows re-solve every QP with one M: the S-curve is driven forward only
             assert self.M is self._M_dir[1], "a QP of the reverse direction"
             self.qps.append((E.copy(), f.copy(), gamma.copy()))
-            self.terms.append((self._last_terms[0].copy(), self._last_terms[1].copy()))
+            ST, err, model = self._last_terms
+            self.terms.append((ST.copy(), err.copy(), model))
         return result
 
 
@@ -198,23 +214,50 @@ def _solver_rows(ctrl: MpcController, qps: list, repeats: int) -> dict[str, Any]
 
 
 CVXPY_SAMPLES = 60  # constrained QPs per cvxpy row, spread over the whole run
+SAME_QP_CHECKS = 5  # of them solved to 1e-12 by the states row, to check it is the same QP
+
+
+def _model(ctrl: MpcController, err: np.ndarray, recorded: tuple) -> tuple:
+    """The model one QP was built from, as the ``states_as_variables`` row hands it to cvxpy:
+    the Jacobians ``Aₖ``, ``Bₖ`` at the step's operating points (the functions of the paper's
+    equations, not the controller's closed form), the reference relative to ``y₀`` (4, Np), and
+    ``Δx₀``."""
+    speed, heading, tan, dx0, free = recorded
+    Np, Ts, L = ctrl.Np, ctrl.Ts, ctrl.L
+    A, B = linearise_along(speed, heading, np.full(Np, tan), Ts, L)
+    if ctrl.steer_model:
+        A, B = augment_steer_lag(A, B, ctrl._alpha, Ts, speed, L)
+    ref = (err + free).reshape(N_STATES, Np)  # Rs − y₀: err is Rs − F x
+    return A, B, ref, dx0
 
 
 def _cvxpy_rows(ctrl: _RecordingController, qps: list, terms: list) -> dict[str, Any]:
-    """The MPC's optimisation written with cvxpy (solved by OSQP through it), three ways, on
-    the same constrained QPs as the solver rows:
+    """The MPC's optimisation written with cvxpy, four ways, on the same constrained QPs as the
+    solver rows (solved by OSQP through cvxpy; the first row by Clarabel, see there):
 
+    - ``states_as_variables``: the model handed over, as a cvxpy MPC is usually written (so
+      PythonRobotics' ``linear_mpc_control``): the states ``Δxₖ`` and outputs ``yₖ`` are
+      variables, each step's dynamics ``Δxₖ₊₁ = Aₖ Δxₖ + Bₖ Δuₖ``, ``yₖ₊₁ = yₖ + C Δxₖ₊₁`` a
+      constraint, the cost a sum of per-step quadratic forms; cvxpy condenses nothing, the
+      solver gets the sparse problem. Built and solved every step (the Jacobians change), by
+      Clarabel at its default tolerances: cvxpy's OSQP stops at its iteration limit on about a
+      quarter of these problems, and its time would be that of a failed solve.
+      ``Aₖ`` and ``Bₖ`` come from :func:`~leafgate.control.model.linearise_along` (and
+      :func:`~leafgate.control.model.augment_steer_lag`) at the controller's operating points,
+      taken before the clock starts. That it is the MPC's QP is checked on the first
+      ``SAME_QP_CHECKS`` QPs, solved to 1e-12 by Clarabel: the largest first-move difference
+      to DAQP is reported as ``same_qp_first_move_max_diff`` (1e-10 on a good run);
     - ``given_hessian``: the condensed QP ``½ΔUᵀEΔU + fᵀΔU, MΔU ≤ γ`` handed over with ``E``
       and ``f`` already formed (the MPC's own work), problem built and solved every step;
     - ``paper_problem``: the problem as the paper states it, ``(Rs − Fx − ΦΔU)ᵀQ(Rs − Fx −
-      ΦΔU) + ΔUᵀR̄ΔU`` with ``MΔU ≤ γ``, from ``Φ`` (``Sᵀ`` transposed) and ``Rs − Fx``: what a
-      cvxpy user writes, built and solved every step (the linearisation changes every step);
+      ΦΔU) + ΔUᵀR̄ΔU`` with ``MΔU ≤ γ``, from ``Φ`` (``Sᵀ`` transposed) and ``Rs − Fx`` (the
+      condensing done by the MPC), built and solved every step;
     - ``parametrized``: the paper's problem built once with ``Φ``, ``Rs − Fx`` and ``γ`` as cvxpy
       parameters (DPP), their values set and the problem solved every step.
 
     The reference and prediction a cvxpy MPC step also needs are not added: each row is a lower
     bound of such a step. Every row's first moves are compared with DAQP's (largest difference,
-    as measured: cvxpy's OSQP stops at its default tolerances).
+    as measured: cvxpy's OSQP stops at its default tolerances), and cvxpy's statuses counted.
     """
     try:
         import cvxpy as cp
@@ -222,24 +265,55 @@ def _cvxpy_rows(ctrl: _RecordingController, qps: list, terms: list) -> dict[str,
         return {"skipped": "cvxpy not installed (pip install 'leafgate[bench]')"}
     M = ctrl.M
     pick = np.linspace(0, len(qps) - 1, min(CVXPY_SAMPLES, len(qps))).round().astype(int)
-    sample = [(*qps[i], *terms[i]) for i in pick]
-    reference = [DaqpBackend(M).solve(E, f, g).x[:2] for E, f, g, _, _ in sample]
+    sample = [(*qps[i], terms[i][0], terms[i][1], _model(ctrl, *terms[i][1:])) for i in pick]
+    reference = [DaqpBackend(M).solve(E, f, g).x[:2] for E, f, g, *_ in sample]
     sqrt_q = np.sqrt(ctrl._q_out)
     sqrt_r = np.sqrt(ctrl.r_bar)
     n = M.shape[1]
 
-    def given_hessian(E: np.ndarray, f: np.ndarray, g: np.ndarray, *_: Any) -> np.ndarray:
+    def given_hessian(E: np.ndarray, f: np.ndarray, g: np.ndarray, *_: Any) -> Any:
         x = cp.Variable(n)
         cost = 0.5 * cp.quad_form(x, cp.psd_wrap(E)) + f @ x
-        cp.Problem(cp.Minimize(cost), [M @ x <= g]).solve(solver=cp.OSQP)
-        return np.asarray(x.value)
+        problem = cp.Problem(cp.Minimize(cost), [M @ x <= g])
+        problem.solve(solver=cp.OSQP)
+        return x.value, problem.status
 
-    def paper(_E: Any, _f: Any, g: np.ndarray, ST: np.ndarray, err: np.ndarray) -> np.ndarray:
+    Np = ctrl.Np
+    q_step = np.diag(ctrl.q_bar[:N_STATES])  # Q of one step's outputs
+    move_at = {int(k): j for j, k in enumerate(ctrl._moves)}  # step → the move acting from it
+
+    def states(
+        _E: Any, _f: Any, g: np.ndarray, _ST: Any, _err: Any, model: tuple, tight: bool = False
+    ) -> Any:
+        A, B, ref, dx0 = model
+        ns = A.shape[1]
+        C = np.eye(N_STATES, ns)
+        x = cp.Variable(n)  # ΔU, the moves
+        dx = cp.Variable((Np + 1, ns))  # Δx₀ … Δx_Np
+        y = cp.Variable((Np + 1, N_STATES))  # outputs, relative to y₀
+        constraints = [dx[0] == dx0, y[0] == 0, M @ x <= g]
+        cost = cp.sum_squares(cp.multiply(sqrt_r, x))
+        for k in range(Np):
+            step = A[k] @ dx[k]
+            if k in move_at:
+                j = move_at[k]
+                step = step + B[k] @ x[2 * j : 2 * j + 2]
+            constraints += [dx[k + 1] == step, y[k + 1] == y[k] + C @ dx[k + 1]]
+            cost += cp.quad_form(ref[:, k] - y[k + 1], q_step)
+        problem = cp.Problem(cp.Minimize(cost), constraints)
+        if tight:  # the check that this is the MPC's QP: solved to 1e-12
+            problem.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
+        else:
+            problem.solve(solver=cp.CLARABEL)
+        return x.value, problem.status
+
+    def paper(_E: Any, _f: Any, g: np.ndarray, ST: np.ndarray, err: np.ndarray, *_: Any) -> Any:
         x = cp.Variable(n)
         cost = cp.sum_squares(cp.multiply(sqrt_q, err - ST.T @ x))
         cost += cp.sum_squares(cp.multiply(sqrt_r, x))
-        cp.Problem(cp.Minimize(cost), [M @ x <= g]).solve(solver=cp.OSQP)
-        return np.asarray(x.value)
+        problem = cp.Problem(cp.Minimize(cost), [M @ x <= g])
+        problem.solve(solver=cp.OSQP)
+        return x.value, problem.status
 
     outputs = sample[0][3].shape[1]  # 4 Np predicted outputs
     phi = cp.Parameter((n, outputs))  # Φᵀ: Sᵀ as the MPC forms it
@@ -250,25 +324,43 @@ def _cvxpy_rows(ctrl: _RecordingController, qps: list, terms: list) -> dict[str,
     cost += cp.sum_squares(cp.multiply(sqrt_r, xp))
     problem = cp.Problem(cp.Minimize(cost), [M @ xp <= gamma])
 
-    def parametrized(_E: Any, _f: Any, g: np.ndarray, ST: np.ndarray, err: np.ndarray) -> Any:
+    def parametrized(
+        _E: Any, _f: Any, g: np.ndarray, ST: np.ndarray, err: np.ndarray, *_: Any
+    ) -> Any:
         phi.value, rs.value, gamma.value = ST, err, g
         problem.solve(solver=cp.OSQP)
-        return np.asarray(xp.value)
+        return xp.value, problem.status
 
     rows: dict[str, Any] = {"n": len(sample)}
+    # cvxpy warns of an inaccurate solution on stderr; each row counts its statuses instead
+    warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
     for name, solve in (
+        ("states_as_variables", states),
         ("given_hessian", given_hessian),
         ("paper_problem", paper),
         ("parametrized", parametrized),
     ):
         solve(*sample[0])  # the first call compiles (parametrized: once for all)
-        times, diffs = [], []
+        times, diffs, statuses = [], [], Counter[str]()
         for qp, ref in zip(sample, reference, strict=True):
             t0 = time.perf_counter()
-            x = solve(*qp)
+            x, status = solve(*qp)
             times.append(time.perf_counter() - t0)
-            diffs.append(float(np.abs(x[:2] - ref).max()))
-        rows[name] = {**_stats(times), "first_move_max_diff_to_daqp": max(diffs)}
+            statuses[status] += 1
+            if x is not None:
+                diffs.append(float(np.abs(x[:2] - ref).max()))
+        rows[name] = {
+            **_stats(times),
+            "status": dict(statuses),  # cvxpy's word: "optimal", "optimal_inaccurate", …
+            "first_move_max_diff_to_daqp": max(diffs) if diffs else None,
+        }
+    tight = [
+        states(E, f, g, ST, err, m, tight=True) for E, f, g, ST, err, m in sample[:SAME_QP_CHECKS]
+    ]
+    rows["states_as_variables"]["same_qp_first_move_max_diff"] = max(
+        (float(np.abs(x[:2] - ref).max()) if x is not None else math.inf)
+        for (x, _), ref in zip(tight, reference, strict=False)
+    )
     return rows
 
 
