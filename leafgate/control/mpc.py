@@ -246,8 +246,11 @@ class MpcController:
         )
         self._osqp: OsqpBackend | None = None
         self._osqp_M = self.M  # the constraint matrix OSQP holds (same pattern both ways)
-        self._daqp_dir = {d: DaqpBackend(M) for d, M in self._M_dir.items()}
-        self._daqp = self._daqp_dir[1] if cfg.solver == "daqp" else None
+        # DAQP holds M: one backend per direction, built only when it is the solver
+        self._daqp_dir = (
+            {d: DaqpBackend(M) for d, M in self._M_dir.items()} if cfg.solver == "daqp" else {}
+        )
+        self._daqp = self._daqp_dir.get(1)
         if cfg.solver == "osqp":
             E0 = np.eye(Nc * m)
             self._osqp = OsqpBackend(E0, self.M, eps=cfg.osqp_tolerance)

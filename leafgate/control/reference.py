@@ -427,9 +427,7 @@ class ReferencePath:
         profile starting at rest still reaches ahead
     """
 
-    def __init__(
-        self, traj: Trajectory, creep_speed: float = 0.3, stop_decel: float = STOP_DECEL
-    ) -> None:
+    def __init__(self, traj: Trajectory, creep_speed: float = 0.3) -> None:
         self.traj = traj
         n = len(traj)
         self.n = n
@@ -447,10 +445,10 @@ class ReferencePath:
         for seg in self.segments:
             sl = slice(seg.start, seg.end + 1)
             mag = np.maximum(seg.direction * traj.speed[sl], 0.0)
-            # no faster than a stop at ``stop_decel`` reaches the segment's end (zero there):
+            # no faster than a stop at ``STOP_DECEL`` reaches the segment's end (zero there):
             # a plan that keeps its speed up to a cusp or its goal is slowed in time
             to_end = self.s[seg.end] - self.s[sl]
-            np.minimum(mag, np.sqrt(2.0 * stop_decel * to_end), out=mag)
+            np.minimum(mag, np.sqrt(2.0 * STOP_DECEL * to_end), out=mag)
             mag[-1] = 0.0
             if seg.start > 0:  # a cusp: the car stands there, also as the next segment starts
                 mag[0] = 0.0
