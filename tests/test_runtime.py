@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import threading
 import time
@@ -31,7 +32,7 @@ from leafgate.messages import (
     SystemReport,
     Trajectory,
 )
-from leafgate.runtime.daemon import StablePlan, same_plan, tool_view
+from leafgate.runtime.daemon import StablePlan, same_plan, signals_set, tool_view
 from leafgate.runtime.loop import RequestBox, Runtime
 from leafgate.runtime.receiver import CanReceiver
 from leafgate.runtime.systemd import sd_notify
@@ -386,3 +387,18 @@ def test_frames_waiting_sees_unread_data_in_a_bus_socket() -> None:
         b.recv(16)
         assert not frames_waiting([SocketBus(b)])  # type: ignore[list-item]
     assert not frames_waiting([NoFileno()])  # type: ignore[list-item]
+
+
+@pytest.mark.timeout(20)
+def test_a_signal_that_lands_while_the_loop_sleeps_on_stop_still_stops_it() -> None:
+    """The control loop sleeps in ``stop.wait``; a signal handled while that call holds the
+    event's lock once made ``Event.set`` in the handler wait for the lock its own thread held:
+    the daemon ignored Ctrl-C for good (CI: "run × sigint: still running")."""
+    stop = threading.Event()
+    before = signal.getsignal(signal.SIGTERM)
+    with signals_set(stop):
+        with stop._cond:  # type: ignore[attr-defined]  # the lock stop.wait holds at times
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.1)  # the handler runs here, on this thread, inside the lock
+        assert stop.wait(timeout=10.0)
+    assert signal.getsignal(signal.SIGTERM) == before  # the handler is restored

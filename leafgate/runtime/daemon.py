@@ -14,6 +14,7 @@ import functools
 import gc
 import logging
 import os
+import queue
 import signal
 import sys
 import threading
@@ -113,21 +114,39 @@ def build_gateway(
 
 @contextmanager
 def signals_set(stop: threading.Event) -> Iterator[None]:
-    """SIGINT and SIGTERM set ``stop`` (main thread only; elsewhere a no-op)."""
+    """SIGINT and SIGTERM set ``stop`` (main thread only; elsewhere a no-op).
+
+    The handler does not set ``stop`` itself. Python runs it on the main thread between two
+    bytecodes, and the main thread spends its time in ``stop.wait`` (the loop's sleep to the
+    next tick): caught while it holds the event's lock, ``Event.set`` in the handler waits for
+    that lock, held by the thread it runs on, for ever (a daemon that ignored Ctrl-C, once in
+    a few dozen starts). The handler only puts the signal on a :class:`queue.SimpleQueue`,
+    whose ``put`` is safe in a signal handler; a thread takes it from there, logs it and sets
+    ``stop``.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    signals: queue.SimpleQueue[int | None] = queue.SimpleQueue()
+
+    def relay() -> None:
+        while (signum := signals.get()) is not None:
+            log.info("%s received: disengaging and shutting down", signal.Signals(signum).name)
+            stop.set()
 
     def handler(signum: int, _frame: Any) -> None:
-        log.info("%s received: disengaging and shutting down", signal.Signals(signum).name)
-        stop.set()
+        signals.put(signum)
 
+    thread = threading.Thread(target=relay, name="leafgate-signals", daemon=True)
+    thread.start()
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+        signals.put(None)
+        thread.join()
 
 
 SWITCH_INTERVAL = 0.001  # s, how long a thread may hold the GIL while another waits (default 5 ms)
