@@ -119,8 +119,8 @@ def signals_set(stop: threading.Event) -> Iterator[None]:
     The handler does not set ``stop`` itself. Python runs it on the main thread between two
     bytecodes, and the main thread spends its time in ``stop.wait`` (the loop's sleep to the
     next tick): caught while it holds the event's lock, ``Event.set`` in the handler waits for
-    that lock, held by the thread it runs on, for ever (a daemon that ignored Ctrl-C, once in
-    a few dozen starts). The handler only puts the signal on a :class:`queue.SimpleQueue`,
+    that lock, held by the thread it runs on, for ever (a daemon that ignored Ctrl-C: once in
+    about 130 starts here). The handler only puts the signal on a :class:`queue.SimpleQueue`,
     whose ``put`` is safe in a signal handler; a thread takes it from there, logs it and sets
     ``stop``.
     """
