@@ -123,6 +123,7 @@ trajectory files (--trajectory, publish-trajectory):
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
+    from leafgate.control.reference import turn_radius
     from leafgate.sim.metrics import collision
     from leafgate.sim.plots import plot_drive
     from leafgate.sim.runner import Injection, run, run_direct
@@ -247,7 +248,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
         vehicle = cfg.vehicle
-        car = vehicle.wheelbase / math.tan(vehicle.max_steer_angle)
+        car = turn_radius(vehicle.wheelbase, vehicle.max_steer_angle)
         plan = metrics["plan_min_turn_radius_m"]
         if plan < car:  # say it when the plan itself cannot be driven as sent
             x, y = metrics["plan_min_turn_radius_at"]

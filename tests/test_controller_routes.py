@@ -160,14 +160,14 @@ def test_a_plan_that_continues_the_last_keeps_the_progress_and_the_segment() -> 
     assert prog.continued_on(ReferencePath(moved)) is None
     assert prog.continued_on(ReferencePath(_window(route, cusp + 5, cusp + 40))) is None
     # prepare_plan carries it, or starts afresh
-    from leafgate.control.reference import prepare_plan
+    from leafgate.control.reference import PathRules, prepare_plan
 
-    _, same, _ = prepare_plan(new.traj, 0.3, 20, previous=prog)
+    _, same, _ = prepare_plan(new.traj, PathRules(), 20, previous=prog)
     assert same is not None and same.segment.direction == -1
-    _, fresh, _ = prepare_plan(_aside(part, 0.5), 0.3, 20, previous=prog)
+    _, fresh, _ = prepare_plan(_aside(part, 0.5), PathRules(), 20, previous=prog)
     assert fresh is not None and fresh.segment.direction == 1 and fresh.s == 0.0
     # a plan over other points through the same place (re-sampled) is resumed there
-    _, resumed, _ = prepare_plan(moved, 0.3, 20, previous=prog)
+    _, resumed, _ = prepare_plan(moved, PathRules(), 20, previous=prog)
     assert resumed is not None and resumed.segment.direction == -1
     assert resumed.s == pytest.approx(float(new.s[3]), abs=1e-9)
 

@@ -11,12 +11,16 @@ import yaml
 
 from leafgate.control.reference import (
     STOP_DECEL,
+    TIGHT_TURN_SPEED,
+    TURN_WINDOW,
     Progress,
     ReferencePath,
     _interp_scalar,
     chord_directions,
     load_trajectory,
     split_segments,
+    tightest_turn,
+    turn_radius,
     validate,
 )
 from leafgate.errors import TrajectoryError
@@ -331,3 +335,52 @@ def test_the_reference_speed_slows_in_time_for_a_stop_the_plan_leaves_too_late()
     gentle = np.minimum(2.8, np.sqrt(STOP_DECEL * to_end))  # half the braking: unchanged
     path = ReferencePath(Trajectory(x, np.zeros(n), np.zeros(n), gentle))
     assert np.array_equal(path.speed, gentle)
+
+
+def _kinked(spacing: float, kink: float) -> Trajectory:
+    """40 m east at 10 km/h with one heading jump of ``kink`` rad at x = 20 m (then north-east),
+    waypoints ``spacing`` m apart, stopping at the end: the turn is the chord into x = 20 m."""
+    s = np.arange(0.0, 40.0 + 1e-9, spacing)
+    heading = np.where(s < 20.0, 0.0, kink)
+    x = np.where(s < 20.0, s, 20.0 + (s - 20.0) * math.cos(kink))
+    y = np.where(s < 20.0, 0.0, (s - 20.0) * math.sin(kink))
+    speed = np.full(len(s), 2.78)
+    speed[-1] = 0.0
+    return Trajectory(x, y, heading, speed)
+
+
+def test_a_turn_tighter_than_the_car_is_approached_at_the_tight_turn_speed() -> None:
+    """A 60° kink (radius 1 m over 1 m) on a 10 km/h plan, for a car turning no tighter than
+    4.7 m: before, the car reached it at 2.9 m/s and braked to 5 m off the plan once the
+    off-the-plan watchdog stopped it. The reference slows to TIGHT_TURN_SPEED there, braking
+    no harder than STOP_DECEL, and speeds up again after it at the same rate."""
+    traj = _kinked(1.0, math.pi / 3)
+    car = turn_radius(2.7, math.radians(30.0))
+    path = ReferencePath(traj, min_turn_radius=car)
+    assert tightest_turn(traj)[0] == pytest.approx(1.0 / (math.pi / 3))
+    at = np.linspace(19.0, 20.0, 11)  # along the chord that turns
+    assert np.all(path.reference_speed(at) <= TIGHT_TURN_SPEED + 1e-12)
+    distance = np.minimum(np.abs(path.s - 19.0), np.abs(path.s - 20.0))
+    ceiling = np.sqrt(TIGHT_TURN_SPEED**2 + 2.0 * STOP_DECEL * distance)
+    assert np.all(np.abs(path.speed) <= ceiling + 1e-12)
+    assert path.speed[0] == 2.78 and path.speed[30] == 2.78  # far from it: the plan's speed
+    # the planned time follows the slower speed (the horizon's points are placed by it)
+    plain = ReferencePath(traj)
+    assert path.time[-1] > plain.time[-1] + 1.0
+    # without a car's radius, or for a car that turns tighter than the kink: as sent
+    assert np.array_equal(plain.speed, ReferencePath(traj, min_turn_radius=0.9).speed)
+
+
+def test_heading_jitter_on_a_dense_plan_is_no_tight_turn() -> None:
+    """0.02 rad of jitter between waypoints 0.1 m apart is a radius of 5 m from one waypoint
+    to the next; over TURN_WINDOW it is a straight road, and the plan keeps its speed."""
+    s = np.arange(0.0, 30.0 + 1e-9, 0.1)
+    n = len(s)
+    jitter = 0.01 * (-1.0) ** np.arange(n)  # ±0.01 rad: 0.02 between neighbours
+    speed = np.full(n, 2.0)
+    speed[-1] = 0.0
+    traj = Trajectory(s, np.zeros(n), jitter, speed)
+    assert TURN_WINDOW > 0.1
+    assert tightest_turn(traj)[0] > 20.0
+    car = turn_radius(2.7, math.radians(30.0))
+    assert np.array_equal(ReferencePath(traj, min_turn_radius=car).speed, ReferencePath(traj).speed)

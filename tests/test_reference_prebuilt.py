@@ -18,17 +18,19 @@ from test_transport import WAIT, configs, wait_until
 
 from leafgate.config import VehicleConfig
 from leafgate.config.control import MpcConfig
-from leafgate.control import reference
+from leafgate.control import make_controller, reference
 from leafgate.control.mpc import MpcController
-from leafgate.control.reference import ReferencePath, prebuild, prepare_plan
+from leafgate.control.reference import PathRules, ReferencePath, prebuild, prepare_plan
 from leafgate.messages import OperatorRequest, Pose, Trajectory
+from leafgate.runtime.daemon import plan_rules
 from leafgate.runtime.node import GatewayTransport
+from leafgate.settings import load_config
 from leafgate.transport import client
 from leafgate.transport.session import open_session
 
 __all__ = ["configs"]  # the (gateway, tool) configs fixture, from test_transport
 
-CREEP = MpcConfig().creep_speed
+RULES = PathRules.of(MpcConfig(), VehicleConfig().wheelbase)  # the default MPC's
 
 
 def plan(n: int = 2000) -> Trajectory:
@@ -45,7 +47,7 @@ class NoBuildInTick(ReferencePath):
 
 def test_the_controller_takes_the_prebuilt_reference(monkeypatch: pytest.MonkeyPatch) -> None:
     traj = plan()
-    prebuild(traj, CREEP)
+    prebuild(traj, RULES)
     monkeypatch.setattr(reference, "ReferencePath", NoBuildInTick)
     controller = MpcController(MpcConfig(), VehicleConfig(), 0.02)
     out = controller.step(Pose(0.0, 0.0, 0.0, 0.0), 0.0, traj)  # built here before
@@ -56,26 +58,48 @@ def test_the_controller_takes_the_prebuilt_reference(monkeypatch: pytest.MonkeyP
 
 
 def test_a_plan_nobody_prebuilt_is_still_built_and_a_bad_one_refused() -> None:
-    path, progress, problem = prepare_plan(plan(50), CREEP, 20)
+    path, progress, problem = prepare_plan(plan(50), RULES, 20)
     assert path is not None and progress is not None and problem == ""
     bad = Trajectory(x=np.zeros(5), y=np.zeros(5), heading=np.zeros(5), speed=np.ones(5))
-    prebuild(bad, CREEP)
-    assert prepare_plan(bad, CREEP, 20)[:2] == (None, None)
-    assert prepare_plan(bad, CREEP, 20)[2]
+    prebuild(bad, RULES)
+    assert prepare_plan(bad, RULES, 20)[:2] == (None, None)
+    assert prepare_plan(bad, RULES, 20)[2]
 
 
-def test_another_creep_speed_builds_its_own() -> None:
+@pytest.mark.parametrize(
+    "other",
+    [
+        PathRules(RULES.creep_speed + 0.1, RULES.min_turn_radius),
+        PathRules(RULES.creep_speed, RULES.min_turn_radius + 0.5),
+    ],
+)
+def test_other_rules_build_their_own(other: PathRules) -> None:
     traj = plan(50)
-    prebuild(traj, CREEP)
-    mine = prepare_plan(traj, CREEP, 20)[0]
-    other = prepare_plan(traj, CREEP + 0.1, 20)[0]
-    assert mine is not None and other is not None and other is not mine
+    prebuild(traj, RULES)
+    mine = prepare_plan(traj, RULES, 20)[0]
+    theirs = prepare_plan(traj, other, 20)[0]
+    assert mine is not None and theirs is not None and theirs is not mine
+
+
+@pytest.mark.parametrize("kind", ["mpc", "pure-pursuit", "stanley"])
+def test_the_daemon_builds_with_the_rules_of_the_configured_controller(
+    kind: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What the daemon prebuilds is what the controller would build: else every plan would be
+    built again in a control tick (nothing fails, a tick is late)."""
+    cfg = load_config(None, {"controller.kind": kind})
+    traj = plan()
+    prebuild(traj, plan_rules(cfg))
+    monkeypatch.setattr(reference, "ReferencePath", NoBuildInTick)
+    controller = make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
+    out = controller.step(Pose(0.0, 0.0, 0.0, 0.0), 0.0, traj)
+    assert math.isfinite(out.steer_angle) and out.route_length > 0.0
 
 
 def test_prebuilt_plans_are_bounded() -> None:
     plans = [plan(20) for _ in range(reference.PREBUILT_PLANS + 3)]
     for p in plans:
-        prebuild(p, CREEP)
+        prebuild(p, RULES)
     assert len(reference._prebuilt_plans) == reference.PREBUILT_PLANS
 
 
@@ -84,7 +108,7 @@ def test_the_transport_builds_a_plan_on_arrival(configs: Any) -> None:
 
     def on_plan(trajectory: Trajectory) -> None:
         built_on.append(threading.current_thread())
-        prebuild(trajectory, CREEP)
+        prebuild(trajectory, RULES)
 
     def refuse(_r: OperatorRequest) -> dict[str, Any]:
         return {"accepted": False}
@@ -96,4 +120,4 @@ def test_the_transport_builds_a_plan_on_arrival(configs: Any) -> None:
         sample = gateway.latest_trajectory()
     assert sample is not None and sample.valid
     assert built_on and built_on[0] is not threading.main_thread()
-    assert reference._prebuilt(sample.value, CREEP) is not None  # ready before the slot
+    assert reference._prebuilt(sample.value, RULES) is not None  # ready before the slot

@@ -42,6 +42,7 @@ from leafgate.config import VehicleConfig
 from leafgate.config.control import PurePursuitConfig, StanleyConfig
 from leafgate.config.control import TrackerConfig as _TrackerConfig
 from leafgate.control.reference import (
+    PathRules,
     Progress,
     ReferencePath,
     Segment,
@@ -108,6 +109,7 @@ class _Tracker:
         self.cfg = cfg
         self.period = period
         self.L = vehicle.wheelbase  # m
+        self._rules = PathRules.of(cfg, vehicle.wheelbase)  # how a plan's reference is built
         self._speed = SpeedPi(cfg.speed_kp, cfg.speed_ki, cfg.speed_integral_band)
         self.reset()
 
@@ -240,7 +242,7 @@ class _Tracker:
         self._aligned = False
         self._finished = False
         self._path, self._progress, self._bad_trajectory = prepare_plan(
-            trajectory, self.cfg.creep_speed, self.cfg.search_window
+            trajectory, self._rules, self.cfg.search_window
         )
 
     def _where(self) -> dict[str, Any]:

@@ -133,6 +133,7 @@ from leafgate.control.model import (
 )
 from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
 from leafgate.control.reference import (
+    PathRules,
     Progress,
     ReferencePath,
     Segment,
@@ -171,6 +172,7 @@ class MpcController:
         self.Np = cfg.prediction_horizon
         self.Nc = cfg.control_horizon
         self.L = vehicle.wheelbase
+        self._rules = PathRules.of(cfg, vehicle.wheelbase)  # how a plan's reference is built
         Np, Nc, m = self.Np, self.Nc, N_INPUTS
 
         self.steer_model = cfg.model == "kinematic_steer_lag"
@@ -310,7 +312,7 @@ class MpcController:
         self._finished = False
         self._lam = None
         self._path, self._progress, self._bad_trajectory = prepare_plan(
-            trajectory, self.cfg.creep_speed, self.cfg.search_window, self._progress
+            trajectory, self._rules, self.cfg.search_window, self._progress
         )
 
     def _where(self) -> dict[str, Any]:

@@ -29,7 +29,7 @@ import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -240,6 +240,10 @@ def validate(traj: Trajectory, source: str, rows: Sequence[int] | None = None) -
 
 
 STOP_DECEL = 1.0  # m/s², the reference speed needs no harder braking to stop at a segment's end
+# (or to slow to TIGHT_TURN_SPEED before a turn tighter than the car can follow)
+TIGHT_TURN_SPEED = 1.0  # m/s, the fastest reference speed on a turn tighter than the car's: the
+# car leaves the plan there, and the off-the-plan watchdog stops it within about 0.5 m
+TURN_WINDOW = 0.5  # m, the shortest stretch of path a turn's radius is measured over
 MAX_HEADING_STEP = math.pi / 2  # rad between neighbouring kept waypoints: more is a flip
 
 
@@ -368,17 +372,69 @@ def chord_directions(traj: Trajectory) -> FloatArray:
     return chords
 
 
+def turn_radius(wheelbase: float, steer_max: float) -> float:
+    """The radius of the tightest turn of a car, m (rear axle): ``L / tan δ_max``."""
+    return wheelbase / math.tan(steer_max)
+
+
+def turn_radii(
+    s: FloatArray, heading: FloatArray
+) -> tuple[FloatArray, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """The radius of the turn measured at each waypoint, m, and the waypoints it starts and
+    ends at.
+
+    A turn runs from a waypoint to the first one at least ``TURN_WINDOW`` farther along the
+    path (the next, on a plan sampled every 0.5 m or more); near the path's end, where there
+    is none, it is the last such stretch, up to the end. Its radius is the arc length over the
+    heading change between its ends (inf when straight). The window keeps a densely sampled
+    plan's heading jitter from reading as a tight turn: 0.02 rad between waypoints 0.1 m apart
+    is a radius of 5 m, but accumulates to nothing over the window.
+
+    :param s: m, arc length of the waypoints (non-decreasing)
+    :param heading: rad, their headings, unwrapped
+    """
+    last = len(s) - 1
+    end = np.minimum(np.searchsorted(s, s + TURN_WINDOW, side="left"), last)
+    start = np.searchsorted(s, s[end] - TURN_WINDOW, side="right") - 1
+    np.clip(start, 0, np.arange(len(s)), out=start)  # back from the end only: never past i
+    turn = np.abs(heading[end] - heading[start])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        radius = np.where(turn > 0.0, (s[end] - s[start]) / turn, np.inf)
+    return radius, start, end
+
+
 def tightest_turn(traj: Trajectory) -> tuple[float, int]:
     """The radius of the plan's tightest turn, m (inf: straight), and the waypoint it starts
-    at: per chord, its length over the heading change along it."""
+    at (:func:`turn_radii`)."""
     if len(traj) < 2:
         return math.inf, 0
-    gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
-    turn = np.abs(np.angle(np.exp(1j * np.diff(traj.heading))))  # wrapped to [0, π]
-    with np.errstate(divide="ignore"):
-        radius = np.where(turn > 0.0, gaps / turn, np.inf)
+    s = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(traj.x), np.diff(traj.y)))))
+    radius, start, _ = turn_radii(s, np.unwrap(traj.heading))
     i = int(np.argmin(radius))
-    return float(radius[i]), i
+    return float(radius[i]), int(start[i])
+
+
+def tight_turn_ceiling(s: FloatArray, heading: FloatArray, min_radius: float) -> FloatArray | None:
+    """The speed ceiling of the waypoints near turns tighter than ``min_radius`` m
+    (:func:`turn_radii`), m/s: ``TIGHT_TURN_SPEED`` on them, rising at ``STOP_DECEL`` with the
+    distance from them; None when the path has no such turn.
+
+    :param s: m, arc length of the waypoints (of one segment: the reference's)
+    :param heading: rad, their headings, unwrapped
+    """
+    radius, start, end = turn_radii(s, heading)
+    tight_turns = np.flatnonzero(radius < min_radius)
+    if tight_turns.size == 0:
+        return None
+    marks = np.zeros(len(s) + 1)  # +1 where a tight turn starts, −1 after its end waypoint
+    np.add.at(marks, start[tight_turns], 1.0)
+    np.add.at(marks, end[tight_turns] + 1, -1.0)
+    tight = s[np.cumsum(marks[:-1]) > 0.0]  # arc lengths of the waypoints on a tight turn
+    k = np.searchsorted(tight, s)
+    before = tight[np.maximum(k - 1, 0)]
+    after = tight[np.minimum(k, len(tight) - 1)]
+    distance = np.minimum(np.abs(s - before), np.abs(after - s))
+    return np.sqrt(TIGHT_TURN_SPEED**2 + 2.0 * STOP_DECEL * distance)
 
 
 def directions(traj: Trajectory) -> FloatArray:
@@ -422,12 +478,21 @@ class ReferencePath:
     Built once per trajectory object: arc length, unwrapped heading, direction segments, the
     cubic interpolation denominators and the planned time to reach each waypoint.
 
+    The reference speed is the plan's, within two ceilings: it needs no more than
+    ``STOP_DECEL`` of braking to stop at a segment's end, nor to slow to ``TIGHT_TURN_SPEED``
+    where the plan turns tighter than ``min_turn_radius`` (a turn the car cannot follow is
+    approached and driven slowly, never at the plan's speed).
+
     :param traj: the trajectory (validated by the caller)
     :param creep_speed: m/s, the slowest speed assumed when placing horizon points, so that a
         profile starting at rest still reaches ahead
+    :param min_turn_radius: m, the car's tightest turn (:func:`turn_radius`); 0: none is too
+        tight
     """
 
-    def __init__(self, traj: Trajectory, creep_speed: float = 0.3) -> None:
+    def __init__(
+        self, traj: Trajectory, creep_speed: float = 0.3, min_turn_radius: float = 0.0
+    ) -> None:
         self.traj = traj
         n = len(traj)
         self.n = n
@@ -449,6 +514,10 @@ class ReferencePath:
             # a plan that keeps its speed up to a cusp or its goal is slowed in time
             to_end = self.s[seg.end] - self.s[sl]
             np.minimum(mag, np.sqrt(2.0 * STOP_DECEL * to_end), out=mag)
+            if min_turn_radius > 0.0:  # slowed in time before a turn the car cannot follow
+                ceiling = tight_turn_ceiling(self.s[sl], heading[sl], min_turn_radius)
+                if ceiling is not None:
+                    np.minimum(mag, ceiling, out=mag)
             mag[-1] = 0.0
             if seg.start > 0:  # a cusp: the car stands there, also as the next segment starts
                 mag[0] = 0.0
@@ -886,8 +955,39 @@ class Progress:
         return seg.start + k
 
 
+class _PathLimits(Protocol):
+    """What :meth:`PathRules.of` reads of a controller's config."""
+
+    @property
+    def creep_speed(self) -> float: ...
+    @property
+    def steer_max(self) -> float: ...
+
+
+@dataclass(frozen=True, slots=True)
+class PathRules:
+    """What a controller's :class:`ReferencePath` is built with (its ``creep_speed`` and
+    ``min_turn_radius``): one value, so that a path built where a plan arrives
+    (:func:`prebuild`) is taken only by a controller that would build the same."""
+
+    creep_speed: float = 0.3  # m/s
+    min_turn_radius: float = 0.0  # m, the car's tightest turn; 0: none is too tight
+
+    @classmethod
+    def of(cls, cfg: _PathLimits, wheelbase: float) -> PathRules:
+        """The rules of a controller with config ``cfg`` (``controller.<kind>``) on a car with
+        ``wheelbase`` (m): its creep speed, and the turn it makes at ``steer_max``."""
+        return cls(cfg.creep_speed, turn_radius(wheelbase, cfg.steer_max))
+
+    def build(self, trajectory: Trajectory) -> ReferencePath:
+        """The reference path of a usable ``trajectory`` (overlapping points removed)."""
+        return ReferencePath(
+            remove_overlap_points(trajectory), self.creep_speed, self.min_turn_radius
+        )
+
+
 def prepare_plan(
-    trajectory: Trajectory, creep_speed: float, window: int, previous: Progress | None = None
+    trajectory: Trajectory, rules: PathRules, window: int, previous: Progress | None = None
 ) -> tuple[ReferencePath | None, Progress | None, str]:
     """A controller's view of a new plan: the path without overlapping points, its progress
     tracker and ``""``; or ``None, None`` and why the plan cannot be driven
@@ -896,7 +996,7 @@ def prepare_plan(
     :param previous: the progress on the plan driven so far; carried over when the new plan
         continues it (:meth:`Progress.continued_on`), else the new plan starts afresh
     """
-    built = _prebuilt(trajectory, creep_speed)  # built where the plan arrived: see prebuild
+    built = _prebuilt(trajectory, rules)  # built where the plan arrived: see prebuild
     if built is not None:
         prebuilt, why = built
         if prebuilt is None:
@@ -906,7 +1006,7 @@ def prepare_plan(
         problem = trajectory_problem(trajectory)
         if problem is not None:
             return None, None, problem
-        path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
+        path = rules.build(trajectory)
     carried = None
     if previous is not None:
         carried = previous.continued_on(path) or previous.resumed_on(path)
@@ -922,35 +1022,35 @@ def prepare_plan(
 
 PREBUILT_PLANS = 4  # plans whose reference is kept for the controller
 
-_prebuilt_plans: collections.deque[tuple[weakref.ref[Trajectory], float, ReferencePath | None, str]]
+_prebuilt_plans: collections.deque[
+    tuple[weakref.ref[Trajectory], PathRules, ReferencePath | None, str]
+]
 _prebuilt_plans = collections.deque(maxlen=PREBUILT_PLANS)
 _prebuilt_lock = threading.Lock()
 _HORIZON_PROBE = np.zeros(1)  # one horizon point: enough to build a segment's interpolation
 
 
-def prebuild(trajectory: Trajectory, creep_speed: float) -> None:
+def prebuild(trajectory: Trajectory, rules: PathRules) -> None:
     """Build ``trajectory``'s reference path now, on the caller's thread, for the controller.
 
     Also builds each segment's interpolation tables (else built by the first horizon query).
 
-    :param creep_speed: m/s, the controller's (``controller.<kind>.creep_speed``): a path is
-        taken only by a controller with the same one
+    :param rules: the controller's (:meth:`PathRules.of` its config): a path is taken only by
+        a controller with the same rules
     """
     problem = trajectory_problem(trajectory)
     path = None
     if problem is None:
-        path = ReferencePath(remove_overlap_points(trajectory), creep_speed)
+        path = rules.build(trajectory)
         for seg in path.segments:
             path.horizon(seg, float(path.s[seg.start]), _HORIZON_PROBE)
     with _prebuilt_lock:
-        _prebuilt_plans.append((weakref.ref(trajectory), creep_speed, path, problem or ""))
+        _prebuilt_plans.append((weakref.ref(trajectory), rules, path, problem or ""))
 
 
-def _prebuilt(
-    trajectory: Trajectory, creep_speed: float
-) -> tuple[ReferencePath | None, str] | None:
+def _prebuilt(trajectory: Trajectory, rules: PathRules) -> tuple[ReferencePath | None, str] | None:
     with _prebuilt_lock:
-        for ref, creep, path, problem in reversed(_prebuilt_plans):
-            if ref() is trajectory and creep == creep_speed:
+        for ref, built_with, path, problem in reversed(_prebuilt_plans):
+            if ref() is trajectory and built_with == rules:
                 return path, problem
     return None

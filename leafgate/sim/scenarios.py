@@ -13,7 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from leafgate.control.reference import split_segments
+from leafgate.config import VehicleConfig
+from leafgate.config.control import MpcConfig
+from leafgate.control.reference import (
+    TIGHT_TURN_SPEED,
+    split_segments,
+    tight_turn_ceiling,
+    turn_radius,
+)
 from leafgate.messages import FloatArray, Pose, Trajectory
 
 SPACING = 0.5  # m, waypoint spacing (paper: 0.5–1.0 m)
@@ -34,11 +41,26 @@ class Scenario:
 
 def time_budget(traj: Trajectory) -> float:
     """Simulated time limit for driving ``traj``: its planned travel time (at least 0.2 m/s on
-    every interval), ``CUSP_PAUSE`` per cusp and 10 s to spare, s."""
+    every interval), ``CUSP_PAUSE`` per cusp and 10 s to spare, s.
+
+    Where the plan turns tighter than the default car can, the time is taken at the reference's
+    slower speed there, and each such turn adds ``TIGHT_TURN_SPARE``: a car that cannot follow
+    it leaves the plan, and its projection lingers on the slow stretch until it is back.
+    """
     gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
-    mean = np.maximum(0.5 * np.abs(traj.speed[1:] + traj.speed[:-1]), 0.2)
+    speed = traj.speed
+    s = np.concatenate(([0.0], np.cumsum(gaps)))
+    car = turn_radius(VehicleConfig().wheelbase, MpcConfig().steer_max)
+    ceiling = tight_turn_ceiling(s, np.unwrap(traj.heading), car)
+    tight_turns = 0
+    if ceiling is not None:
+        speed = np.clip(speed, -ceiling, ceiling)
+        on = ceiling <= TIGHT_TURN_SPEED  # the waypoints of the tight turns themselves
+        tight_turns = int(np.count_nonzero(np.diff(on.astype(np.int8), prepend=0) == 1))
+    mean = np.maximum(0.5 * np.abs(speed[1:] + speed[:-1]), 0.2)
     cusps = len(split_segments(traj)) - 1
-    return float(np.sum(gaps / mean)) + CUSP_PAUSE * max(cusps, 0) + 10.0
+    spare = CUSP_PAUSE * max(cusps, 0) + TIGHT_TURN_SPARE * tight_turns + 10.0
+    return float(np.sum(gaps / mean)) + spare
 
 
 def _resample_path(
@@ -137,6 +159,7 @@ PARK_CURVATURE = 0.2  # 1/m, tan(δ)/L of the tightest arc planned: R = 5 m at t
 # δ ≈ 28.4°, inside the MPC's 30° so it keeps steering margin (the Leaf's 31° gives R ≈ 4.5 m)
 PARK_ACCEL = 0.4  # m/s², planned speed-up and slow-down in a parking move
 CUSP_PAUSE = 4.0  # s per cusp in the time budget: stop, turn the wheel at rest, shift gear
+TIGHT_TURN_SPARE = 10.0  # s per turn tighter than the car's in the time budget
 
 
 @dataclass(frozen=True)
