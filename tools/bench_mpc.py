@@ -7,11 +7,11 @@ standing starts — on the path (constraints inactive almost throughout), 0.8 m 
 the same run, by DAQP, Hildreth (the configured sweep cap), OSQP updated in place (the
 controller's way) and OSQP set up anew; ratios are to DAQP, and each backend's first moves are
 compared with DAQP's (converged counts and the largest difference, as measured). The whole MPC
-step with constraints active (timed before and again after the cvxpy rows, the slower median
-used) is compared with the same optimisation written with cvxpy four ways
-(:func:`_cvxpy_rows`: the model handed over with the states as variables, the condensed QP
-handed over, the paper's problem built every step, the paper's problem with parameters), each
-row with the speed-up and whether it reaches the 100× goal (``pip install 'leafgate[bench]'``;
+step with constraints active is compared with the same optimisation written with cvxpy four
+ways, step by step on the same QPs, each timed right after the other (:func:`_cvxpy_rows`: the
+model handed over with the states as variables, the condensed QP handed over, the paper's
+problem built every step, the paper's problem with parameters), each row with the speed-up and
+whether it reaches the 100× goal (``pip install 'leafgate[bench]'``;
 skipped, and said so, when cvxpy is missing). One untimed drive comes first, so that the first
 backend timed does not pay for the process's warm-up. Prints one JSON document; times in
 microseconds.
@@ -22,12 +22,14 @@ microseconds.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import platform
 import time
 import warnings
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -54,9 +56,29 @@ GOAL_CVXPY_RATIO = 100.0  # the whole MPC step vs the cvxpy formulation of its Q
 STARTS = ((0.0, 0.0), (0.8, 0.0), (0.9, math.radians(25.0)))
 
 
+class _RecordingPrediction:
+    """The controller's prediction, which also keeps the model each call was built from while
+    its controller records. A callable object rather than a closure: a deep copy of the
+    controller (:func:`_snapshots`) then records into the copy."""
+
+    def __init__(self, ctrl: _RecordingController, predict: Any) -> None:
+        self.ctrl = ctrl
+        self.predict = predict
+
+    def __call__(self, speed: np.ndarray, heading: np.ndarray, tan: float, dx0: Any) -> Any:
+        ST, free = self.predict(speed, heading, tan, dx0)
+        if self.ctrl.record:
+            # the model the prediction was built from: operating points and Δx₀ (for the
+            # cvxpy row that hands cvxpy the model itself), and the free response
+            model = (speed.copy(), heading.copy(), tan, np.array(dx0), free.copy())
+            self.ctrl._last_model = model
+        return ST, free
+
+
 class _RecordingController(MpcController):
     """Keeps the QPs that reached a solver (constraints active) for the solver rows, and with
-    each the terms the QP was built from (``Sᵀ`` and ``Rs − F x``) for the cvxpy rows."""
+    each the terms the QP was built from (``Sᵀ`` and ``Rs − F x``) for the cvxpy rows; only
+    while ``record`` is set (else it only adds two attribute reads a step)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -65,19 +87,11 @@ class _RecordingController(MpcController):
         self.record = False
         self._last_terms: tuple[np.ndarray, np.ndarray, tuple] | None = None
         self._last_model: tuple = ()
-        predict = self._predict
-
-        def recording(speed: np.ndarray, heading: np.ndarray, tan: float, dx0: Any) -> Any:
-            ST, free = predict(speed, heading, tan, dx0)
-            # the model the prediction was built from: operating points and Δx₀ (for the
-            # cvxpy row that hands cvxpy the model itself), and the free response
-            self._last_model = (speed.copy(), heading.copy(), tan, np.array(dx0), free.copy())
-            return ST, free
-
-        self._predict = recording  # type: ignore[assignment]
+        self._predict = _RecordingPrediction(self, self._predict)  # type: ignore[assignment]
 
     def _qp_terms(self, ST: np.ndarray, err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        self._last_terms = (ST, err, self._last_model)
+        if self.record:
+            self._last_terms = (ST, err, self._last_model)
         return super()._qp_terms(ST, err)
 
     def _solve(self, E: np.ndarray, f: np.ndarray, gamma: np.ndarray) -> QpResult:
@@ -93,11 +107,22 @@ class _RecordingController(MpcController):
 
 
 def _drive(
-    solver: str, offset: float, dpsi: float, record: bool, model: str = "kinematic"
+    solver: str,
+    offset: float,
+    dpsi: float,
+    record: bool,
+    model: str = "kinematic",
+    snapshots: list | None = None,
 ) -> tuple[list, list, Any]:
     """One closed-loop run; returns (step times of unconstrained steps, of constrained, ctrl).
 
-    The second list holds the steps whose QP reached a solver (some constraint active)."""
+    The second list holds the steps whose QP reached a solver (some constraint active).
+
+    :param snapshots: when given, each constrained step's inputs are appended to it with a
+        deep copy of the controller taken just before the step (sharing the plan and its
+        reference path, which a step does not change): ``(copy, pose, steer angle, plan)``.
+        Its step times then include no copying but follow it: not for the timed rows.
+    """
     scenario = get_scenario("s-curve")
     traj = scenario.trajectory
     cfg = MpcConfig(
@@ -121,15 +146,26 @@ def _drive(
     active: list[float] = []
     for _ in range(round(scenario.duration / PERIOD)):
         pose = plant.pose()
+        snapshot = None if snapshots is None else _copy(ctrl, traj)
         t0 = time.perf_counter()
         out = ctrl.step(pose, plant.steer_angle, traj)
         elapsed = time.perf_counter() - t0
         (active if out.iterations > 0 else inactive).append(elapsed)
+        if snapshots is not None and out.iterations > 0:
+            snapshots.append((snapshot, pose, plant.steer_angle, traj))
         if out.finished:
             break
         direction = gear_direction(plant.gear)
         plant.step(PERIOD, out.steer_angle, direction * out.accel, plant.gear)
     return inactive, active, ctrl
+
+
+def _copy(ctrl: _RecordingController, traj: Any) -> _RecordingController:
+    """A deep copy of the controller that shares the plan and its reference path."""
+    memo: dict[int, Any] = {id(traj): traj}
+    if ctrl._path is not None:
+        memo[id(ctrl._path)] = ctrl._path
+    return copy.deepcopy(ctrl, memo)
 
 
 def _stats(samples: list[float]) -> dict[str, float | int]:
@@ -232,9 +268,20 @@ def _model(ctrl: MpcController, err: np.ndarray, recorded: tuple) -> tuple:
     return A, B, ref, dx0
 
 
-def _cvxpy_rows(ctrl: _RecordingController, qps: list, terms: list) -> dict[str, Any]:
-    """The MPC's optimisation written with cvxpy, four ways, on the same constrained QPs as the
-    solver rows (solved by OSQP through cvxpy; the first row by Clarabel, see there):
+def _cvxpy_rows(steps: list) -> dict[str, Any]:
+    """The whole MPC step against its optimisation written with cvxpy, side by side.
+
+    ``steps`` are constrained steps of DAQP drives, each a copy of the controller taken just
+    before the step and the step's inputs (:func:`_drive`'s snapshots). ``CVXPY_SAMPLES`` of
+    them, spread over the drives, are taken. Each is first stepped once, untimed, on a copy
+    that records its QP. Then, row by row, the sampled steps are timed (each on a fresh copy),
+    the row solves their QPs, and the steps are timed again: the row's ``speedup`` is its
+    median over the slower of the two step medians (``mpc_step_median_us``), so a machine whose
+    speed changes during the run does not inflate it. Blocks, not alternation step by step:
+    a step timed right after a cvxpy solve reads 2.5 times slower (cvxpy leaves the caches and
+    the allocator full of its objects), which no tick of the gateway's loop has to live with.
+
+    The four rows (solved by OSQP through cvxpy; the first by Clarabel, see there):
 
     - ``states_as_variables``: the model handed over, as a cvxpy MPC is usually written (so
       PythonRobotics' ``linear_mpc_control``): the states ``Δxₖ`` and outputs ``yₖ`` are
@@ -264,10 +311,28 @@ def _cvxpy_rows(ctrl: _RecordingController, qps: list, terms: list) -> dict[str,
         import cvxpy as cp
     except ImportError:
         return {"skipped": "cvxpy not installed (pip install 'leafgate[bench]')"}
+    pick = np.linspace(0, len(steps) - 1, min(CVXPY_SAMPLES, len(steps))).round().astype(int)
+    picked = [steps[i] for i in pick]
+    sample = []  # per picked step, its QP: E, f, γ, Sᵀ, Rs − F x and the model
+    for snapshot, pose, steer, traj in picked:
+        rec = _copy(snapshot, traj)
+        rec.record = True
+        rec.step(pose, steer, traj)
+        assert len(rec.qps) == 1, "a snapshot's step did not reach the solver again"
+        ST, err, recorded = rec.terms[0]
+        sample.append((*rec.qps[0], ST, err, _model(rec, err, recorded)))
+    ctrl = picked[0][0]
     M = ctrl.M
-    pick = np.linspace(0, len(qps) - 1, min(CVXPY_SAMPLES, len(qps))).round().astype(int)
-    sample = [(*qps[i], terms[i][0], terms[i][1], _model(ctrl, *terms[i][1:])) for i in pick]
     reference = [DaqpBackend(M).solve(E, f, g).x[:2] for E, f, g, *_ in sample]
+
+    def mpc_step(i: int) -> float:
+        """The whole step of sample ``i``, s, on a fresh copy of the controller before it."""
+        snapshot, pose, steer, traj = picked[i]
+        c = _copy(snapshot, traj)
+        t0 = time.perf_counter()
+        c.step(pose, steer, traj)
+        return time.perf_counter() - t0
+
     sqrt_q = np.sqrt(ctrl._q_out)
     sqrt_r = np.sqrt(ctrl.r_bar)
     n = M.shape[1]
@@ -335,13 +400,21 @@ def _cvxpy_rows(ctrl: _RecordingController, qps: list, terms: list) -> dict[str,
     rows: dict[str, Any] = {"n": len(sample)}
     # cvxpy warns of an inaccurate solution on stderr; each row counts its statuses instead
     warnings.filterwarnings("ignore", message="Solution may be inaccurate", category=UserWarning)
-    for name, solve in (
-        ("states_as_variables", states),
-        ("given_hessian", given_hessian),
-        ("paper_problem", paper),
-        ("parametrized", parametrized),
-    ):
+    solvers: dict[str, Callable[..., Any]] = {
+        "states_as_variables": states,
+        "given_hessian": given_hessian,
+        "paper_problem": paper,
+        "parametrized": parametrized,
+    }
+    for solve in solvers.values():
         solve(*sample[0])  # the first call compiles (parametrized: once for all)
+
+    def step_median_us() -> float:
+        median_us = _stats([mpc_step(i) for i in range(len(sample))])["median_us"]
+        return float(median_us)
+
+    for name, solve in solvers.items():
+        before_us = step_median_us()
         times, diffs, statuses = [], [], Counter[str]()
         for qp, ref in zip(sample, reference, strict=True):
             t0 = time.perf_counter()
@@ -350,8 +423,12 @@ def _cvxpy_rows(ctrl: _RecordingController, qps: list, terms: list) -> dict[str,
             statuses[status] += 1
             if x is not None:
                 diffs.append(float(np.abs(x[:2] - ref).max()))
+        step_us = max(before_us, step_median_us())
+        row = _stats(times)
         rows[name] = {
-            **_stats(times),
+            **row,
+            "mpc_step_median_us": step_us,
+            "speedup": round(row["median_us"] / step_us, 1),
             "status": dict(statuses),  # cvxpy's word: "optimal", "optimal_inaccurate", …
             "first_move_max_diff_to_daqp": max(diffs) if diffs else None,
         }
@@ -405,7 +482,6 @@ def main() -> None:
         "step": {},
     }
     qps: list = []
-    terms: list = []  # with each QP of ``qps``, its Sᵀ and Rs − F x
     ctrl: _RecordingController | None = None
     # one drive untimed first: the first backend timed must not pay for the process's warm-up
     # (imports done lazily, buffers first touched), which once read as DAQP's steps being slower
@@ -421,7 +497,6 @@ def main() -> None:
                 active += b
                 if solver == "daqp":
                     qps += c.qps
-                    terms += c.terms
                     ctrl = c
         report["step"][solver] = {
             "constraints_inactive": _stats(inactive),
@@ -437,27 +512,18 @@ def main() -> None:
         if base and "median_us" in row and name != "daqp":
             ratios[f"{name}_vs_daqp_median"] = round(row["median_us"] / base, 2)
     report["qp_ratios"] = ratios
-    cvx = _cvxpy_rows(ctrl, qps, terms) if qps else {"skipped": "no constrained QP"}
-    report["cvxpy_formulation_step"] = cvx
-    # the whole MPC step (DAQP, the steps with constraints active: the cvxpy rows solve those
-    # steps' QPs) against each cvxpy row's time alone. The steps are timed again right after
-    # the cvxpy rows, and the slower median of the two is used: a machine whose speed changes
-    # between the two measurements does not inflate the ratio.
-    after: list[float] = []
+    # the whole MPC step (DAQP, the steps with constraints active) against each cvxpy row on
+    # the same step's QP, timed one after the other (_cvxpy_rows): copies of the controller
+    # before each constrained step of one drive per start, not timed themselves
+    steps: list = []
     for offset, dpsi in STARTS:
-        after += _drive("daqp", offset, dpsi, False, args.model)[1]
-    before_us = report["step"]["daqp"]["constraints_active"]["median_us"]
-    after_us = _stats(after).get("median_us", math.inf)
-    step_median = max(before_us, after_us)
-    report["step_speedup_basis"] = {
-        "constraints_active_median_us_before_cvxpy": before_us,
-        "constraints_active_median_us_after_cvxpy": after_us,
-        "used_us": step_median,
-    }
+        _drive("daqp", offset, dpsi, False, args.model, snapshots=steps)
+    cvx = _cvxpy_rows(steps) if steps else {"skipped": "no constrained step"}
+    report["cvxpy_formulation_step"] = cvx
     speedup = {
-        name: round(row["median_us"] / step_median, 1)
+        name: row["speedup"]
         for name, row in cvx.items()
-        if isinstance(row, dict) and "median_us" in row
+        if isinstance(row, dict) and "speedup" in row
     }
     report["step_speedup_vs_cvxpy"] = speedup
     daqp_row = rows.get("daqp", {})
