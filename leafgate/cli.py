@@ -123,7 +123,7 @@ trajectory files (--trajectory, publish-trajectory):
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
-    from leafgate.control.reference import turn_radius
+    from leafgate.control import plan_rules
     from leafgate.sim.metrics import collision
     from leafgate.sim.plots import plot_drive
     from leafgate.sim.runner import Injection, run, run_direct
@@ -247,15 +247,16 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if not metrics.get("finished"):  # an injected fault too: the drive did not finish
         reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
-        vehicle = cfg.vehicle
-        car = turn_radius(vehicle.wheelbase, vehicle.max_steer_angle)
+        # the turn the controller slows for (its steer_max on this wheelbase)
+        car = plan_rules(cfg.controller, cfg.vehicle).min_turn_radius
+        section = cfg.controller.kind.replace("-", "_")
         plan = metrics["plan_min_turn_radius_m"]
         if plan < car:  # say it when the plan itself cannot be driven as sent
             x, y = metrics["plan_min_turn_radius_at"]
             print(
                 f"leafgate: {scenario.name}: the plan turns tighter than the car can: "
                 f"radius {plan:.2f} m at ({x:.1f}, {y:.1f}) m, the car's tightest "
-                f"{car:.2f} m (vehicle wheelbase and max_steer_angle)",
+                f"{car:.2f} m (vehicle.wheelbase, controller.{section}.steer_max)",
                 file=sys.stderr,
             )
         return EXIT_ERROR

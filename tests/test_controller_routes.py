@@ -185,7 +185,7 @@ def _aside(traj: Trajectory, offset: float) -> Trajectory:
 def _resampled(route: Trajectory, first: int, last: int, phase: float) -> Trajectory:
     """Waypoints ``first … last − 1`` of ``route`` as a planner re-samples them each cycle (the
     simulator's planner's re-sampling, ``--window-resample``): no point is the last plan's."""
-    return runner._resampled(_window(route, first, last), phase)
+    return runner.resampled(_window(route, first, last), phase)
 
 
 def test_a_rolling_window_resent_at_a_cusp_does_not_restart_the_brake_release() -> None:

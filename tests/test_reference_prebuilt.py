@@ -18,11 +18,10 @@ from test_transport import WAIT, configs, wait_until
 
 from leafgate.config import VehicleConfig
 from leafgate.config.control import MpcConfig
-from leafgate.control import make_controller, reference
+from leafgate.control import make_controller, plan_rules, reference
 from leafgate.control.mpc import MpcController
 from leafgate.control.reference import PathRules, ReferencePath, prebuild, prepare_plan
 from leafgate.messages import OperatorRequest, Pose, Trajectory
-from leafgate.runtime.daemon import plan_rules
 from leafgate.runtime.node import GatewayTransport
 from leafgate.settings import load_config
 from leafgate.transport import client
@@ -89,7 +88,7 @@ def test_the_daemon_builds_with_the_rules_of_the_configured_controller(
     built again in a control tick (nothing fails, a tick is late)."""
     cfg = load_config(None, {"controller.kind": kind})
     traj = plan()
-    prebuild(traj, plan_rules(cfg))
+    prebuild(traj, plan_rules(cfg.controller, cfg.vehicle))
     monkeypatch.setattr(reference, "ReferencePath", NoBuildInTick)
     controller = make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
     out = controller.step(Pose(0.0, 0.0, 0.0, 0.0), 0.0, traj)

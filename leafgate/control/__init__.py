@@ -10,13 +10,34 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 from leafgate.config import VehicleConfig
 from leafgate.config.control import ControllerConfig, MpcConfig, PurePursuitConfig, StanleyConfig
 from leafgate.control.base import Controller
+
+if TYPE_CHECKING:
+    from leafgate.control.reference import PathRules
 from leafgate.errors import ConfigError
 
-__all__ = ["Controller", "make_controller"]
+__all__ = ["Controller", "make_controller", "plan_rules"]
+
+
+def _section(cfg: ControllerConfig) -> MpcConfig | PurePursuitConfig | StanleyConfig:
+    """The configured controller's own section (``controller.<kind>``)."""
+    section: MpcConfig | PurePursuitConfig | StanleyConfig = getattr(
+        cfg, cfg.kind.replace("-", "_")
+    )
+    return section
+
+
+def plan_rules(cfg: ControllerConfig, vehicle: VehicleConfig) -> PathRules:
+    """How the configured controller builds a plan's reference (its creep speed, and the
+    tightest turn it steers: ``wheelbase / tan(steer_max)``); the daemon builds each plan's
+    reference with them as the plan arrives, for the controller to take."""
+    from leafgate.control.reference import PathRules
+
+    return PathRules.of(_section(cfg), vehicle.wheelbase)
 
 
 def _check_inside_vehicle(

@@ -30,9 +30,9 @@ from leafgate.can.bus import open_buses
 from leafgate.can.codec import CanCodec
 from leafgate.can.profile import Profile
 from leafgate.config.transport import ZenohConfig
-from leafgate.control import make_controller
+from leafgate.control import make_controller, plan_rules
 from leafgate.control.base import Controller
-from leafgate.control.reference import PathRules, prebuild
+from leafgate.control.reference import prebuild
 from leafgate.gateway.core import Gateway, StepResult
 from leafgate.gateway.watchdog import CHECK_ORDER, Check, Status
 from leafgate.journal import ERR, NOTICE, WARNING
@@ -110,13 +110,6 @@ def build_gateway(
     if wrap_controller is not None:
         controller = wrap_controller(controller)
     return Gateway(cfg.gateway, cfg.vehicle, controller, cfg.long_mode)
-
-
-def plan_rules(cfg: LeafgateConfig) -> PathRules:
-    """The rules the configured controller builds a plan's reference with (the daemon builds
-    each plan's reference as it arrives, for the controller to take)."""
-    controller_cfg = getattr(cfg.controller, cfg.controller.kind.replace("-", "_"))
-    return PathRules.of(controller_cfg, cfg.vehicle.wheelbase)
 
 
 @contextmanager
@@ -412,7 +405,8 @@ def run_daemon(
         gateway = build_gateway(cfg, wrap_controller=recording.wrap_controller)
         transport.on_raw = recording.on_zenoh_input
         # a new plan's reference is built on Zenoh's thread as it arrives, not in a tick
-        transport.on_plan = functools.partial(prebuild, rules=plan_rules(cfg))
+        rules = plan_rules(cfg.controller, cfg.vehicle)  # as the controller builds them
+        transport.on_plan = functools.partial(prebuild, rules=rules)
         receiver = CanReceiver(codec, clock)
         receiver.on_frame = lambda msg, _decoded: recording.on_can_frame(msg, "rx")
         notifier = can.Notifier(

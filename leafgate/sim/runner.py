@@ -254,15 +254,16 @@ class _Planner:
             x=route.x[cut], y=route.y[cut], heading=route.heading[cut], speed=route.speed[cut]
         )
         if self.window.resample:
-            plan = _resampled(plan, (0.1 + RESAMPLE_STEP * self.sent) % 1.0)
+            plan = resampled(plan, (0.1 + RESAMPLE_STEP * self.sent) % 1.0)
         self.sent += 1
         self.plan, self.last_sent = Stamped(plan, now), now
         return self.plan
 
 
-def _resampled(plan: Trajectory, fraction: float) -> Trajectory:
+def resampled(plan: Trajectory, fraction: float) -> Trajectory:
     """``plan`` with every waypoint but its ends and its cusps moved ``fraction`` (0–1) of the
-    way to the next one (x, y, heading and speed alike)."""
+    way to the next one (x, y, heading and speed alike): the same route as a planner that
+    re-samples its path each cycle sends it (``--window-resample``), no waypoint repeating."""
     keep = np.zeros(len(plan), dtype=bool)
     keep[[0, -1]] = True
     keep[[seg.end for seg in split_segments(plan)]] = True
