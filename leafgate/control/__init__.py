@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING
 from leafgate.config import VehicleConfig
 from leafgate.config.control import ControllerConfig, MpcConfig, PurePursuitConfig, StanleyConfig
 from leafgate.control.base import Controller
+from leafgate.errors import ConfigError
 
 if TYPE_CHECKING:
     from leafgate.control.reference import PathRules
-from leafgate.errors import ConfigError
 
 __all__ = ["Controller", "make_controller", "plan_rules"]
 

@@ -14,13 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from leafgate.config import VehicleConfig
-from leafgate.config.control import MpcConfig
-from leafgate.control.reference import (
-    TIGHT_TURN_SPEED,
-    split_segments,
-    tight_turn_ceiling,
-    turn_radius,
-)
+from leafgate.config.control import ControllerConfig
+from leafgate.control import plan_rules
+from leafgate.control.reference import TIGHT_TURN_SPEED, split_segments, tight_turn_ceiling
 from leafgate.messages import FloatArray, Pose, Trajectory
 
 SPACING = 0.5  # m, waypoint spacing (paper: 0.5–1.0 m)
@@ -50,7 +46,7 @@ def time_budget(traj: Trajectory) -> float:
     gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
     speed = traj.speed
     s = np.concatenate(([0.0], np.cumsum(gaps)))
-    car = turn_radius(VehicleConfig().wheelbase, MpcConfig().steer_max)
+    car = plan_rules(ControllerConfig(), VehicleConfig()).min_turn_radius
     ceiling = tight_turn_ceiling(s, np.unwrap(traj.heading), car)
     tight_turns = 0
     if ceiling is not None:
