@@ -249,7 +249,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
         # the turn the controller slows for (its steer_max on this wheelbase)
         car = plan_rules(cfg.controller, cfg.vehicle).min_turn_radius
-        section = cfg.controller.kind.replace("-", "_")
+        section = cfg.controller.section_name
         plan = metrics["plan_min_turn_radius_m"]
         if plan < car:  # say it when the plan itself cannot be driven as sent
             x, y = metrics["plan_min_turn_radius_at"]

@@ -111,6 +111,26 @@ def test_make_controller_builds_both_baselines_from_yaml_sections() -> None:
     assert isinstance(ctrl, PurePursuit) and ctrl.cfg.lookahead_min == 2.5
 
 
+@pytest.mark.parametrize("kind", ["mpc", "pure-pursuit", "stanley"])
+def test_each_controller_s_limits_must_lie_inside_the_vehicle_s(kind: str) -> None:
+    """The check reads the configured controller's own section and names it in the error."""
+    section = kind.replace("-", "_")
+    vehicle = VehicleConfig()
+    wide = {"steer_max_deg": math.degrees(vehicle.max_steer_angle) + 1.0}
+    for key, data, name in (
+        ("steer_max", wide, "vehicle.max_steer_angle"),
+        ("accel_max", {"accel_max": vehicle.max_accel + 0.5}, "vehicle.max_accel"),
+        ("accel_min", {"accel_min": vehicle.min_accel - 0.5}, "vehicle.min_accel"),
+    ):
+        cfg = from_mapping(ControllerConfig, {"kind": kind, section: data}, "x.yaml", "controller")
+        with pytest.raises(ConfigError, match=rf"^controller\.{section}\.{key} .*{name}"):
+            make_controller(cfg, vehicle, PERIOD)
+        # the same numbers in another controller's section are not this one's limits
+        other = "stanley" if kind != "stanley" else "mpc"
+        cfg = from_mapping(ControllerConfig, {"kind": other, section: data}, "x.yaml", "controller")
+        assert make_controller(cfg, vehicle, PERIOD).period == PERIOD
+
+
 def test_bad_baseline_config_names_the_key() -> None:
     with pytest.raises(ConfigError, match=r"controller\.pure_pursuit.*lookahead_min"):
         from_mapping(

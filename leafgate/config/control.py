@@ -236,3 +236,14 @@ class ControllerConfig:
     mpc: MpcConfig = field(default_factory=MpcConfig)
     pure_pursuit: PurePursuitConfig = field(default_factory=PurePursuitConfig)
     stanley: StanleyConfig = field(default_factory=StanleyConfig)
+
+    @property
+    def section_name(self) -> str:
+        """The key of the configured controller's own section: ``controller.<section_name>``."""
+        return self.kind.replace("-", "_")
+
+    @property
+    def section(self) -> MpcConfig | PurePursuitConfig | StanleyConfig:
+        """The configured controller's own section."""
+        section: MpcConfig | PurePursuitConfig | StanleyConfig = getattr(self, self.section_name)
+        return section

@@ -13,7 +13,7 @@ import math
 from typing import TYPE_CHECKING
 
 from leafgate.config import VehicleConfig
-from leafgate.config.control import ControllerConfig, MpcConfig, PurePursuitConfig, StanleyConfig
+from leafgate.config.control import ControllerConfig
 from leafgate.control.base import Controller
 from leafgate.errors import ConfigError
 
@@ -23,27 +23,19 @@ if TYPE_CHECKING:
 __all__ = ["Controller", "make_controller", "plan_rules"]
 
 
-def _section(cfg: ControllerConfig) -> MpcConfig | PurePursuitConfig | StanleyConfig:
-    """The configured controller's own section (``controller.<kind>``)."""
-    section: MpcConfig | PurePursuitConfig | StanleyConfig = getattr(
-        cfg, cfg.kind.replace("-", "_")
-    )
-    return section
-
-
 def plan_rules(cfg: ControllerConfig, vehicle: VehicleConfig) -> PathRules:
     """How the configured controller builds a plan's reference (its creep speed, and the
     tightest turn it steers: ``wheelbase / tan(steer_max)``); the daemon builds each plan's
     reference with them as the plan arrives, for the controller to take."""
     from leafgate.control.reference import PathRules
 
-    return PathRules.of(_section(cfg), vehicle.wheelbase)
+    return PathRules.of(cfg.section, vehicle.wheelbase)
 
 
-def _check_inside_vehicle(
-    cfg: MpcConfig | PurePursuitConfig | StanleyConfig, vehicle: VehicleConfig, section: str = "mpc"
-) -> None:
-    """The controller's limits must lie inside the vehicle's: the gate is the last word."""
+def _check_inside_vehicle(ctrl: ControllerConfig, vehicle: VehicleConfig) -> None:
+    """The configured controller's limits must lie inside the vehicle's: the gate is the last
+    word."""
+    cfg, section = ctrl.section, ctrl.section_name
     if cfg.steer_max > vehicle.max_steer_angle:
         raise ConfigError(
             f"controller.{section}.steer_max ({math.degrees(cfg.steer_max):.1f}°) exceeds "
@@ -74,15 +66,15 @@ def make_controller(cfg: ControllerConfig, vehicle: VehicleConfig, period: float
     if cfg.kind == "mpc":
         from leafgate.control.mpc import MpcController  # algorithms load only when built
 
-        _check_inside_vehicle(cfg.mpc, vehicle)
+        _check_inside_vehicle(cfg, vehicle)
         return MpcController(cfg.mpc, vehicle, period)
     from leafgate.control.baselines import PurePursuit, Stanley
 
     if cfg.kind == "pure-pursuit":
-        _check_inside_vehicle(cfg.pure_pursuit, vehicle, "pure_pursuit")
+        _check_inside_vehicle(cfg, vehicle)
         return PurePursuit(cfg.pure_pursuit, vehicle, period)
     if cfg.kind == "stanley":
-        _check_inside_vehicle(cfg.stanley, vehicle, "stanley")
+        _check_inside_vehicle(cfg, vehicle)
         return Stanley(cfg.stanley, vehicle, period)
     raise ConfigError(
         f"controller.kind: {cfg.kind!r} is not a controller (use mpc, pure-pursuit or stanley)"
