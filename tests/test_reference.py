@@ -222,6 +222,37 @@ def test_horizon_reaches_ahead_from_rest_and_stops_on_the_last_point() -> None:
     assert path.reference_speed(np.array([4.5]))[0] == 0.0
 
 
+@pytest.mark.parametrize("spacing", [0.05, 0.1, 0.3])
+@pytest.mark.parametrize("direction", [1, -1])
+def test_a_point_some_chords_from_the_waypoint_projects_where_it_is(
+    spacing: float, direction: int
+) -> None:
+    """The steering-aware model projects the pose predicted over the dead time (0.2 m ahead
+    at 2 m/s) from the waypoint nearest the car: on a dense plan several chords on. The
+    projection walks there; it stopped at the next waypoint, and the reference stalled and
+    jumped there every tick (steering blips on plans spaced closer than the dead time's
+    travel)."""
+    n = round(20.0 / spacing)
+    k = 0.15  # 1/m: an arc, the point 1 cm outside it (as a car that tracks it)
+    th = k * spacing * np.arange(n)
+    heading = th if direction > 0 else th + math.pi  # reversing: the car faces backward
+    traj = Trajectory(
+        x=np.sin(th) / k,
+        y=(1.0 - np.cos(th)) / k,
+        heading=heading,
+        speed=np.full(n, 1.0 * direction),
+    )
+    assert split_segments(traj)[0].direction == direction
+    path = ReferencePath(traj)
+    seg = path.segments[0]
+    i = n // 2
+    for ahead in (-0.45, -0.25, -0.12, 0.0, 0.12, 0.25, 0.45):
+        a = th[i] + k * ahead
+        r = 1.0 / k + 0.01
+        x, y = r * math.sin(a), 1.0 / k - r * math.cos(a)
+        assert path.project(seg, i, x, y) == pytest.approx(path.s[i] + ahead, abs=2e-3)
+
+
 def test_reverse_segment_speeds_are_negative_and_end_at_zero() -> None:
     traj = Trajectory(
         x=np.array([0.0, 0.5, 1.0, 1.5, 1.0, 0.5, 0.0]),
