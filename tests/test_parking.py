@@ -84,12 +84,14 @@ def _recording_plant(*args: Any, **kwargs: Any) -> KinematicPlant:
     return plant
 
 
-_RUNS: dict[tuple[str, str], tuple[runner.SimResult, KinematicPlant]] = {}
+_RUNS: dict[tuple[str, str, str], tuple[runner.SimResult, KinematicPlant]] = {}
 
 
-def _park(name: str, plant_kind: str, monkeypatch: pytest.MonkeyPatch) -> tuple[Any, Any]:
+def _park(
+    name: str, plant_kind: str, monkeypatch: pytest.MonkeyPatch, model: str = "kinematic"
+) -> tuple[Any, Any]:
     """The full-loop drive (cached: several tests look at the same drive)."""
-    key = (name, plant_kind)
+    key = (name, plant_kind, model)
     if key not in _RUNS:
         made: list[KinematicPlant] = []
 
@@ -99,7 +101,7 @@ def _park(name: str, plant_kind: str, monkeypatch: pytest.MonkeyPatch) -> tuple[
 
         monkeypatch.setattr(runner, "make_plant", factory)
         cfg = LeafgateConfig(
-            controller=ControllerConfig(kind="mpc"),
+            controller=ControllerConfig(kind="mpc", mpc=MpcConfig(model=model)),  # type: ignore[arg-type]
             sim=SimConfig(plant=PlantConfig(kind=plant_kind)),  # type: ignore[arg-type]
         )
         _RUNS[key] = (runner.run(cfg, get_scenario(name)), made[0])
@@ -145,10 +147,49 @@ def test_steering_stays_within_rate_and_does_not_chatter_at_standstill(
     assert result.metrics["steer_rate_max_radps"] <= cfg.steer_rate_max + 1e-9
     # while standing, the wheel is turned towards the next move's angle and held, never back
     # and forth: its total travel within a standstill exceeds its net change by < CHATTER
+    assert _standstill_chatter(result, on) == []
+
+
+def _standstill_chatter(result: runner.SimResult, on: np.ndarray) -> list[tuple[float, float]]:
+    """``(t, rad)`` of each standstill while engaged whose commanded steering travels more than
+    its net change by ``CHATTER`` or more: back and forth at rest."""
+    tr = result.trace
     still = (np.abs(tr.speed) <= STANDSTILL) & on
     edges = np.flatnonzero(np.diff(still.astype(int)) != 0) + 1
+    found = []
     for block in np.split(np.arange(len(still)), edges):
         if still[block[0]] and block.size > 2:
             angle = tr.steer_target[block]
-            travel = np.sum(np.abs(np.diff(angle)))
-            assert travel - abs(angle[-1] - angle[0]) < CHATTER
+            back = float(np.sum(np.abs(np.diff(angle))) - abs(angle[-1] - angle[0]))
+            if back >= CHATTER:
+                found.append((round(float(tr.t[block[0]]), 2), round(back, 3)))
+    return found
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(
+            "parallel-park",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="at the second cusp (t = 22.7 s) the wheel is aligned from -16.4° to the "
+                "straight last move's 0° at rest, and the MPC turns it back to -16° as the car "
+                "drives off (it corrects the pose the forward move ended in): 0.22 rad of travel "
+                "at rest. The aligning takes the path's curvature, not the MPC's first angle",
+            ),
+        ),
+        "perpendicular-park",
+    ],
+)
+def test_with_the_car_s_model_the_wheel_does_not_chatter_at_standstill(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same with the car's config: the steering-aware model on the lagging wheel."""
+    result, _ = _park(name, "steer-lag", monkeypatch, model="kinematic_steer_lag")
+    engaged = [t["t"] for t in result.metrics["transitions"] if t["to"] == "ENGAGED"]
+    released = [t["t"] for t in result.metrics["transitions"] if t["from"] == "ENGAGED"]
+    on = (result.trace.t > engaged[0]) & (result.trace.t < released[-1])
+    assert result.metrics["finished"]
+    assert _standstill_chatter(result, on) == []
