@@ -35,12 +35,7 @@ FEASIBLE = tuple(n for n in LIBRARY if n != "tight-hairpin")
 
 #: Goals not met on this branch, each with its measured figure. Strict: a fix makes the test
 #: pass, and the mark must then go.
-KNOWN_MISSES: dict[tuple[object, ...], str] = {
-    ("envelope", "parallel-park", 0.9, "steer-lag"): "finishes, but the body's rear corner "
-    "comes 0.028 m over the kerb line at t = 15.3 s: the lagging wheel ends the first reverse "
-    "S-bend 0.09 m nearer the kerb and 4° more turned than the kinematic plant's run (which keeps "
-    "0.10 m); the plan keeps 0.11 m",
-}
+KNOWN_MISSES: dict[tuple[object, ...], str] = {}
 
 
 def _marks(*key: object) -> list[pytest.MarkDecorator]:

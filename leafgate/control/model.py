@@ -13,6 +13,11 @@ eq. 11–12 plus three the paper's state-dependent-coefficient form leaves out: 
 lets a change of heading — hence of steering — move the car sideways in the prediction; with the
 paper's matrix the predicted lateral offset would not react to steering at all.
 
+**Steps at their middle heading.** The controller evaluates these Jacobians, and the first
+increment, at each step's heading half way through it (:func:`mid_heading`; :mod:`leafgate.control.
+mpc`, "Steps taken at their middle"): the step then moves the car along an arc's chord, to second
+order, where forward Euler moves it along the tangent at the start.
+
 **Output frame (how x enters the outputs).** The controller works in a path-aligned frame that
 is rebuilt every cycle: origin at the vehicle's projection on the reference path, x-axis along
 the reference heading there. The outputs are all four states, ``C = I``: along-track position,
@@ -276,16 +281,26 @@ def augment_steer_lag(
     return A5, B5
 
 
+def mid_heading(state: tuple[float, ...] | FloatArray, Ts: float, wheelbase: float) -> float:
+    """The heading half way through one model step from ``[x, y, v, θ, t]`` (``t = tan δ``):
+    ``θ + ½ Ts v t / L``, along which the step moves the car (the midpoint rule: an arc's chord
+    runs at its middle heading; the paper's forward Euler moves along the start heading)."""
+    _, _, v, theta, t = state[:5]
+    return float(theta) + 0.5 * Ts * (float(v) * float(t) / wheelbase)
+
+
 def steer_lag_increment(
     state: FloatArray, u: FloatArray, Ts: float, wheelbase: float, alpha: float
 ) -> FloatArray:
-    """One model step's change of ``[x, y, v, θ, t]`` with the input ``u = [a, t_cmd]`` held."""
-    _, _, v, theta, t = state
+    """One model step's change of ``[x, y, v, θ, t]`` with the input ``u = [a, t_cmd]`` held:
+    the position moved along :func:`mid_heading`."""
+    _, _, v, _, t = state
     a, t_cmd = u
+    mid = mid_heading(state, Ts, wheelbase)
     return np.array(
         [
-            Ts * v * math.cos(theta),
-            Ts * v * math.sin(theta),
+            Ts * v * math.cos(mid),
+            Ts * v * math.sin(mid),
             Ts * a,
             Ts * v * t / wheelbase,
             alpha * (t_cmd - t),
@@ -622,7 +637,6 @@ def steer_lag_first_increment(
     state: tuple[float, float, float, float, float],
     u: tuple[float, float],
     speed: float,
-    heading: float,
     Ts: float,
     wheelbase: float,
     alpha: float,
@@ -630,14 +644,16 @@ def steer_lag_first_increment(
     """``Δx̃`` with ``A Δx̃ = z`` for the steering-aware model (:func:`augment_steer_lag`).
 
     ``z`` is one model step's change of ``state = [x, y, v, θ, t]`` with ``u = [a, t_cmd]``
-    held (:func:`steer_lag_increment`); ``A`` is the Jacobian at the operating ``speed`` and
-    ``heading`` and the actual ``t``. ``A = [[K, g e₃], [0, β]]`` (``g = Ts v / L``, ``β = 1 −
-    α``) is block triangular: ``Δt = z_t / β``, then the kinematic part solves ``K Δx = z − g e₃
-    Δt`` (:func:`kinematic_first_increment`). Float operations only, no 5×5 solve.
+    held (:func:`steer_lag_increment`); ``A`` is the Jacobian at the operating ``speed``, the
+    step's :func:`mid_heading` and the actual ``t``. ``A = [[K, g e₃], [0, β]]`` (``g = Ts v /
+    L``, ``β = 1 − α``) is block triangular: ``Δt = z_t / β``, then the kinematic part solves
+    ``K Δx = z − g e₃ Δt`` (:func:`kinematic_first_increment`). Float operations only, no 5×5
+    solve.
     """
-    _, _, v, theta, t = state
+    _, _, v, _, t = state
     a, t_cmd = u
+    mid = mid_heading(state, Ts, wheelbase)
     dt = alpha * (t_cmd - t) / (1.0 - alpha)
     z3 = Ts * v * t / wheelbase - (Ts * speed / wheelbase) * dt
-    z = (Ts * v * math.cos(theta), Ts * v * math.sin(theta), Ts * a, z3)
-    return (*kinematic_first_increment(z, speed, heading, t, Ts, wheelbase), dt)
+    z = (Ts * v * math.cos(mid), Ts * v * math.sin(mid), Ts * a, z3)
+    return (*kinematic_first_increment(z, speed, mid, t, Ts, wheelbase), dt)
