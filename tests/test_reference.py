@@ -253,6 +253,17 @@ def test_a_point_some_chords_from_the_waypoint_projects_where_it_is(
         assert path.project(seg, i, x, y) == pytest.approx(path.s[i] + ahead, abs=2e-3)
 
 
+def test_the_chord_walk_is_bounded() -> None:
+    """A point far beyond the waypoint (a bad projection source) costs at most CHORD_WALK
+    chords per tick: the walk stops there and the projection is clamped to that chord's end."""
+    path = ReferencePath(_line(n=500, spacing=0.02))
+    seg = path.segments[0]
+    i, t = path.chord(seg, 10, 5.0, 0.3)  # 250 chords ahead
+    assert i == 10 + ReferencePath.CHORD_WALK and t > 1.0
+    assert path.project(seg, 10, 5.0, 0.3) == pytest.approx(path.s[i + 1])
+    assert path.project(seg, 300, 5.0, 0.3) == pytest.approx(5.0)  # near: walked to it
+
+
 def test_reverse_segment_speeds_are_negative_and_end_at_zero() -> None:
     traj = Trajectory(
         x=np.array([0.0, 0.5, 1.0, 1.5, 1.0, 0.5, 0.0]),

@@ -491,6 +491,8 @@ class ReferencePath:
         tight
     """
 
+    CHORD_WALK = 64  # chords a projection walks at most from its waypoint (:meth:`chord`)
+
     def __init__(
         self, traj: Trajectory, creep_speed: float = 0.3, min_turn_radius: float = 0.0
     ) -> None:
@@ -557,21 +559,29 @@ class ReferencePath:
         chord and behind the next, the walk ends on the next (its start, the corner, is the
         nearest point). The walk matters for a point some way from ``index``: the pose
         predicted over the dead time is 0.2 m ahead at 2 m/s, several chords of a dense plan.
+        It takes at most :attr:`CHORD_WALK` chords (a bounded loop on the control path); past
+        them the fraction stays beyond the last chord tried, and the caller clamps it.
         """
         tx, ty = self._x, self._y
+
+        def fraction(i: int) -> float:
+            dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
+            return ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
+
         i = min(max(index, seg.start), seg.end - 1)
-        dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
-        t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
+        t = fraction(i)
         if t < 0.0:
-            while t < 0.0 and i > seg.start:
+            for _ in range(self.CHORD_WALK):
+                if t >= 0.0 or i <= seg.start:
+                    break
                 i -= 1
-                dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
-                t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
+                t = fraction(i)
         else:
-            while t > 1.0 and i < seg.end - 1:
+            for _ in range(self.CHORD_WALK):
+                if t <= 1.0 or i >= seg.end - 1:
+                    break
                 i += 1
-                dx, dy = tx[i + 1] - tx[i], ty[i + 1] - ty[i]
-                t = ((x - tx[i]) * dx + (y - ty[i]) * dy) / (dx * dx + dy * dy)
+                t = fraction(i)
         return i, t
 
     def horizon(self, seg: Segment, s0: float, steps: FloatArray) -> tuple[FloatArray, FloatArray]:
