@@ -3,7 +3,8 @@
 The route library and the public courses are a dozen shapes. Here hypothesis draws routes of
 straights, arcs and clothoids a Leaf can drive (radius ≥ 5 m), turning up to 1.5 turns at a
 time — so they loop and cross themselves —, with up to two cusps, sent with uneven waypoint
-spacing between 0.2 and 1.0 m. A car driven along each (up to 0.3 m beside it, 1–5 m/s) must
+spacing between 0.2 and 1.0 m (:mod:`tools.generated_routes`, which also sweeps many of them
+through the sim). A car driven along each (up to 0.3 m beside it, 1–5 m/s) must
 be where the progress says it is, on every tick, and a segment must end only at its end. A
 few such routes are driven closed loop through the whole simulated gateway, to the goal.
 """
@@ -11,7 +12,6 @@ few such routes are driven closed loop through the whole simulated gateway, to t
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -20,92 +20,11 @@ from hypothesis import strategies as st
 
 from leafgate.config.control import MpcConfig
 from leafgate.control.reference import Progress, ReferencePath, split_segments
-from leafgate.messages import FloatArray, Pose, Trajectory
+from leafgate.messages import FloatArray
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.metrics import GOAL_FINAL_POSITION, GOAL_LATERAL_LAG, route_goal_misses
 from leafgate.sim.runner import default_model, run
-from leafgate.sim.scenarios import Scenario, time_budget
-
-K_MAX = 0.2  # 1/m: R = 5 m, inside the Leaf's 4.68 m at the MPC's 30°
-STEP = 0.01  # m, the dense integration step
-
-
-@dataclass(frozen=True)
-class Leg:
-    """One direction segment: pieces ``(length m, curvature at start, at end)``."""
-
-    direction: int
-    pieces: tuple[tuple[float, float, float], ...]
-
-
-def _dense(legs: list[Leg]) -> list[FloatArray]:
-    """``(s, x, y, heading)`` every ``STEP`` m of each leg, in driving order; the vehicle's
-    heading (a reverse leg turns it the other way for the same curvature)."""
-    x = y = h = 0.0
-    out = []
-    for leg in legs:
-        rows = [(0.0, x, y, h)]
-        s = 0.0
-        for length, k0, k1 in leg.pieces:
-            n = max(1, math.ceil(length / STEP))
-            ds = length / n
-            for i in range(n):
-                k = k0 + (k1 - k0) * (i + 0.5) / n
-                mid = h + 0.5 * leg.direction * ds * k
-                x += leg.direction * ds * math.cos(mid)
-                y += leg.direction * ds * math.sin(mid)
-                h += leg.direction * ds * k
-                s += ds
-                rows.append((s, x, y, h))
-        out.append(np.array(rows))
-    return out
-
-
-def _plan(legs: list[Leg], gaps: list[float], v_max: float) -> tuple[Trajectory, list[FloatArray]]:
-    """Waypoints at the cumulative ``gaps`` (cycled) along each leg, its end included; signed
-    speeds that pull away at 0.3 m/s and stop at each cusp and the end (0.5 m/s²)."""
-    dense = _dense(legs)
-    cols: list[list[FloatArray]] = [[], [], [], []]
-    g = 0
-    for m, (leg, d) in enumerate(zip(legs, dense, strict=True)):
-        length = float(d[-1, 0])
-        s = [0.0]
-        while s[-1] < length:
-            s.append(s[-1] + gaps[g % len(gaps)])
-            g += 1
-        s[-1] = length
-        if length - s[-2] < 0.1:  # no waypoint a hair before the end
-            del s[-2]
-        q = np.array(s)
-        speed = np.minimum(np.sqrt(0.09 + q), np.sqrt(np.maximum(length - q, 0.0)))
-        speed = np.minimum(speed, v_max)
-        speed[-1] = 0.0
-        first = 0 if m == 0 else 1  # the cusp waypoint ends the previous leg
-        for c, values in enumerate(
-            (*(np.interp(q, d[:, 0], d[:, i]) for i in (1, 2, 3)), leg.direction * speed + 0.0)
-        ):
-            cols[c].append(values[first:])
-    traj = Trajectory(*(np.concatenate(c) for c in cols))
-    return traj, dense
-
-
-@st.composite
-def routes(draw: st.DrawFn, max_legs: int = 3) -> tuple[list[Leg], list[float]]:
-    """1–3 legs of alternating direction; each a straight start, then turns (clothoid, arc,
-    clothoid) and straights; the waypoint gaps."""
-    n_legs = draw(st.integers(1, max_legs))
-    legs = []
-    for i in range(n_legs):
-        pieces = [(draw(st.floats(3.0, 10.0)), 0.0, 0.0)]
-        for _ in range(draw(st.integers(1, 3))):
-            k = draw(st.floats(-K_MAX, K_MAX).filter(lambda k: abs(k) > 0.02))
-            ramp = draw(st.floats(0.5, 4.0))
-            arc = draw(st.floats(0.0, min(3.0 * math.pi / abs(k), 60.0)))  # ≤ 1.5 turns
-            pieces += [(ramp, 0.0, k), (arc, k, k), (ramp, k, 0.0)]
-            pieces.append((draw(st.floats(0.5, 8.0)), 0.0, 0.0))
-        legs.append(Leg(1 if i % 2 == 0 else -1, tuple(pieces)))
-    gaps = draw(st.lists(st.floats(0.2, 1.0), min_size=1, max_size=7))
-    return legs, gaps
+from tools.generated_routes import Leg, plan, routes, scenario
 
 
 def _beside(d: FloatArray, s: float, offset: float) -> tuple[float, float, float]:
@@ -128,7 +47,7 @@ def test_the_progress_follows_a_car_along_any_drivable_route(
     (the car weaving up to 0.3 m beside the path), never passes the segment's end before the
     car does, and the segment ends, by progress, when the car stands on its end."""
     legs, gaps = route
-    traj, dense = _plan(legs, gaps, v_max=2.0)
+    traj, dense = plan(legs, gaps, v_max=2.0)
     path = ReferencePath(traj)
     assert len(path.segments) == len(legs)
     prog = Progress(path, MpcConfig().search_window)  # the controllers' default
@@ -155,11 +74,6 @@ def test_the_progress_follows_a_car_along_any_drivable_route(
         assert prog.next_segment() == (k + 1 < len(legs))
 
 
-def _scenario(traj: Trajectory) -> Scenario:
-    start = Pose(float(traj.x[0]), float(traj.y[0]), float(traj.heading[0]), 0.0)
-    return Scenario("generated", "a generated route", traj, start, time_budget(traj))
-
-
 def _config(plant: str) -> LeafgateConfig:
     return load_config(
         None, {"sim.plant.kind": plant, "controller.mpc.model": default_model(plant)}
@@ -178,9 +92,9 @@ def test_any_drivable_route_is_driven_to_its_goal(plant: str, lateral: float) ->
     @given(routes(max_legs=2), st.floats(1.0, 2.5))
     def drive(route: tuple[list[Leg], list[float]], v_max: float) -> None:
         legs, gaps = route
-        traj, _ = _plan(legs, gaps, v_max)
+        traj, _ = plan(legs, gaps, v_max)
         assert len(split_segments(traj)) == len(legs)
-        metrics = run(_config(plant), _scenario(traj)).metrics
+        metrics = run(_config(plant), scenario(traj)).metrics
         assert metrics["finished"], metrics.get("not_finished_reason")
         assert metrics["progress_m"] == pytest.approx(metrics["route_length_m"], abs=0.1)
         assert metrics["final_position_error_m"] <= GOAL_FINAL_POSITION
@@ -213,9 +127,9 @@ def test_uneven_waypoints_closer_than_the_dead_time_s_travel_make_no_steering_bl
             ),
         )
     ]
-    traj, _ = _plan(legs, [0.44, 0.85, 0.89, 0.27, 0.2, 0.7, 0.45], v_max=1.88)
+    traj, _ = plan(legs, [0.44, 0.85, 0.89, 0.27, 0.2, 0.7, 0.45], v_max=1.88)
     for plant in ("steer-lag", "dynamic"):
-        metrics = run(_config(plant), _scenario(traj)).metrics
+        metrics = run(_config(plant), scenario(traj)).metrics
         assert route_goal_misses(metrics, plant, feasible=True) == [], plant
 
 
@@ -227,8 +141,8 @@ def test_a_tight_arc_at_the_speed_of_a_planner_is_held_within_5_cm() -> None:
     middle heading (:mod:`leafgate.control.mpc`) 1.0 cm RMS and 3.6 cm."""
     k = 1.0 / 5.3
     legs = [Leg(1, ((5.0, 0.0, 0.0), (3.0, 0.0, k), (25.0, k, k), (3.0, k, 0.0), (5.0, 0.0, 0.0)))]
-    traj, _ = _plan(legs, [0.5], v_max=2.3)
-    metrics = run(_config("kinematic"), _scenario(traj)).metrics
+    traj, _ = plan(legs, [0.5], v_max=2.3)
+    metrics = run(_config("kinematic"), scenario(traj)).metrics
     assert metrics["finished"], metrics.get("not_finished_reason")
     assert route_goal_misses(metrics, "kinematic", feasible=True) == []
     assert metrics["lateral_error_rms_m"] < 0.015
