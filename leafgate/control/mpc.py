@@ -73,10 +73,12 @@ sent and not yet acting (a queue of the last ``steer_dead_time / period`` steeri
 starting from the measured road-wheel angle; the QP then plans from that predicted state, the
 instant the command computed now starts to act.
 
-**Near zero speed.** At the start of a segment, at rest, the wheel is first turned to the
-angle the path's curvature needs there, at the steering-rate limit with the brake held
+**Near zero speed.** At the start of a segment, at rest, the wheel is first turned towards
+the angle the path's curvature needs there, at the steering-rate limit with the brake held
 (status ``aligning``) — steering has no effect on a standing car, and driving off with the wheel
-on the wrong lock (after a cusp) would leave the path at once. Once the car has passed a
+on the wrong lock (after a cusp) would leave the path at once. It turns no farther than the
+MPC's own drive-off angle, and not at all when the MPC steers the other way
+(:meth:`MpcController._align_target`): else the MPC would turn it back before the car moves. Once the car has passed a
 segment's end point it brakes to rest (status ``stopping``) and never creeps on to correct the
 heading; the next segment (or the finish) starts from where it stopped. While finished or
 aligning the wheel holds or ramps monotonically: no chatter at standstill. A brake hold left at
@@ -127,6 +129,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+from scipy import optimize
 from scipy.linalg import lapack
 
 from leafgate.config import VehicleConfig
@@ -162,8 +165,14 @@ _DRIVE_ACCEL = 0.01  # m/s², at rest a command along the gear above this drives
 # −this, a brake hold is still being released)
 _SPEED_SLACK = 1e-5  # m/s, the speed rows' bound lies this far below the unavoidable speed, so
 # that rounding never makes the QP infeasible when that bound forces the fastest release
+_ALIGN_SOLVES = 16  # QPs solved at most to find the drive-off angle (once per segment start)
+_ALIGN_TOLERANCE = 1e-4  # tan δ, of the drive-off angle (and a first move that small is none)
 _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a clip (solver
 # tolerances leave smaller excursions, which are clipped but not counted)
+
+
+class _NoMove(Exception):
+    """A QP solved for the drive-off angle gave no first move (not converged, not finite)."""
 
 
 class MpcController:
@@ -282,6 +291,7 @@ class MpcController:
         self._lam: FloatArray | None = None
         self._finished = False
         self._aligned = False  # the wheel has been turned for the current segment's start
+        self._align_tan: float | None = None  # tan δ the wheel is being aligned to (at rest)
         self._tick = 0  # calls of step since the reset
         self._standing = 0  # consecutive MPC ticks that kept the car at rest (see _blocked)
         self._standing_tick = -1  # the tick that last counted
@@ -323,6 +333,7 @@ class MpcController:
         self._traj = trajectory
         self._finished = False
         self._lam = None
+        self._align_tan = None  # the new plan's drive-off angle, found when it is needed
         self._path, self._progress, self._bad_trajectory = prepare_plan(
             trajectory, self._rules, self.cfg.search_window, self._progress
         )
@@ -370,7 +381,7 @@ class MpcController:
             s0 = self._s_pose  # this tick's projection of the pose, found by the progress
         else:
             s0 = path.project(seg, prog.index, start[0], start[1])
-        aligning = self._align_at_start(seg, s0, abs(pose.speed), steer_angle, t0, bias)
+        aligning = self._align_at_start(seg, s0, start, steer_angle, t0, bias, drag)
         if aligning is not None:
             return aligning
         if abs(pose.speed) <= self.cfg.stop_speed and direction * a_prev < -_DRIVE_ACCEL:
@@ -449,6 +460,7 @@ class MpcController:
                 self._u_prev[0] = -seg.direction * cfg.hold_decel
                 self._lam = None
                 self._aligned = False
+                self._align_tan = None
                 passed = False
             else:
                 self._finished = True
@@ -485,14 +497,23 @@ class MpcController:
         return pose.x, pose.y, pose.speed, pose.heading, math.nan
 
     def _align_at_start(
-        self, seg: Segment, s0: float, speed: float, steer_angle: float, t0: float, bias: float
+        self,
+        seg: Segment,
+        s0: float,
+        start: tuple[float, float, float, float, float],
+        steer_angle: float,
+        t0: float,
+        bias: float,
+        drag: float,
     ) -> ControlOutput | None:
         """At rest at the segment's start, the aligning (or releasing) command; else None."""
-        at_rest = speed <= self.cfg.stop_speed
+        at_rest = abs(start[2]) <= self.cfg.stop_speed
         if at_rest and not self._aligned:
             assert self._path is not None
             if s0 - self._path.s[seg.start] <= self.cfg.goal_tolerance:
-                out = self._align(seg, s0, steer_angle, seg.direction, t0, bias)
+                if self._align_tan is None:
+                    self._align_tan = self._align_target(seg, s0, start, steer_angle, bias, drag)
+                out = self._align(self._align_tan, steer_angle, seg.direction, t0)
                 if out is not None:
                     return out
             self._aligned = True
@@ -558,7 +579,7 @@ class MpcController:
         # A Δx̃ₖ = Ts f(x̃ₖ, uₖ₋₁) at the step's middle, the next step's increment (module notes)
         Ts, L = self.Ts, self.L
         if not self.steer_model:
-            th_mid = heading_op[0] = th0 + 0.5 * Ts * (v0 * t_eff / L)
+            th_mid = heading_op[0] = mid_heading((kin[0], kin[1], v0, th0, t_eff), Ts, L)
             increment = (
                 Ts * (v0 * math.cos(th_mid)),
                 Ts * (v0 * math.sin(th_mid)),
@@ -798,22 +819,110 @@ class MpcController:
             v = v_next
         return x, y, v, th, t
 
-    def _align(
-        self, seg: Segment, s0: float, steer_angle: float, direction: int, t0: float, bias: float
-    ) -> ControlOutput | None:
-        """At rest at a segment's start: turn the wheel to the path's curvature, brake held.
+    def _align_target(
+        self,
+        seg: Segment,
+        s0: float,
+        start: tuple[float, float, float, float, float],
+        steer_angle: float,
+        bias: float,
+        drag: float,
+    ) -> float:
+        """The tan δ to turn the wheel to at rest at a segment's start, before driving off:
+        towards the path's curvature there, but never past the MPC's own drive-off angle
+        (:meth:`_drive_off_tan`) nor away from it — the median of the three.
 
-        :returns: the command of this tick, or None once the wheel is there (drive off)
+        Aligned to the path's curvature alone, a car standing off the path (a cusp ends where
+        the last move left it) had its wheel turned one way at rest and the MPC turned it back
+        as it drove off (0.22 rad at parallel-park's second cusp with the car's config). Where
+        the path's curvature lies between the wheel and the MPC's angle, this is the old
+        alignment, and the MPC goes on turning the same way.
         """
         path = self._path
-        assert path is not None and self._u_prev is not None
+        assert path is not None
         ds = 0.25  # m, arc length over which the start curvature is measured
         psi = path.sample(seg, np.array([s0, s0 + ds]))[:, 2]
         span = max(min(s0 + ds, float(path.s[seg.end])) - s0, 1e-6)
         # θ̇ = v tan δ / L: in reverse the heading turns the other way for the same wheel
         # (the wheel that gives it, with the estimated misalignment taken off)
-        curvature = direction * self.L * float(psi[1] - psi[0]) / span
-        tan_target = _clip(curvature - bias, self.tan_max)
+        curvature = seg.direction * self.L * float(psi[1] - psi[0]) / span
+        t_path = _clip(curvature - bias, self.tan_max)
+        wheel = math.tan(_clip(steer_angle, self.cfg.steer_max))
+        drive_off = self._drive_off_tan(seg, s0, start, bias, drag, t_path)
+        return sorted((wheel, t_path, drive_off))[1]
+
+    def _drive_off_tan(
+        self,
+        seg: Segment,
+        s0: float,
+        start: tuple[float, float, float, float, float],
+        bias: float,
+        drag: float,
+        t_path: float,
+    ) -> float:
+        """The tan δ from which the MPC's first move, at rest at ``s0``, leaves the wheel where
+        it is.
+
+        The first steering move of the QP — every constraint, the brake released (``a = 0``),
+        the wheel and the last command at ``t`` — is ≥ 0 at ``t = −tan δ_max`` and ≤ 0 at
+        ``+tan δ_max`` (the amplitude limits). From the path's curvature ``t_path``, Brent's
+        method finds its zero on the side the move there points to; a move that still points
+        outwards at the limit makes the limit the answer. Bounded (``_ALIGN_SOLVES``); a QP that
+        does not converge, or a non-finite move, leaves ``t_path``.
+        """
+        direction = seg.direction
+        x, y, v, th, _ = start
+        lam = self._lam  # Hildreth's warm start: the solves here are not this tick's
+
+        def first_move(t: float) -> float:
+            """The QP's first steering move from the wheel at ``t``."""
+            a_eff, t_eff = drag, t + bias
+            _, ref, kin = self._reference(seg, s0, (x, y, v, th, t), a_eff, t_eff)
+            ST, free = self._prediction(kin, t_eff, a_eff, t_eff, ref)
+            ref -= np.array(kin)[:, None]
+            err = ref.ravel() - free
+            E, f = self._qp_terms(ST, err)
+            u_prev = np.array([0.0, t])
+            gamma = self._constraint_bounds(direction, u_prev, 0.0, kin[2], free)
+            result = self._solve(E, f, gamma)
+            move = float(result.x[1])
+            if not (result.converged and math.isfinite(move)):
+                raise _NoMove
+            return move
+
+        try:
+            h = first_move(t_path)
+            if abs(h) <= _ALIGN_TOLERANCE:
+                return t_path
+            # a sign change on [t_path, limit] (the move at the limit points back inside)
+            limit = math.copysign(self.tan_max, h)
+            h_limit = first_move(limit)
+            if h * h_limit > 0.0 or abs(h_limit) <= _ALIGN_TOLERANCE:
+                return limit  # the MPC turns the wheel to the limit and holds it there
+            lo, hi = (t_path, limit) if h > 0.0 else (limit, t_path)
+            root, info = optimize.brentq(
+                first_move,
+                lo,
+                hi,
+                xtol=_ALIGN_TOLERANCE,
+                maxiter=_ALIGN_SOLVES,
+                full_output=True,
+                disp=False,
+            )
+        except (_NoMove, ValueError):  # no answer, or no sign change (not expected: see above)
+            return t_path
+        finally:
+            self._lam = lam
+        return float(root) if info.converged and math.isfinite(root) else t_path
+
+    def _align(
+        self, tan_target: float, steer_angle: float, direction: int, t0: float
+    ) -> ControlOutput | None:
+        """At rest at a segment's start: turn the wheel to ``tan_target``, brake held.
+
+        :returns: the command of this tick, or None once the wheel is there (drive off)
+        """
+        assert self._u_prev is not None
         target = math.atan(tan_target)
         tol = self.cfg.align_tolerance
         if abs(steer_angle - target) <= tol and abs(self._u_prev[1] - tan_target) <= tol:
