@@ -7,7 +7,9 @@ routes loop and cross themselves), a ramp back — and straights; waypoints at u
 each cusp and at the end. ``tests/test_generated_routes.py`` uses :func:`routes` and
 :func:`plan`; run as a script, this drives ``--count`` drawn routes through the whole simulated
 gateway on one plant and prints JSON: per route its goal figures, then a summary against the
-route goals (``leafgate.sim.metrics.route_goal_misses``). Needs hypothesis (``.[test]``).
+route goals (``leafgate.sim.metrics.route_goal_misses``). The routes are all drawn before any is
+driven, so one ``--seed`` gives the same routes on every plant and for every version of the
+controller: a before/after comparison drives the same routes. Needs hypothesis (``.[test]``).
 
     .venv/bin/python tools/generated_routes.py --plant steer-lag --count 40 --seed 1
 """
@@ -139,17 +141,11 @@ FIGURES = (
 )
 
 
-def sweep(plant: str, count: int, draw_seed: int) -> list[dict[str, object]]:
-    """Drive ``count`` routes drawn with ``draw_seed`` on ``plant`` (the simulator's default
-    model for it); each route's figures and the route goals it missed."""
-    from leafgate.settings import load_config
-    from leafgate.sim.metrics import route_goal_misses
-    from leafgate.sim.runner import default_model, run
-
-    config = load_config(
-        None, {"sim.plant.kind": plant, "controller.mpc.model": default_model(plant)}
-    )
-    rows: list[dict[str, object]] = []
+def drawn(count: int, draw_seed: int) -> list[tuple[list[Leg], list[float], float]]:
+    """``count`` routes and top speeds drawn with ``draw_seed``: the same for a seed whatever the
+    controller does with them (hypothesis steers its draw by how the test it feeds behaves, so
+    the routes are drawn first and driven afterwards)."""
+    found: list[tuple[list[Leg], list[float], float]] = []
 
     @seed(draw_seed)
     @settings(
@@ -160,8 +156,25 @@ def sweep(plant: str, count: int, draw_seed: int) -> list[dict[str, object]]:
         suppress_health_check=list(HealthCheck),
     )
     @given(routes(), st.floats(1.0, 2.5))
-    def drive(route: tuple[list[Leg], list[float]], v_max: float) -> None:
-        legs, gaps = route
+    def draw(route: tuple[list[Leg], list[float]], v_max: float) -> None:
+        found.append((*route, v_max))
+
+    draw()
+    return found
+
+
+def sweep(plant: str, count: int, draw_seed: int) -> list[dict[str, object]]:
+    """Drive the ``count`` routes :func:`drawn` with ``draw_seed`` on ``plant`` (the simulator's
+    default model for it); each route's figures and the route goals it missed."""
+    from leafgate.settings import load_config
+    from leafgate.sim.metrics import route_goal_misses
+    from leafgate.sim.runner import default_model, run
+
+    config = load_config(
+        None, {"sim.plant.kind": plant, "controller.mpc.model": default_model(plant)}
+    )
+    rows: list[dict[str, object]] = []
+    for legs, gaps, v_max in drawn(count, draw_seed):
         traj, _ = plan(legs, gaps, v_max)
         metrics = run(config, scenario(traj)).metrics
         row: dict[str, object] = {key: metrics.get(key) for key in FIGURES}
@@ -170,8 +183,6 @@ def sweep(plant: str, count: int, draw_seed: int) -> list[dict[str, object]]:
         row["legs"] = [[leg.direction, [list(p) for p in leg.pieces]] for leg in legs]
         row["gaps"] = gaps
         rows.append(row)
-
-    drive()
     return rows
 
 

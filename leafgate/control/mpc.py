@@ -78,9 +78,9 @@ the angle the path's curvature needs there, at the steering-rate limit with the 
 (status ``aligning``) — steering has no effect on a standing car, and driving off with the wheel
 on the wrong lock (after a cusp) would leave the path at once. It turns no farther than the
 MPC's own drive-off angle, and not at all when the MPC steers the other way
-(:meth:`MpcController._align_target`): else the MPC would turn it back before the car moves. Once the car has passed a
-segment's end point it brakes to rest (status ``stopping``) and never creeps on to correct the
-heading; the next segment (or the finish) starts from where it stopped. While finished or
+(:meth:`MpcController._align_target`): else the MPC would turn it back before the car moves.
+Once the car has passed a segment's end point it brakes to rest (status ``stopping``) and never
+creeps on to correct the heading; the next segment (or the finish) starts from where it stopped. While finished or
 aligning the wheel holds or ramps monotonically: no chatter at standstill. A brake hold left at
 rest when the MPC takes over (a cusp reached off the next segment's start, where there is no
 aligning) is released first, at the jerk limit with the wheel held (status ``releasing``): a
@@ -381,7 +381,7 @@ class MpcController:
             s0 = self._s_pose  # this tick's projection of the pose, found by the progress
         else:
             s0 = path.project(seg, prog.index, start[0], start[1])
-        aligning = self._align_at_start(seg, s0, start, steer_angle, t0, bias, drag)
+        aligning = self._align_at_start(seg, s0, pose.speed, start, steer_angle, t0, bias, drag)
         if aligning is not None:
             return aligning
         if abs(pose.speed) <= self.cfg.stop_speed and direction * a_prev < -_DRIVE_ACCEL:
@@ -500,14 +500,16 @@ class MpcController:
         self,
         seg: Segment,
         s0: float,
+        speed: float,
         start: tuple[float, float, float, float, float],
         steer_angle: float,
         t0: float,
         bias: float,
         drag: float,
     ) -> ControlOutput | None:
-        """At rest at the segment's start, the aligning (or releasing) command; else None."""
-        at_rest = abs(start[2]) <= self.cfg.stop_speed
+        """At rest (the measured ``speed``) at the segment's start, the aligning (or releasing)
+        command; else None. ``start`` is :meth:`_start_state`'s."""
+        at_rest = abs(speed) <= self.cfg.stop_speed
         if at_rest and not self._aligned:
             assert self._path is not None
             if s0 - self._path.s[seg.start] <= self.cfg.goal_tolerance:
