@@ -12,8 +12,10 @@ ways, on 60 of those steps and their QPs, each row timed between two timings of 
 steps (:func:`_cvxpy_rows`: the model handed over with the states as variables, the condensed
 QP handed over, the paper's problem built every step, the paper's problem with parameters),
 each row with the speed-up and whether it reaches the 100× goal (``pip install 'leafgate[bench]'``;
-skipped, and said so, when cvxpy is missing). One untimed drive comes first, so that the first
-backend timed does not pay for the process's warm-up. Prints one JSON document; times in
+skipped, and said so, when cvxpy is missing); and the floor under those speed-ups
+(:func:`_floor`: the step's Python parts outside its numeric work, plus the DAQP solve). One
+untimed drive comes first, so that the first backend timed does not pay for the process's
+warm-up. Prints one JSON document; times in
 microseconds.
 
     .venv/bin/python tools/bench_mpc.py [--repeat 3] [--model kinematic_steer_lag]
@@ -42,7 +44,7 @@ from leafgate.config.sim import PlantConfig
 from leafgate.control.model import N_STATES, augment_steer_lag, linearise_along
 from leafgate.control.mpc import MpcController
 from leafgate.control.qp import DaqpBackend, OsqpBackend, QpResult, hildreth
-from leafgate.messages import Pose
+from leafgate.messages import ControlOutput, Gear, Pose
 from leafgate.sim.plant import gear_direction, make_plant
 from leafgate.sim.scenarios import get_scenario
 
@@ -93,6 +95,14 @@ class _RecordingController(MpcController):
         if self.record:
             self._last_terms = (ST, err, self._last_model)
         return super()._qp_terms(ST, err)
+
+    def _drive_off_tan(self, *args: Any) -> float:
+        """Not recorded: the QPs solved at rest for the aligning angle are no tick's QP."""
+        record, self.record = self.record, False
+        try:
+            return super()._drive_off_tan(*args)
+        finally:
+            self.record = record
 
     def _solve(self, E: np.ndarray, f: np.ndarray, gamma: np.ndarray) -> QpResult:
         result = super()._solve(E, f, gamma)
@@ -442,6 +452,63 @@ def _cvxpy_rows(steps: list) -> dict[str, Any]:
     return rows
 
 
+def _floor(steps: list, daqp_median_us: float, cvx: dict[str, Any]) -> dict[str, Any]:
+    """What a step with constraints active would take if its numeric work — reference points,
+    prediction, ``E``, ``f``, ``γ``, the unconstrained solve and the first move's prediction —
+    cost nothing: the Python around it, timed part by part on the constrained steps (each part
+    on a fresh copy of the controller before the step, untimed copy), plus the DAQP solve. The
+    cvxpy rows' medians over it are the most a compiled numeric core could reach."""
+    pick = np.linspace(0, len(steps) - 1, min(CVXPY_SAMPLES, len(steps))).round().astype(int)
+    parts: dict[str, list[float]] = {
+        "observe": [],
+        "track_segment": [],
+        "limit_previous": [],
+        "speed_bound": [],
+        "control_output": [],
+    }
+    for i in pick:
+        snapshot, pose, steer, traj = steps[i]
+        c = _copy(snapshot, traj)
+        if traj is not c._traj:  # a first step takes the plan first (not timed)
+            c._set_trajectory(traj)
+        t0 = time.perf_counter()
+        c._observe(pose, steer)
+        t1 = time.perf_counter()
+        c._track_segment(pose, t1)
+        t2 = time.perf_counter()
+        direction = c._progress.segment.direction
+        c._limit_previous(direction)
+        t3 = time.perf_counter()
+        c._speed_bound(c._progress.segment, c._s_pose, pose.speed)
+        t4 = time.perf_counter()
+        ControlOutput(
+            steer_angle=0.0,
+            accel=0.0,
+            speed=0.0,
+            gear=Gear.D,
+            converged=True,
+            status="ok",
+            solve_time=0.0,
+            **c._where(),
+        )
+        t5 = time.perf_counter()
+        for name, dt in zip(parts, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4), strict=True):
+            parts[name].append(dt)
+    medians = {name: round(float(np.median(v)) * 1e6, 2) for name, v in parts.items()}
+    floor = sum(medians.values()) + daqp_median_us
+    return {
+        "n": int(pick.size),
+        "python_parts_median_us": medians,
+        "daqp_qp_median_us": daqp_median_us,
+        "floor_us": round(floor, 1),
+        "speedup_at_floor": {
+            name: round(row["median_us"] / floor, 1)
+            for name, row in cvx.items()
+            if isinstance(row, dict) and "median_us" in row
+        },
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=2, help="runs per case (default 2)")
@@ -528,6 +595,8 @@ def main() -> None:
     }
     report["step_speedup_vs_cvxpy"] = speedup
     daqp_row = rows.get("daqp", {})
+    if steps and "median_us" in daqp_row:
+        report["step_floor"] = _floor(steps, daqp_row["median_us"], cvx)
     report["goal_met"] = {
         "daqp_qp": {
             "median": daqp_row.get("median_us", math.inf) <= GOAL_DAQP_MEDIAN_US,
