@@ -80,11 +80,12 @@ on the wrong lock (after a cusp) would leave the path at once. It turns no farth
 MPC's own drive-off angle, and not at all when the MPC steers the other way
 (:meth:`MpcController._align_target`): else the MPC would turn it back before the car moves.
 Once the car has passed a segment's end point it brakes to rest (status ``stopping``) and never
-creeps on to correct the heading; the next segment (or the finish) starts from where it stopped. While finished or
-aligning the wheel holds or ramps monotonically: no chatter at standstill. A brake hold left at
-rest when the MPC takes over (a cusp reached off the next segment's start, where there is no
-aligning) is released first, at the jerk limit with the wheel held (status ``releasing``): a
-car at rest does not roll back under its brake, so the hold is no acceleration to plan with.
+creeps on to correct the heading; the next segment (or the finish) starts from where it stopped.
+While finished or aligning the wheel holds or ramps monotonically: no chatter at standstill. A
+brake hold left at rest when the MPC takes over (a cusp reached off the next segment's start,
+where there is no aligning) is released first, at the jerk limit with the wheel held (status
+``releasing``): a car at rest does not roll back under its brake, so the hold is no
+acceleration to plan with.
 At rest the first model step is linearised at the plan's speed of the next one, not at 0: the
 incremental model carries a steering move only through the step it is made in (its effect is
 ∝ v), so at v = 0 the first move would do nothing in the prediction and the MPC would put off
