@@ -254,7 +254,7 @@ def test_a_re_sampled_window_resent_at_a_cusp_is_resumed_there() -> None:
     [
         (0.3, 0.0, -10.0),  # the wheel between the path's angle (0) and the MPC's (right)
         (-0.1, 0.0, 10.0),  # the wheel already turned the way the MPC steers (left)
-        (0.2, 5.0, -5.0),
+        (0.2, 5.0, -5.0),  # left of the path and heading left, the wheel a little right
     ],
 )
 def test_at_rest_off_the_path_the_wheel_is_not_turned_back_and_forth_before_driving_off(
@@ -264,10 +264,9 @@ def test_at_rest_off_the_path_the_wheel_is_not_turned_back_and_forth_before_driv
     MPC would steer from there: standing off the path (a cusp ends where the last move left the
     car), the wheel was turned one way at rest and turned back by the MPC's first moves before
     the car moved (0.22 rad at parallel-park's second cusp with the car's config; 6.9–12.6°
-    here). Not yet covered: a wheel turned far against the MPC's way
-    (15° left with the car heading 6° right of the path) still goes 2.5° back at rest with the
-    steering-aware model, where the MPC's first moves from the aligned angle are not its later
-    ones (docs/design.md)."""
+    here). Not yet covered: a wheel turned far against the MPC's way (15° left with the car
+    heading 6° right of the path) still goes 2.5° back at rest with the steering-aware model,
+    where the MPC's first moves from the aligned angle are not its later ones (docs/design.md)."""
     route = routes.leg([(20.0, 0.0)])
     start = Pose(0.0, lateral, math.radians(heading_deg), 0.0)  # at the start, off the path
     plant = make_plant(PlantConfig(kind=plant_kind), VehicleConfig(), start)  # type: ignore[arg-type]
