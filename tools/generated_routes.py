@@ -1,15 +1,20 @@
-"""Routes nobody wrote by hand: drawn by hypothesis, for the tests and for a sweep.
+"""Routes nobody wrote by hand: drawn by hypothesis for the tests, and from a seed for a sweep.
 
 A Leaf-drivable route: 1–3 legs of alternating direction (cusps between them), each a straight
 start, then up to three turns — a clothoid ramp, an arc of radius ≥ 5 m of up to 1.5 turns (so
 routes loop and cross themselves), a ramp back — and straights; waypoints at uneven gaps of
 0.2–1.0 m (cycled), the vehicle's heading, signed speeds that pull away at 0.3 m/s and stop at
-each cusp and at the end. ``tests/test_generated_routes.py`` uses :func:`routes` and
-:func:`plan`; run as a script, this drives ``--count`` drawn routes through the whole simulated
-gateway on one plant and prints JSON: per route its goal figures, then a summary against the
-route goals (``leafgate.sim.metrics.route_goal_misses``). The routes are all drawn before any is
-driven, so one ``--seed`` gives the same routes on every plant and for every version of the
-controller: a before/after comparison drives the same routes. Needs hypothesis (``.[test]``).
+each cusp and at the end (:func:`route`, one definition for both draws).
+``tests/test_generated_routes.py`` uses :func:`routes` (hypothesis) and :func:`plan`; run as a
+script, this drives ``--count`` routes drawn from ``--seed`` (:class:`Seeded`, Python's
+``random``) through the whole simulated gateway on one plant and prints JSON: per route its
+goal figures, then a summary against the route goals
+(``leafgate.sim.metrics.route_goal_misses``). A seed gives the same routes in every process, on
+every plant and for every version of the controller, so a before/after comparison drives the
+same routes. (Hypothesis's own draw with a fixed seed did not: the same seed gave other routes
+from the 2nd on when the file was imported instead of run, and from the 8th on in a run of
+the same script an hour later.) Needs hypothesis
+(``.[test]``) for the import.
 
     .venv/bin/python tools/generated_routes.py --plant steer-lag --count 40 --seed 1
 """
@@ -20,11 +25,12 @@ import argparse
 import json
 import math
 import os
+import random
 import sys
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
-from hypothesis import HealthCheck, Phase, given, seed, settings
 from hypothesis import strategies as st
 
 from leafgate.messages import FloatArray, Pose, Trajectory
@@ -94,23 +100,59 @@ def plan(legs: list[Leg], gaps: list[float], v_max: float) -> tuple[Trajectory, 
     return traj, dense
 
 
-@st.composite
-def routes(draw: st.DrawFn, max_legs: int = 3) -> tuple[list[Leg], list[float]]:
+class Draw(Protocol):
+    """Where a route's numbers come from: hypothesis (the tests) or a seeded generator (the
+    sweep)."""
+
+    def real(self, low: float, high: float) -> float: ...
+    def whole(self, low: int, high: int) -> int: ...
+
+
+def route(draw: Draw, max_legs: int = 3) -> tuple[list[Leg], list[float]]:
     """1–3 legs of alternating direction; each a straight start, then turns (clothoid, arc,
     clothoid) and straights; the waypoint gaps."""
-    n_legs = draw(st.integers(1, max_legs))
     legs = []
-    for i in range(n_legs):
-        pieces = [(draw(st.floats(3.0, 10.0)), 0.0, 0.0)]
-        for _ in range(draw(st.integers(1, 3))):
-            k = draw(st.floats(-K_MAX, K_MAX).filter(lambda k: abs(k) > 0.02))
-            ramp = draw(st.floats(0.5, 4.0))
-            arc = draw(st.floats(0.0, min(3.0 * math.pi / abs(k), 60.0)))  # ≤ 1.5 turns
+    for i in range(draw.whole(1, max_legs)):
+        pieces = [(draw.real(3.0, 10.0), 0.0, 0.0)]
+        for _ in range(draw.whole(1, 3)):
+            k = draw.real(0.02, K_MAX)  # a turn, not a straight, either way
+            if draw.whole(0, 1):
+                k = -k
+            ramp = draw.real(0.5, 4.0)
+            arc = draw.real(0.0, min(3.0 * math.pi / abs(k), 60.0))  # ≤ 1.5 turns
             pieces += [(ramp, 0.0, k), (arc, k, k), (ramp, k, 0.0)]
-            pieces.append((draw(st.floats(0.5, 8.0)), 0.0, 0.0))
+            pieces.append((draw.real(0.5, 8.0), 0.0, 0.0))
         legs.append(Leg(1 if i % 2 == 0 else -1, tuple(pieces)))
-    gaps = draw(st.lists(st.floats(0.2, 1.0), min_size=1, max_size=7))
+    gaps = [draw.real(0.2, 1.0) for _ in range(draw.whole(1, 7))]
     return legs, gaps
+
+
+@st.composite
+def routes(draw: st.DrawFn, max_legs: int = 3) -> tuple[list[Leg], list[float]]:
+    """:func:`route` drawn by hypothesis (which leans to the ends of every range)."""
+
+    class _Hypothesis:
+        def real(self, low: float, high: float) -> float:
+            return draw(st.floats(low, high))
+
+        def whole(self, low: int, high: int) -> int:
+            return draw(st.integers(low, high))
+
+    return route(_Hypothesis(), max_legs)
+
+
+class Seeded:
+    """:class:`Draw` from ``random.Random(seed)``: the same numbers for a seed in every process
+    and on every machine (hypothesis's own draw with a fixed seed was not: module notes)."""
+
+    def __init__(self, seed: int) -> None:
+        self._random = random.Random(seed)
+
+    def real(self, low: float, high: float) -> float:
+        return self._random.uniform(low, high)
+
+    def whole(self, low: int, high: int) -> int:
+        return self._random.randint(low, high)
 
 
 def scenario(traj: Trajectory) -> Scenario:
@@ -142,24 +184,13 @@ FIGURES = (
 
 
 def drawn(count: int, draw_seed: int) -> list[tuple[list[Leg], list[float], float]]:
-    """``count`` routes and top speeds drawn with ``draw_seed``: the same for a seed whatever the
-    controller does with them (hypothesis steers its draw by how the test it feeds behaves, so
-    the routes are drawn first and driven afterwards)."""
-    found: list[tuple[list[Leg], list[float], float]] = []
-
-    @seed(draw_seed)
-    @settings(
-        max_examples=count,
-        deadline=None,
-        database=None,
-        phases=[Phase.generate],
-        suppress_health_check=list(HealthCheck),
-    )
-    @given(routes(), st.floats(1.0, 2.5))
-    def draw(route: tuple[list[Leg], list[float]], v_max: float) -> None:
-        found.append((*route, v_max))
-
-    draw()
+    """``count`` routes and top speeds drawn with ``draw_seed`` (:class:`Seeded`): the same for
+    a seed whatever the controller does with them, in any process."""
+    draw = Seeded(draw_seed)
+    found = []
+    for _ in range(count):
+        legs, gaps = route(draw)
+        found.append((legs, gaps, draw.real(1.0, 2.5)))
     return found
 
 
