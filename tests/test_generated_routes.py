@@ -155,8 +155,8 @@ def test_a_seed_draws_the_same_routes_in_another_process() -> None:
     """The sweep's before/after comparisons drive the same routes only if a seed names them.
     Drawn by hypothesis with a fixed seed, they were not the same: the file run as a script
     gave other routes than the module imported, from the 2nd on, and two runs of the same
-    script an hour apart differed from the 8th on. Drawn from Python's ``random`` they are the
-    same, and they differ between seeds."""
+    script a quarter of an hour apart differed from the 8th on. Drawn from Python's
+    ``random`` they are the same, and they differ between seeds."""
     here = repr(drawn(12, 5))  # floats in repr are exact
     # the file loaded by its path, as the sweep runs it (under another module name)
     script = (

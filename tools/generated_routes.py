@@ -13,8 +13,7 @@ goal figures, then a summary against the route goals
 every plant and for every version of the controller, so a before/after comparison drives the
 same routes. (Hypothesis's own draw with a fixed seed did not: the same seed gave other routes
 from the 2nd on when the file was imported instead of run, and from the 8th on in a run of
-the same script an hour later.) Needs hypothesis
-(``.[test]``) for the import.
+the same script a quarter of an hour later.) Needs hypothesis (``.[test]``) for the import.
 
     .venv/bin/python tools/generated_routes.py --plant steer-lag --count 40 --seed 1
 """
