@@ -27,7 +27,7 @@ from leafgate.messages import FloatArray
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.metrics import GOAL_FINAL_POSITION, GOAL_LATERAL_LAG, route_goal_misses
 from leafgate.sim.runner import default_model, run
-from tools.generated_routes import Leg, drawn, plan, routes, scenario
+from tools.generated_routes import TOP_SPEED, Leg, drawn, plan, routes, scenario
 
 
 def _beside(d: FloatArray, s: float, offset: float) -> tuple[float, float, float]:
@@ -92,7 +92,7 @@ def test_any_drivable_route_is_driven_to_its_goal(plant: str, lateral: float) ->
     wheel turns; 6 cm were measured there.)"""
 
     @settings(max_examples=4, deadline=None, derandomize=True, database=None)
-    @given(routes(max_legs=2), st.floats(1.0, 2.5))
+    @given(routes(max_legs=2), st.floats(*TOP_SPEED))
     def drive(route: tuple[list[Leg], list[float]], v_max: float) -> None:
         legs, gaps = route
         traj, _ = plan(legs, gaps, v_max)

@@ -37,6 +37,7 @@ from leafgate.sim.scenarios import Scenario, time_budget
 
 K_MAX = 0.2  # 1/m: R = 5 m, inside the Leaf's 4.68 m at the MPC's 30°
 STEP = 0.01  # m, the dense integration step
+TOP_SPEED = (1.0, 2.5)  # m/s, the range a route's top speed is drawn from
 
 
 @dataclass(frozen=True)
@@ -189,7 +190,7 @@ def drawn(count: int, draw_seed: int) -> list[tuple[list[Leg], list[float], floa
     found = []
     for _ in range(count):
         legs, gaps = route(draw)
-        found.append((legs, gaps, draw.real(1.0, 2.5)))
+        found.append((legs, gaps, draw.real(*TOP_SPEED)))
     return found
 
 
