@@ -294,12 +294,14 @@ class SimResult:
         with path.open("w", encoding="utf-8", newline="") as f:
             out = csv.writer(f)
             out.writerow([name for name, _ in TRACE_COLUMNS] + ["state"])
+            # every value as the shortest text that reads back as the same float: at map
+            # coordinates (x ≈ 350 000 m) six significant digits were a metre
             columns = [
-                np.degrees(self.series[key]) if name in degrees else self.series[key]
+                (np.degrees(self.series[key]) if name in degrees else self.series[key]).tolist()
                 for name, key in TRACE_COLUMNS
             ]
             for i, state in enumerate(self.states):
-                out.writerow([f"{col[i]:.6g}" for col in columns] + [state])
+                out.writerow([repr(col[i]) for col in columns] + [state])
 
 
 FINISH_TOLERANCE = 0.5  # m: a run finished only when it ended this close to the route's end
