@@ -155,7 +155,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if args.trajectory:
         from leafgate.sim.scenarios import file_scenario
 
-        scenario = file_scenario(args.trajectory, _start_pose(args.start))
+        scenario = file_scenario(
+            args.trajectory,
+            _start_pose(args.start),
+            max_speed=cfg.gateway.safety.max_speed,
+            max_points=cfg.zenoh.max_plan_points,
+        )
     else:
         scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)

@@ -259,6 +259,8 @@ class ControlOutput:
     route_length: float = 0.0  # m, total arc length of the plan
     deviation: float = math.nan  # m, the car's distance from the plan where it projects onto
     # it (NaN: not known)
+    stop_distance: float = math.nan  # m along the plan from the car to where the plan comes to
+    # rest before its segment's end (a stop point; < 0: past it); NaN: no stop point ahead
 
 
 T = TypeVar("T")

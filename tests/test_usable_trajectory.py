@@ -38,6 +38,24 @@ def _with_overlaps(traj: Trajectory, at: list[int], gap: float = 0.004) -> Traje
     return Trajectory(x=x, y=traj.y[keep], heading=traj.heading[keep], speed=traj.speed[keep])
 
 
+def _arc(radius: float = 30.0, n: int = 30, spacing: float = 0.5) -> Trajectory:
+    """A left turn of ``radius`` m, the vehicle's heading along it, in radians."""
+    heading = spacing / radius * np.arange(n)
+    return Trajectory(
+        x=radius * np.sin(heading),
+        y=radius * (1.0 - np.cos(heading)),
+        heading=heading,
+        speed=np.ones(n),
+    )
+
+
+def _reversed(traj: Trajectory, tangent: bool = False) -> Trajectory:
+    """``traj``'s waypoints driven in reverse: the vehicle faces away from where it moves (or,
+    ``tangent``, the heading is the way it moves, as a path's tangent is)."""
+    heading = traj.heading if tangent else traj.heading + math.pi
+    return Trajectory(x=traj.x, y=traj.y, heading=heading, speed=-traj.speed)
+
+
 CASES = {
     "one point": _line(1),
     "two points": _line(2),
@@ -49,6 +67,13 @@ CASES = {
     "overlapping points": _with_overlaps(_line(20), [0, 7, 19]),
     "exact repeats": _with_overlaps(_line(20), [5, 6], gap=0.0),
     "four points, one overlapping": _with_overlaps(_line(3), [2]),
+    "an arc": _arc(),
+    "an arc, headings in degrees": Trajectory(
+        x=_arc().x, y=_arc().y, heading=np.degrees(_arc().heading), speed=_arc().speed
+    ),
+    "an arc in reverse": _reversed(_arc()),
+    "an arc in reverse, the path's tangent as heading": _reversed(_arc(), tangent=True),
+    "a sparse arc (7 m between waypoints)": _arc(n=8, spacing=7.0),
 }
 
 
@@ -83,6 +108,22 @@ def test_the_reason_names_the_problem() -> None:
         "trajectory: 3 waypoint(s) (1 overlapping removed), at least 4 are needed"
     )
     assert trajectory_problem(CASES["a NaN"]) == "trajectory: row 3: x is not finite"
+
+
+def test_headings_that_disagree_with_the_path_are_refused_naming_the_row() -> None:
+    """Old code: an arc whose headings were in degrees was engaged; the car left the plan and
+    the off-the-plan watchdog stopped it 2 m off, naming a 0.5 m turn the path does not have."""
+    assert trajectory_problem(CASES["an arc"]) is None
+    assert trajectory_problem(CASES["an arc in reverse"]) is None
+    assert trajectory_problem(CASES["a sparse arc (7 m between waypoints)"]) is None
+    degrees = trajectory_problem(CASES["an arc, headings in degrees"])
+    assert degrees is not None and degrees.startswith("trajectory: row 2: heading 0.955 rad is")
+    assert degrees.endswith("driven forward; headings are the vehicle's, in radians")
+    tangent = trajectory_problem(CASES["an arc in reverse, the path's tangent as heading"])
+    assert tangent is not None and tangent.startswith("trajectory: row 1: heading 0.000 rad is")
+    assert "180° off the way the path runs from it to the next waypoint, driven backward" in (
+        tangent
+    )
 
 
 @pytest.mark.parametrize("kind", ["mpc", "pure-pursuit"])

@@ -540,6 +540,7 @@ def _feed(
     gear_change: bool = False,
     progress0: float = 0.0,
     route_length: float = 50.0,
+    stop_distance: float = math.nan,
 ) -> tuple[float | None, float]:
     """Feed ticks at 50 Hz; return when the first STOP came (or None) and the end time."""
     t = t0
@@ -553,6 +554,7 @@ def _feed(
             steer_rate * (t - t0),
             standstill=abs(speed) < 0.05,
             gear_change=gear_change,
+            stop_distance=stop_distance,
         )
         if check.reaction is Reaction.STOP:
             assert check.detail.startswith("no progress")
@@ -584,6 +586,16 @@ def test_progress_watchdog_waiting_at_rest_for_a_gear_change_is_no_stop() -> Non
     # the gear is in: now the car must move within the time
     stop_at, _ = _feed(wd, 10.0, t0=10.0)
     assert stop_at == pytest.approx(10.0 + CFG.no_progress_time, abs=PERIOD)
+
+
+def test_progress_watchdog_standing_at_the_plans_stop_point_is_no_stop() -> None:
+    # the plan comes to rest 20 m into its 50 (a planner's stop line): the car waits there
+    # for a plan that moves on, for as long as it takes
+    assert _feed(ProgressWatchdog(CFG), 30.0, progress0=20.0, stop_distance=0.03)[0] is None
+    assert _feed(ProgressWatchdog(CFG), 30.0, progress0=20.0, stop_distance=-0.2)[0] is None
+    # still short of it, or with no stop point ahead, a car at rest gets nowhere
+    assert _feed(ProgressWatchdog(CFG), 30.0, progress0=20.0, stop_distance=0.5)[0] is not None
+    assert _feed(ProgressWatchdog(CFG), 30.0, progress0=20.0)[0] is not None
 
 
 def test_progress_watchdog_turning_the_wheel_at_rest_is_no_stop_but_a_stuck_wheel_is() -> None:

@@ -439,10 +439,11 @@ class MpcController:
 
     def _track_segment(self, pose: Pose, t0: float) -> tuple[ControlOutput | None, bool]:
         """Step 1, bookkeeping: advance the progress; at rest at a segment's end move on to the
-        next segment (a cusp) or finish.
+        next segment (a cusp) or finish; at rest at the plan's stop point hold the car there.
 
-        :returns: the command when this tick ends here (finished, or stopped past the end off
-            the goal), else None; and whether the progress has passed the segment's end
+        :returns: the command when this tick ends here (finished, at the stop point, or
+            stopped past the end off the goal), else None; and whether the progress has
+            passed the segment's end
         """
         cfg, prog = self.cfg, self._progress
         assert prog is not None and self._u_prev is not None
@@ -467,6 +468,15 @@ class MpcController:
                 self._finished = True
         if self._finished:
             return self._finish(seg, t0), passed
+        stop = prog.path.stops.get(seg)
+        if at_rest and stop is not None and prog.s >= stop - cfg.goal_tolerance:
+            # the plan comes to rest here (a planner's stop line): hold, and wait for a plan
+            # that moves on
+            return replace(
+                self._brake_to_rest(seg.direction, t0),
+                status=f"stop-point: the plan stands from {stop:.2f} m of "
+                f"{prog.route_length:.2f} m on",
+            ), passed
         if at_rest and passed:  # stopped past the end, farther than the goal tolerance
             distance = prog.to_end(pose.x, pose.y)
             return replace(

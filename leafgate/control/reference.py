@@ -11,7 +11,9 @@ trajectory, so the ``Np`` points of a cycle are found with one vectorised interp
 starting at the vehicle's projection on the path. Positions and headings are then evaluated
 with third-order (cubic Lagrange) interpolation on four waypoints, one behind and three ahead,
 parametrised by arc length; the speed is interpolated linearly (no overshoot). A segment's last
-point always has zero reference speed, so the reference stops on it.
+point always has zero reference speed, so the reference stops on it; so does a *stop point*,
+where the plan comes to rest before the segment's end (:func:`stop_point`, as Autoware's
+planners stop a car at a stop line): the reference stops there and waits.
 
 Rows in error messages are waypoint numbers counted from 1 (in a CSV file, row 1 is the line
 after the header).
@@ -62,12 +64,22 @@ class Spacing:
 # --- loading and validation -------------------------------------------------------------------
 
 
-def load_trajectory(path: str | Path) -> Trajectory:
-    """Read a trajectory from CSV (header ``x,y,heading,speed``) or YAML, and validate it.
+def load_trajectory(
+    path: str | Path,
+    *,
+    max_speed: float = math.inf,
+    max_points: int | None = None,
+    to_the_end: bool = False,
+) -> Trajectory:
+    """Read a trajectory from CSV (header ``x,y,heading,speed``) or YAML, and check it by the
+    rule for a usable plan (:func:`trajectory_problem`, with ``max_speed`` and ``max_points``).
 
     YAML holds either a list of mappings with the four keys or a mapping of the four keys to
     lists of equal length. Units are SI (m, rad, m/s).
 
+    :param to_the_end: the plan is all the car will get (a simulation of the file): refuse it
+        when it comes to rest before the end of a direction segment (:func:`stop_point`),
+        where the car would wait for a plan that moves on
     :raises TrajectoryError: naming the file, the row and the problem
     """
     path = Path(path)
@@ -85,8 +97,33 @@ def load_trajectory(path: str | Path) -> Trajectory:
         heading=np.asarray(columns["heading"], dtype=np.float64),
         speed=np.asarray(columns["speed"], dtype=np.float64),
     )
-    validate(traj, str(path), rows=rows)
+    problem = trajectory_problem(
+        traj, str(path), max_speed=max_speed, max_points=max_points, rows=rows
+    )
+    if problem is not None:
+        raise TrajectoryError(problem)
+    if to_the_end:
+        _refuse_stop_points(traj, str(path), rows)
     return traj
+
+
+def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | None) -> None:
+    """Raise when the plan comes to rest before a direction segment's end (``to_the_end``)."""
+    kept = _kept_points(traj)
+    plan = remove_overlap_points(traj)
+    for seg in split_segments(plan):
+        stop = stop_point(np.maximum(seg.direction * plan.speed[seg.start : seg.end + 1], 0.0))
+        if stop is None:
+            continue
+        i = int(kept[seg.start + stop])
+        row = int(rows[i]) if rows is not None else i + 1
+        leg = "forward" if seg.direction > 0 else "reverse"
+        raise TrajectoryError(
+            f"{source}: row {row}: the plan comes to rest here, before the end of its {leg} "
+            "leg (its speeds are 0 from here on, as a planner stops a car at a stop line): the "
+            "car would stop and wait for another plan; a file is one plan, so give speeds above "
+            "0 up to each cusp and the end"
+        )
 
 
 def _show(value: object) -> str:
@@ -246,6 +283,10 @@ TIGHT_TURN_SPEED = 1.0  # m/s, the fastest reference speed on a turn tighter tha
 # limit (0.75 m on PythonRobotics' courses; from their 10 km/h it was 3-3.7 m)
 TURN_WINDOW = 0.5  # m, the shortest stretch of path a turn's radius is measured over
 MAX_HEADING_STEP = math.pi / 2  # rad between neighbouring kept waypoints: more is a flip
+HEADING_CHORD = 0.05  # m, the shortest chord whose direction is compared with the headings
+MAX_HEADING_OFF = math.radians(45.0)  # rad, a chord running farther off its headings: wrong
+AT_REST_SPEED = 1e-3  # m/s, a planned speed at most this is a waypoint at rest (stop_point)
+STOP_WAIT = 1e9  # s, the planned time added past a stop point: the reference never gets there
 
 
 def trajectory_problem(
@@ -254,6 +295,7 @@ def trajectory_problem(
     *,
     max_speed: float = math.inf,
     max_points: int | None = None,
+    rows: Sequence[int] | None = None,
 ) -> str | None:
     """Why ``traj`` cannot be driven, in one line, or None when it is usable (:func:`validate`).
 
@@ -266,18 +308,29 @@ def trajectory_problem(
       the safety gate's, which the car would never be allowed to reach);
     - a heading flip: neighbouring kept waypoints whose headings differ by more than
       :data:`MAX_HEADING_STEP` (a car cannot turn 90° within one waypoint spacing of ≤ 1 m; a
-      change of direction keeps the heading, only the speed's sign changes).
+      change of direction keeps the heading, only the speed's sign changes);
+    - a heading that disagrees with the way the path runs: each chord of at least
+      :data:`HEADING_CHORD` between kept waypoints runs along the mean of its two headings (as
+      on any circular arc), forward or, driven in reverse, backward; off by more than
+      :data:`MAX_HEADING_OFF`, the headings are not the vehicle's in radians (degrees, or the
+      path's tangent on a reverse leg).
+
+    :param rows: the row of the file each waypoint came from (:func:`validate`)
     """
     if max_points is not None and len(traj) > max_points:
         return f"{source}: {len(traj)} waypoints, at most {max_points}"
     try:
-        validate(traj, source)
+        validate(traj, source, rows)
     except TrajectoryError as exc:
         return str(exc)
+
+    def row_of(index: int) -> int:
+        return int(rows[index]) if rows is not None else index + 1
+
     fastest = int(np.argmax(np.abs(traj.speed)))
     if abs(float(traj.speed[fastest])) > max_speed:
         return (
-            f"{source}: row {fastest + 1}: speed {float(traj.speed[fastest]):.2f} m/s above "
+            f"{source}: row {row_of(fastest)}: speed {float(traj.speed[fastest]):.2f} m/s above "
             f"the maneuver limit {max_speed:g} m/s"
         )
     kept = _kept_points(traj)
@@ -286,10 +339,36 @@ def trajectory_problem(
     if steps.size and float(steps.max()) > MAX_HEADING_STEP:
         i = int(np.argmax(steps))
         return (
-            f"{source}: row {int(kept[i + 1]) + 1}: heading turns "
+            f"{source}: row {row_of(int(kept[i + 1]))}: heading turns "
             f"{math.degrees(float(steps[i])):.0f}° from the waypoint before (a flip)"
         )
-    return None
+    return _heading_problem(remove_overlap_points(traj), kept, source, row_of)
+
+
+def _heading_problem(
+    traj: Trajectory, kept: npt.NDArray[np.intp], source: str, row_of: Any
+) -> str | None:
+    """The first chord whose direction disagrees with its waypoints' headings
+    (:func:`trajectory_problem`), or None. ``traj`` is without overlapping points, ``kept``
+    their indices in the trajectory as given."""
+    dx, dy = np.diff(traj.x), np.diff(traj.y)
+    along = np.arctan2(dy, dx)  # the chord's direction
+    # the heading half way: the mean of the two (their difference is under 90°, no flip)
+    mid = traj.heading[:-1] + 0.5 * np.angle(np.exp(1j * np.diff(traj.heading)))
+    reverse = chord_directions(traj) < 0.0
+    facing = np.where(reverse, along + math.pi, along)  # where the vehicle faces on the chord
+    off = np.abs(np.angle(np.exp(1j * (facing - mid))))
+    off[np.hypot(dx, dy) < HEADING_CHORD] = 0.0
+    bad = np.flatnonzero(off > MAX_HEADING_OFF)
+    if not bad.size:
+        return None
+    i = int(bad[0])
+    way = "backward (reverse: the speed is negative)" if reverse[i] else "forward"
+    return (
+        f"{source}: row {row_of(int(kept[i]))}: heading {float(traj.heading[i]):.3f} rad is "
+        f"{math.degrees(float(off[i])):.0f}° off the way the path runs from it to the next "
+        f"waypoint, driven {way}; headings are the vehicle's, in radians"
+    )
 
 
 def _kept_points(traj: Trajectory) -> npt.NDArray[np.intp]:
@@ -438,6 +517,26 @@ def tight_turn_ceiling(s: FloatArray, heading: FloatArray, min_radius: float) ->
     return np.sqrt(TIGHT_TURN_SPEED**2 + 2.0 * STOP_DECEL * distance)
 
 
+def stop_point(speed: FloatArray) -> int | None:
+    """Where a segment's plan stops short of the segment's end: the first waypoint at rest
+    (speed magnitude at most :data:`AT_REST_SPEED`) after the motion has started, or the
+    segment's start when the plan never moves; None when the plan moves on to the last waypoint.
+
+    Autoware's planners stop the car so, at a stop line or before an obstacle: the speeds are
+    zero from the stop point on, for as far as the trajectory reaches. The car stops there and
+    waits for a plan that moves on; it does not creep on towards the trajectory's end. Waypoints
+    at rest before the motion starts are a start from rest, not a stop: the car pulls away.
+
+    :param speed: m/s, the magnitudes of the segment's planned speeds, in driving order
+    """
+    moving = speed > AT_REST_SPEED
+    first = int(np.argmax(moving))
+    if not moving[first]:
+        return 0
+    rest = np.flatnonzero(~moving[first:-1])
+    return first + int(rest[0]) if rest.size else None
+
+
 def directions(traj: Trajectory) -> FloatArray:
     """Driving direction of each waypoint: that of the chord arriving at it (the first
     waypoint: of the chord leaving it), by :func:`chord_directions`."""
@@ -480,9 +579,11 @@ class ReferencePath:
     cubic interpolation denominators and the planned time to reach each waypoint.
 
     The reference speed is the plan's, within two ceilings: it needs no more than
-    ``STOP_DECEL`` of braking to stop at a segment's end, nor to slow to ``TIGHT_TURN_SPEED``
-    where the plan turns tighter than ``min_turn_radius`` (a turn the car cannot follow is
-    approached and driven slowly, never at the plan's speed).
+    ``STOP_DECEL`` of braking to stop at a segment's end or its stop point (:attr:`stops`), nor
+    to slow to ``TIGHT_TURN_SPEED`` where the plan turns tighter than ``min_turn_radius`` (a
+    turn the car cannot follow is approached and driven slowly, never at the plan's speed).
+    Past a stop point the reference is at rest, and its planned time does not come: the
+    horizon's points wait on the stop point.
 
     :param traj: the trajectory (validated by the caller)
     :param creep_speed: m/s, the slowest speed assumed when placing horizon points, so that a
@@ -510,12 +611,18 @@ class ReferencePath:
         # increases strictly within each one: consecutive segments share their cusp waypoint,
         # and restarting the clock there would break the previous segment's time axis.
         time = np.zeros(n)
+        self.stops: dict[Segment, float] = {}  # m, arc length of a segment's stop point
         for seg in self.segments:
             sl = slice(seg.start, seg.end + 1)
             mag = np.maximum(seg.direction * traj.speed[sl], 0.0)
-            # no faster than a stop at ``STOP_DECEL`` reaches the segment's end (zero there):
-            # a plan that keeps its speed up to a cusp or its goal is slowed in time
-            to_end = self.s[seg.end] - self.s[sl]
+            stop = stop_point(mag)
+            if stop is not None:  # the plan stands from there on: so does the reference
+                mag[stop:] = 0.0
+                self.stops[seg] = float(self.s[seg.start + stop])
+            # no faster than a stop at ``STOP_DECEL`` reaches the segment's end or its stop
+            # point (zero there): a plan that keeps its speed up to a cusp or its goal is
+            # slowed in time
+            to_end = np.maximum(self.stops.get(seg, self.s[seg.end]) - self.s[sl], 0.0)
             np.minimum(mag, np.sqrt(2.0 * STOP_DECEL * to_end), out=mag)
             if min_turn_radius > 0.0:  # slowed in time before a turn the car cannot follow
                 ceiling = tight_turn_ceiling(self.s[sl], heading[sl], min_turn_radius)
@@ -525,10 +632,10 @@ class ReferencePath:
             if seg.start > 0:  # a cusp: the car stands there, also as the next segment starts
                 mag[0] = 0.0
             speed[sl] = seg.direction * mag
-            mean = np.maximum(0.5 * (mag[1:] + mag[:-1]), creep_speed)
-            time[seg.start + 1 : seg.end + 1] = time[seg.start] + np.cumsum(
-                np.diff(self.s[sl]) / mean
-            )
+            interval = np.diff(self.s[sl]) / np.maximum(0.5 * (mag[1:] + mag[:-1]), creep_speed)
+            if stop is not None:  # past a stop point the plan's time does not come: the
+                interval[stop] += STOP_WAIT  # horizon's reference points wait on it
+            time[seg.start + 1 : seg.end + 1] = time[seg.start] + np.cumsum(interval)
         self.speed = speed
         self.time = time
         self.values = np.column_stack((traj.x, traj.y, heading))  # (n, 3)
@@ -955,14 +1062,18 @@ class Progress:
     def fields(self, finished: bool) -> dict[str, Any]:
         """The :class:`~leafgate.messages.ControlOutput` fields of the progress:
         ``nearest_index``, ``progress`` (the route length once finished), ``route_length`` and
-        ``deviation``."""
+        ``deviation``; and ``stop_distance`` while the segment has a stop point."""
         length = self.route_length
-        return {
+        fields = {
             "nearest_index": self.index,
             "progress": length if finished else self.s,
             "route_length": length,
             "deviation": self.deviation,
         }
+        stop = self.path.stops.get(self.segment)
+        if stop is not None and not finished:
+            fields["stop_distance"] = stop - self.s
+        return fields
 
     def _first_nearest(self, seg: Segment, x: float, y: float, heading: float) -> int:
         """The waypoint of ``seg`` the car starts from on a new plan (see the class notes)."""

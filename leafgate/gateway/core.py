@@ -36,8 +36,8 @@ Decisions behind the tables of docs/watchdogs.md and docs/state-machine.md (the 
   car must gain ``watchdog.no_progress_distance`` along the plan within every
   ``watchdog.no_progress_time``, or the gateway makes a controlled stop naming it
   (:class:`~leafgate.gateway.watchdog.ProgressWatchdog`; waiting at rest for a gear change or
-  for the wheel to turn, braking to a stop the controller asked for and the plan's last
-  ``no_progress_distance`` do not count).
+  for the wheel to turn, braking to a stop the controller asked for, standing at the plan's
+  stop point and the plan's last ``no_progress_distance`` do not count).
 - A plan replaced while ENGAGED is judged like an engage: when the vehicle is outside the engage
   envelope of the new plan (``engage.max_distance``, ``engage.max_heading_error``) the gateway
   makes a controlled stop instead of chasing it; a plan within the envelope is followed.
@@ -629,6 +629,7 @@ class Gateway:
             gear_change=want != measured.gear,
             commanded_speed=out.speed,
             deviation=out.deviation,
+            stop_distance=out.stop_distance,
         )
 
     def _remaining_causes(self, now: float, wd: WatchdogReport, bus_errors: int) -> list[str]:

@@ -719,7 +719,10 @@ class ProgressWatchdog:
     (cusp), while the steering is still turning at standstill (the MPC sets the wheel before it
     drives off), while the car brakes to a stop the controller asked for (target speed zero,
     still moving: a stop ends by itself), and while the car creeps along the last
-    ``no_progress_distance`` of the plan, where the controller's goal check decides. "Turning" means the measured angle left a ±0.5°
+    ``no_progress_distance`` of the plan, where the controller's goal check decides, and while
+    the car stands at the plan's stop point (where the plan comes to rest before its segment's
+    end, as a planner stops a car at a stop line: it waits there for a plan that moves on).
+    "Turning" means the measured angle left a ±0.5°
     band within the last 0.5 s, so a steering actuator that does not move is no excuse, and a
     car at rest with nothing to wait for is judged whatever the controller says. A new plan object
     (a planner's rolling window) changes where progress is counted from: the progress gained on
@@ -764,6 +767,7 @@ class ProgressWatchdog:
         gear_change: bool,
         commanded_speed: float = math.inf,
         deviation: float = math.nan,
+        stop_distance: float = math.nan,
     ) -> Check:
         """Judge one tick of an engagement in which the controller drives.
 
@@ -777,6 +781,9 @@ class ProgressWatchdog:
             moves is a stop being made (at a cusp, at the end, after an overshoot), not a stall
         :param deviation: m, the car's distance from the plan (the controller's; NaN: unknown,
             not judged): beyond ``max_path_deviation`` the car has left the plan → STOP
+        :param stop_distance: m along the plan to where it comes to rest before its segment's
+            end (NaN: no such stop point): a car at rest within ``no_progress_distance`` of it,
+            or past it, waits there as the plan says, for a plan that moves on
         """
         if not (route_length > 0.0 and math.isfinite(progress)):
             return self.idle()
@@ -806,7 +813,8 @@ class ProgressWatchdog:
         # check must have decided within the time)
         at_end = not standstill and route_length - progress < self.distance
         gained = self._carried + max(progress - self._base, 0.0)
-        waiting = gear_change or turning_at_rest or braking or at_end
+        at_stop = standstill and stop_distance < self.distance  # False for NaN
+        waiting = gear_change or turning_at_rest or braking or at_end or at_stop
         if self._since is None or gained >= self.distance or waiting:
             self._since, self._base, self._carried = now, progress, 0.0  # a new window
             return self._ok
