@@ -43,7 +43,7 @@ def test_command_ids_left_out_by_default(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     _write(tmp_path / "drive.log", 100.0, (REPORT, COMMAND))
-    got = _play([str(tmp_path / "drive.log")], "play-cli-1")
+    got = _play([str(tmp_path / "drive.log"), "--profile", "leafgate-dbw"], "play-cli-1")
     # old code: every frame, the gateway's commands included, went onto the bus
     assert got == [REPORT] * 5
     out = capsys.readouterr().out
@@ -67,7 +67,10 @@ def test_rotated_parts_play_in_order(tmp_path: Path) -> None:
     _write(tmp_path / "can-1_000.log", 100.0, (REPORT,), n=4)
     _write(tmp_path / "can-1_001.log", 100.04, (REPORT + 1,), n=3)
     parts = sorted(str(p) for p in tmp_path.glob("can-*.log"))  # as the shell expands the glob
-    assert _play(parts, "play-cli-4") == [REPORT] * 4 + [REPORT + 1] * 3
+    assert (
+        _play([*parts, "--profile", "leafgate-dbw"], "play-cli-4")
+        == [REPORT] * 4 + [REPORT + 1] * 3
+    )
 
 
 def test_bus_kwargs_reach_the_bus_and_a_bus_is_required(
@@ -78,8 +81,10 @@ def test_bus_kwargs_reach_the_bus_and_a_bus_is_required(
     assert main(["replay", "play", log]) == 1
     assert "give the bus (-i INTERFACE -c CHANNEL) or --config" in capsys.readouterr().err
     # virtual's preserve_timestamps: the receiver sees the sent frame's own stamp (0: unset)
-    plain = _received([log], "play-cli-5")
-    kept = _received([log, "--bus-kwargs", "preserve_timestamps=True"], "play-cli-6")
+    plain = _received([log, "--profile", "leafgate-dbw"], "play-cli-5")
+    kept = _received(
+        [log, "--profile", "leafgate-dbw", "--bus-kwargs", "preserve_timestamps=True"], "play-cli-6"
+    )
     assert len(kept) == len(plain) == 10
     assert all(m.timestamp == 0.0 for m in kept) and all(m.timestamp > 0.0 for m in plain)
     assert (

@@ -96,7 +96,19 @@ def commands(f: dict[str, str]) -> dict[str, dict[str, Any]]:
             "bad": [["compare", "--out", f["bad"]]],
         },
         "replay check": {"work": ["replay", "check", f["big"], "--profile", "leafgate-dbw"]},
-        "replay play": {"work": ["replay", "play", f["blf"], "-i", "virtual", "-c", "robust"]},
+        "replay play": {
+            "work": [
+                "replay",
+                "play",
+                f["blf"],
+                "--profile",
+                "leafgate-dbw",
+                "-i",
+                "virtual",
+                "-c",
+                "robust",
+            ]
+        },
         "replay rerun": {"work": ["replay", "rerun", f["mcap"]]},
         "replay plot": {
             "work": ["replay", "plot", f["mcap"], "--out", out],

@@ -8,9 +8,10 @@ from pathlib import Path
 import can
 import pytest
 
+from leafgate import cli
 from leafgate.config.can import BusConfig
-from leafgate.errors import ReplayError
-from leafgate.record.logs import FrameSource
+from leafgate.errors import ConfigError, ReplayError
+from leafgate.record.logs import FrameSource, end_marker
 from leafgate.replay.play import main_play, parse_ids, play_frames
 
 
@@ -101,3 +102,79 @@ def test_bad_ids_and_missing_logs_are_replay_errors(tmp_path: Path) -> None:
         parse_ids("0A0,zz")
     with pytest.raises(ReplayError, match="no such file"):
         main_play(tmp_path / "missing.log", bus=BusConfig(interface="virtual", channel="x"))
+
+
+def other_cars_log(path: Path) -> dict[int, int]:
+    """A sze-hlc drive: its commands (0x001, 0x005) and a report, ended by the recorder's marker.
+
+    :return: frames per ID
+    """
+    ids = (0x001, 0x005, 0x123)
+    with can.Logger(path) as writer:
+        for i in range(30):
+            writer.on_message_received(
+                can.Message(timestamp=10.0 + 0.01 * i, arbitration_id=ids[i % 3], data=bytes(8))
+            )
+        writer.on_message_received(end_marker(10.5))
+    return {i: 10 for i in ids}
+
+
+def received(bus: can.BusABC) -> list[int]:
+    got = []
+    while (msg := bus.recv(timeout=0.0)) is not None:
+        got.append(msg.arbitration_id)
+    return got
+
+
+def test_a_can_log_without_a_profile_is_refused_not_played_as_leafgate_dbw(
+    tmp_path: Path,
+) -> None:
+    """There is no default profile: leafgate-dbw's would leave out 0x0A0–0x0A2 and play the
+    other car's commands onto the bus."""
+    other_cars_log(tmp_path / "hlc.log")
+    with can.Bus(interface="virtual", channel="play-4") as rx:
+        with pytest.raises(ConfigError, match=r"hlc\.log: .*--profile"):
+            main_play(tmp_path / "hlc.log", bus=BusConfig(interface="virtual", channel="play-4"))
+        assert received(rx) == []
+
+
+def test_the_cli_refuses_a_can_log_without_a_profile_with_status_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    other_cars_log(tmp_path / "hlc.log")
+    argv = ["replay", "play", str(tmp_path / "hlc.log"), "-i", "virtual", "-c", "play-5"]
+    with can.Bus(interface="virtual", channel="play-5") as rx:
+        assert cli.main(argv) == cli.EXIT_USAGE
+        assert received(rx) == []
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--profile" in err and "Traceback" not in err
+
+
+def test_the_profiles_commands_are_left_out_and_counted_without_the_end_marker(
+    tmp_path: Path,
+) -> None:
+    counts = other_cars_log(tmp_path / "hlc.log")
+    out = io.StringIO()
+    with can.Bus(interface="virtual", channel="play-6") as rx:
+        main_play(
+            tmp_path / "hlc.log",
+            bus=BusConfig(interface="virtual", channel="play-6"),
+            speed=0,
+            profile="sze-hlc",
+            out=out,
+        )
+        got = received(rx)
+    assert got == [0x123] * counts[0x123]
+    assert "10 frames sent (0 skipped, 20 of the gateway's command IDs 001, 005 left out" in (
+        out.getvalue()
+    )
+
+
+def test_explicit_ids_or_all_ids_need_no_profile(tmp_path: Path) -> None:
+    counts = other_cars_log(tmp_path / "hlc.log")
+    with can.Bus(interface="virtual", channel="play-7") as rx:
+        bus = BusConfig(interface="virtual", channel="play-7")
+        main_play(tmp_path / "hlc.log", bus=bus, speed=0, ids="123", out=io.StringIO())
+        assert received(rx) == [0x123] * counts[0x123]
+        main_play(tmp_path / "hlc.log", bus=bus, speed=0, all_ids=True, out=io.StringIO())
+        assert len(received(rx)) == sum(counts.values())  # the end marker is not played

@@ -8,8 +8,11 @@ monotonic clock, so the playback does not drift over a long log; ``start`` skips
 seconds of the log and ``ids`` plays only the listed IDs — e.g. only the gateway's commands
 (0x0A0–0x0A2) to drive the simulated ECU or a bench ECU, or only the ECU's reports to feed a
 gateway. Without ``ids`` the gateway's own command IDs are left out (``--all-ids`` plays them),
-so a playback onto a live bus never commands the car. A session's ``/can`` topic plays as
-well, and a rotated log plays as one when its parts are given in order.
+so a playback onto a live bus never commands the car. They are the vehicle profile's: a
+session names its own; a CAN log names none, and there is no default (another car's log would
+play its commands and leave out only the default car's), so without ``--profile`` or
+``--config`` the playback of a CAN log is refused. A session's ``/can`` topic plays as well,
+and a rotated log plays as one when its parts are given in order.
 
 Playback is a tool, not the control path: a send error stops it with an error.
 """
@@ -27,9 +30,10 @@ from typing import Any, TextIO
 import can
 
 from leafgate.can.bus import copy_frame, open_bus
+from leafgate.can.profile import PROFILE_NAMES
 from leafgate.config.can import BusConfig
-from leafgate.errors import BusError, ReplayError
-from leafgate.record.logs import FrameSource, is_end_marker
+from leafgate.errors import BusError, ConfigError, ReplayError
+from leafgate.record.logs import FrameSource, is_end_marker, is_session
 
 __all__ = [
     "PlayStats",
@@ -154,27 +158,34 @@ def default_ids(
     *,
     ids: str | None,
     all_ids: bool,
-    log: str | Path | None = None,
+    log: str | Path,
     profile: str | None = None,
 ) -> tuple[frozenset[int] | None, frozenset[int]]:
     """Which IDs to play: (only these or None for any, never these).
 
-    By default the gateway's own command IDs (from the config's vehicle profile) are left out:
-    played onto a bus where a gateway runs, they are a second node commanding the car, and the
-    gateway faults ("command conflict"). ``ids`` (explicit) or ``all_ids`` plays them.
+    By default the gateway's own command IDs are left out: played onto a bus where a gateway
+    runs, they are a second node commanding the car, and the gateway faults ("command
+    conflict"). They are the command IDs of the vehicle profile from ``profile``, ``config`` or
+    the session's recorded configuration; there is no default profile, as another car's
+    commands would then be played and only the default car's left out. ``ids`` (explicit hex
+    IDs) or ``all_ids`` needs no profile and plays them.
+
+    :raises ConfigError: a profile is needed and neither given nor recorded (a CAN log)
     """
-    if ids in ("commands", "reports") and log is not None:  # the profile's frames of one side
-        return _profile_ids(log, ids, config, profile), frozenset()
-    if ids:
+    if ids and ids not in ("commands", "reports"):
         return parse_ids(ids), frozenset()
     if all_ids:
         return None, frozenset()
-    if log is not None and (config is not None or profile is not None):
-        return None, _profile_ids(log, "commands", config, profile)
-    from leafgate.can.codec import CanCodec
-    from leafgate.settings import load_config
-
-    return None, CanCodec.for_config(load_config(config)).receive_ids("commands")
+    if config is None and profile is None and not is_session(log):
+        # A usage error (exit 2), before any frame is sent: a CAN log names no profile.
+        raise ConfigError(
+            f"{log}: a CAN log names no vehicle profile, so the gateway's command IDs are "
+            f"unknown; give --profile NAME|FILE ({', '.join(PROFILE_NAMES)}) or --config "
+            "FILE (or --ids / --all-ids)"
+        )
+    if ids:  # "commands" or "reports": the profile's frames of one side
+        return _profile_ids(log, ids, config, profile), frozenset()
+    return None, _profile_ids(log, "commands", config, profile)
 
 
 def chained(sources: Sequence[FrameSource]) -> Iterator[can.Message]:
@@ -200,30 +211,41 @@ def main_play(
     :param logs: one log, or the parts of a rotated log in order (a shell glob sorts them)
     :param bus: the bus to play onto; None: the config's dbw bus (its bench's port)
     :param config: the deployment config: its bus, and its profile's command IDs to leave out
+    :param profile: the vehicle profile whose command IDs are left out (over the config's)
     :param ids: play only these IDs (hex, comma-separated), the gateway's commands included
     :param all_ids: play every frame, the gateway's commands included
     :return: 0 when every selected frame was sent
-    :raises LeafgateError: unreadable log, unknown interface or a send error (the CLI prints it)
+    :raises LeafgateError: unreadable log, no profile for a CAN log (:class:`ConfigError`),
+        unknown interface or a send error (the CLI prints it)
     """
     out = out or sys.stdout
     paths = [logs] if isinstance(logs, (str, Path)) else list(logs)
-    wanted, excluded = default_ids(config, ids=ids, all_ids=all_ids, log=paths[0], profile=profile)
+    sources = [FrameSource(path) for path in paths]  # a missing file first: the plainer error
     if bus is None:
         if config is None:
             raise ReplayError("replay play: give the bus (-i INTERFACE -c CHANNEL) or --config")
         from leafgate.settings import load_config
 
         bus = load_config(config).can.dbw
-    sources = [FrameSource(path) for path in paths]
+    wanted, excluded = default_ids(config, ids=ids, all_ids=all_ids, log=paths[0], profile=profile)
+    left_out = 0  # counted here, not as the rest of the file's frames: those hold end markers
+
+    def without_commands(frames: Iterable[can.Message]) -> Iterator[can.Message]:
+        nonlocal left_out
+        for msg in frames:
+            if msg.arbitration_id in excluded:
+                left_out += 1
+            else:
+                yield msg
+
     frames: Iterable[can.Message] = chained(sources)
     if excluded:
-        frames = (msg for msg in frames if msg.arbitration_id not in excluded)
+        frames = without_commands(frames)
     opened = open_bus(bus)
     try:
         stats = play_frames(frames, opened, speed=speed, start=start, ids=wanted)
     finally:
         opened.shutdown()
-    left_out = sum(s.frames for s in sources) - stats.sent - stats.skipped
     names = Path(paths[0]).name + (f" and {len(paths) - 1} more" if len(paths) > 1 else "")
     out.write(
         f"{names}: {stats.sent} frames sent ({stats.skipped} skipped"
@@ -254,7 +276,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--profile",
         metavar="NAME|FILE",
-        help="vehicle profile whose command IDs are left out (or played by --ids commands|reports)",
+        help="vehicle profile whose command IDs are left out (or played by --ids commands|reports); "
+        "a CAN log names none: give it or --config (a session's recorded one is used)",
     )
     parser.add_argument(
         "--speed", type=float, default=1.0, help="speed factor (0: as fast as possible)"
