@@ -370,7 +370,7 @@ def cmd_request(args: argparse.Namespace) -> int:
             print(f"leafgate: warning: {len(reply[field])} {what}", file=sys.stderr)
     if reply.get("accepted") and "conflicting_replies" not in reply:
         return 0
-    return EXIT_UNCHANGED if reply.get("changed") is False else EXIT_ERROR
+    return EXIT_UNCHANGED if reply.get("already") else EXIT_ERROR
 
 
 def vehicle_text(vehicle: Any) -> str:

@@ -576,11 +576,11 @@ class Gateway:
             self._phase_since = now
             self._clear_sent = False
             reason = "engaging after clearing the override" if clear else "engaged"
-            return EngageReply(True, m.state, reason), False
+            return EngageReply.done(m.state, reason), False
         if request is OperatorRequest.DISENGAGE:
             if state in (GatewayState.ENGAGED, GatewayState.STOPPING):
                 m.fire(Event.DISENGAGE, now, "operator disengage")
-                return EngageReply(True, m.state, "disengaged"), False
+                return EngageReply.done(m.state, "disengaged"), False
             if state == GatewayState.FAULT:
                 braking, self._fault_braking = self._fault_braking, False
                 handed = "stopped braking; " if braking else ""
@@ -592,7 +592,7 @@ class Gateway:
             fault = ecu_fault(*reports)
             if fault is None:  # CLEAR_FAULTS goes out all the same: it costs nothing
                 return EngageReply.unchanged(state, "nothing to reset: no fault latched"), True
-            return EngageReply(True, state, f"clearing the ECU's faults ({fault})"), True
+            return EngageReply.done(state, f"clearing the ECU's faults ({fault})"), True
         if state != GatewayState.FAULT:
             return EngageReply(
                 False, state, f"reset only in STANDBY or FAULT (is {state.name})"
@@ -606,7 +606,7 @@ class Gateway:
             ), False
         m.fire(Event.RESET, now, f"reset after: {m.fault_reason}")
         self._fault_braking = False
-        return EngageReply(True, m.state, "fault cleared"), True
+        return EngageReply.done(m.state, "fault cleared"), True
 
     def _judge_progress(
         self,

@@ -95,35 +95,47 @@ class EngageReply:
 
     - ``accepted``: the request was carried out: the gateway is in the requested state or
       entering it, because of this request;
-    - ``changed``: the request changed something (a state, or the ECU's faults cleared); a
-      request that finds the gateway already where it asks (disengage in STANDBY, engage while
-      ENGAGED) is ``accepted: false, changed: false`` with a reason that says so.
+    - ``changed``: the request changed something (a state, or the ECU's faults cleared): what
+      is accepted did; a refusal did not, except a disengage in FAULT that stopped the fault
+      braking;
+    - ``already``: the request found the gateway where it asks (disengage in STANDBY, engage
+      while ENGAGED, reset with no fault): nothing to do, ``accepted: false`` with a reason
+      that says so. The CLI exits 3 on it rather than 1, and ``engage --wait`` stops waiting.
     """
 
     accepted: bool
     state: GatewayState  # the state after the request was handled
     reason: str
-    changed: bool = True
+    changed: bool = False
+    already: bool = False
+
+    @classmethod
+    def done(cls, state: GatewayState, reason: str) -> EngageReply:
+        """A request carried out: accepted, and it changed something."""
+        return cls(True, state, reason, changed=True)
 
     @classmethod
     def unchanged(cls, state: GatewayState, reason: str) -> EngageReply:
         """A request that finds nothing to do."""
-        return cls(False, state, reason, changed=False)
+        return cls(False, state, reason, already=True)
 
     def after_tick(self, request: OperatorRequest, state: GatewayState, reason: str) -> EngageReply:
         """The reply as the tick ended: an accepted request whose state did not hold (an
         engage at the trajectory's end, which the same tick ends) is not accepted."""
         if self.accepted and state != REQUESTED_STATE[request]:
-            return EngageReply(False, state, f"not {REQUESTED_STATE[request].name}: {reason}")
-        return EngageReply(self.accepted, state, self.reason, self.changed)
+            # the engagement started and ended within the tick: it changed the state twice
+            text = f"not {REQUESTED_STATE[request].name}: {reason}"
+            return EngageReply(False, state, text, changed=True)
+        return EngageReply(self.accepted, state, self.reason, self.changed, self.already)
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON reply ``{accepted, state, reason, changed}``."""
+        """The JSON reply ``{accepted, state, reason, changed, already}``."""
         return {
             "accepted": self.accepted,
             "state": self.state.name,
             "reason": self.reason,
             "changed": self.changed,
+            "already": self.already,
         }
 
 

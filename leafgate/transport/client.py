@@ -6,7 +6,7 @@ These are tooling, not control path: failures raise
 Example, with a gateway running on the configured endpoints::
 
     request(cfg, "engage", timeout=2.0)
-    # {'accepted': True, 'state': 'ENGAGED', 'reason': 'engaged', 'changed': True}
+    # {'accepted': True, 'state': 'ENGAGED', 'reason': 'engaged', 'changed': True, 'already': False}
 """
 
 from __future__ import annotations
@@ -98,8 +98,8 @@ def request(
         comes back as a reply with ``accepted`` false
     :param timeout: s to wait for the gateway (``cfg.query_timeout`` if None)
     :param session: an open session to use (else one is opened and closed)
-    :returns: ``{"accepted": bool, "state": str | None, "reason": str, "changed": bool}`` and
-        the keys above (``changed`` false: the request found nothing to do)
+    :returns: ``{"accepted": bool, "state": str | None, "reason": str, "changed": bool,
+        "already": bool}`` and the keys above (``already``: the request found nothing to do)
     :raises TransportError: if no gateway answers in time, or it answers with an error
     """
     text = what.value if isinstance(what, OperatorRequest) else str(what)
@@ -187,7 +187,7 @@ def engage(
         while True:
             left = max(deadline - time.monotonic(), 0.1)
             reply = request(cfg, "engage", timeout=left, session=s)
-            final = reply.get("state") == "FAULT" or reply.get("changed") is False
+            final = reply.get("state") == "FAULT" or bool(reply.get("already"))
             if reply.get("accepted") or final or time.monotonic() + poll >= deadline:
                 return reply
             reason = str(reply.get("reason", ""))
