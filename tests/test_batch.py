@@ -87,6 +87,10 @@ def sim_alone(command: str, out: Path) -> dict[str, Any]:
         ),
         ("routes: [straight]\nset:\n  controller.mpc.solver: fast\n", "controller.mpc.solver"),
         ("routes: [straight]\nthresholds:\n  finished: maybe\n", "thresholds.finished"),
+        (
+            "routes: [straight]\nthresholds:\n  lateral_eror_max_m: 0.6\n",
+            "thresholds.lateral_eror_max_m: no such metric",
+        ),
         ("routes: [straight\n", "sweep.yaml"),
     ],
 )
@@ -107,6 +111,35 @@ def test_bad_sweep_file_on_the_command_line_is_one_line(
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "Traceback" not in err
     assert str(path) in err and "sim.plant.nope" in err
+
+
+def test_threshold_typo_is_refused_before_any_case_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import leafgate.batch.cli as batch_cli
+
+    ran: list[object] = []
+    monkeypatch.setattr(batch_cli, "run_tasks", lambda *a, **k: ran.append(a))
+    path = write(tmp_path, "routes: [straight]\nthresholds:\n  lateral_eror_max_m: 0.6\n")
+    assert main(["batch", "sim", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert f"{path}: thresholds.lateral_eror_max_m: no such metric" in err
+    assert not ran
+
+
+def test_threshold_names_are_what_a_case_writes(tmp_path: Path) -> None:
+    """SIM_METRICS is the list the thresholds are checked against before the run: every
+    number and flag a real case's row holds is in it (a new metric must be added there)."""
+    from leafgate.batch.results import SIM_METRICS
+    from leafgate.batch.tasks import sim_case
+
+    sweep = load_sweep(write(tmp_path, SMALL_SWEEP))
+    row = sim_case(expand(sweep)[0].argv)
+    assert row["status"] == "ok", row["error"]
+    numbers = {k for k, v in row.items() if isinstance(v, (bool, int, float))}
+    assert numbers - set(SIM_METRICS) == set()
+    assert {"lateral_error_max_m", "finished", "exit_status"} <= numbers
 
 
 def test_output_folder_that_cannot_be_created_is_one_line(

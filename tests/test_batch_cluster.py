@@ -158,3 +158,31 @@ def test_unreachable_scheduler_is_one_line(
     assert status == 1
     assert err.count("\n") == 0 and "Traceback" not in err
     assert f"--scheduler {address}: cannot connect" in err
+
+
+def test_scheduler_without_workers_fails_in_one_line_after_the_stated_wait(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A scheduler with no worker holds the tasks forever (``--timeout`` never starts): the
+    batch waits ``--wait-workers`` s, says so, then fails in one line and runs no case."""
+    from distributed import LocalCluster
+
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP, encoding="utf-8")
+    with LocalCluster(
+        n_workers=0,
+        processes=False,
+        protocol="tcp://",  # a real address, as `dask scheduler` gives (not inproc)
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as cluster:
+        address = cluster.scheduler_address
+        argv = ["batch", "sim", str(sweep), "--scheduler", address, "--timeout", "5"]
+        status = main([*argv, "--wait-workers", "3", "--out", str(tmp_path / "o")])
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert status == 1
+    assert "Traceback" not in captured.err
+    assert f"{address}: no workers yet; waiting up to 3 s" in err[0]
+    assert err[-1].endswith(f"--scheduler {address}: no workers joined in 3 s")
+    assert "cases, " not in captured.out  # no summary: no case ran

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from leafgate.batch import sweep as sweep_module
-from leafgate.batch.engine import BatchError, EngineRun, run_tasks
+from leafgate.batch.engine import WORKERS_WAIT_S, BatchError, EngineRun, run_tasks
 from leafgate.batch.results import crossings, make_out_dir, write_report, write_table
 from leafgate.cliargs import add_gap_periods, add_overrides, add_profile_options
 
@@ -22,6 +22,14 @@ def _common(p: argparse.ArgumentParser, out: str) -> None:
         "--scheduler",
         metavar="tcp://HOST:8786",
         help="run on this running Dask cluster (default: a local cluster on this machine)",
+    )
+    p.add_argument(
+        "--wait-workers",
+        type=float,
+        default=WORKERS_WAIT_S,
+        metavar="S",
+        help="with --scheduler: s to wait for a first worker to join before failing "
+        f"(default: {WORKERS_WAIT_S:g}); --timeout starts only when a worker takes a case",
     )
     p.add_argument(
         "--workers", type=int, help="worker processes of the local cluster (default: CPU count)"
@@ -41,7 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("sweep", help="sweep file (YAML), e.g. config/sweep.yaml")
-    p.add_argument("--timeout", type=float, help="s per case (default: the sweep's timeout_s)")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        help="s per case, counted from when a worker starts it (default: the sweep's timeout_s)",
+    )
     _common(p, "leafgate-batch")
     p = sub.add_parser("check", help="`replay check` of every CAN log and session under DIR")
     p.add_argument("dir", help="folder searched recursively")
@@ -106,6 +118,7 @@ def cmd_batch_sim(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         workers=args.workers,
         timeout=timeout,
+        wait_workers=args.wait_workers,
     )
     rows = []
     for c in cases:
@@ -168,6 +181,7 @@ def _per_file(
         workers=args.workers,
         timeout=args.timeout,
         what=what,
+        wait_workers=args.wait_workers,
     )
     return run, [{"path": str(f), **run.rows[str(f)]} for f in files]
 

@@ -27,6 +27,7 @@ __all__ = ["BatchError", "EngineRun", "run_plain", "run_tasks"]
 
 POLL_S = 0.5  # s between looks at the futures (progress, timeouts)
 CONNECT_TIMEOUT_S = 10.0  # s to reach an existing scheduler
+WORKERS_WAIT_S = 60.0  # s an existing scheduler may take to get its first worker
 
 
 class BatchError(LeafgateError):
@@ -147,6 +148,7 @@ def run_tasks(
     timeout: float | None = None,
     progress: TextIO | None = None,
     what: str = "cases",
+    wait_workers: float = WORKERS_WAIT_S,
 ) -> EngineRun:
     """Run ``fn(*args)`` for every ``key: args`` of ``tasks``, one Dask task each.
 
@@ -155,7 +157,11 @@ def run_tasks(
         cluster of ``workers`` processes (default: this machine's cores) and closes it after
     :param timeout: s a task may run (counted from when the scheduler hands it to a worker)
     :param progress: the stream for the progress bar (drawn when it is a terminal)
-    :raises BatchError: the scheduler cannot be reached or the local cluster does not start
+    :param wait_workers: s a running scheduler may take to have a worker. A scheduler with
+        none accepts the tasks and holds them: the batch would wait forever, and ``timeout``
+        never starts, since no task starts.
+    :raises BatchError: the scheduler cannot be reached, has no worker within
+        ``wait_workers``, or the local cluster does not start
     """
     from distributed import Client, LocalCluster
 
@@ -192,11 +198,43 @@ def run_tasks(
                 reason = " ".join(str(exc).split()) or type(exc).__name__
                 raise BatchError(f"--scheduler {scheduler}: cannot connect: {reason}") from None
             with client:
-                run.workers = len(client.scheduler_info().get("workers", {}))
                 run.scheduler = scheduler
-                _submit_and_wait(client, fn, tasks, timeout, progress, what, run, interrupt)
+                _wait_for_workers(client, scheduler, wait_workers, progress, interrupt)
+                _submit_and_wait(
+                    client, fn, tasks, timeout, progress, what, run, interrupt, count_workers=True
+                )
     run.wall_s = time.perf_counter() - t0
     return run
+
+
+def _wait_for_workers(
+    client: Any,
+    scheduler: str,
+    wait_s: float,
+    progress: TextIO | None,
+    interrupt: _DeferredInterrupt,
+) -> None:
+    """Return once the scheduler has a worker; BatchError after ``wait_s`` without one.
+
+    Waits in short steps so that Ctrl-C is acted on, and says once on ``progress`` (stderr)
+    that it waits, so a batch that is waiting does not look hung.
+    """
+    if client.scheduler_info().get("workers"):
+        return
+    stream = progress if progress is not None else sys.stderr
+    stream.write(f"{scheduler}: no workers yet; waiting up to {wait_s:g} s for one to join\n")
+    stream.flush()
+    deadline = time.monotonic() + wait_s
+    while True:
+        interrupt.check()
+        step = min(POLL_S, deadline - time.monotonic())
+        if step <= 0:
+            raise BatchError(f"--scheduler {scheduler}: no workers joined in {wait_s:g} s")
+        try:
+            client.wait_for_workers(1, timeout=step)
+            return
+        except TimeoutError:
+            continue
 
 
 def _submit_and_wait(
@@ -208,7 +246,10 @@ def _submit_and_wait(
     what: str,
     run: EngineRun,
     interrupt: _DeferredInterrupt,
+    count_workers: bool = False,
 ) -> None:
+    """Submit one task per key and collect the rows; ``count_workers``: set ``run.workers``
+    to the workers that ran them (a running cluster's, whose size is not known before)."""
     from distributed import as_completed
 
     if not tasks:
@@ -248,8 +289,23 @@ def _submit_and_wait(
                     _time_out(client, pending, started, timeout, run, bar)
                 bar.draw()
                 next_look = time.monotonic() + POLL_S
+        if count_workers:
+            run.workers = _workers_that_ran(client, futures, run.workers)
     finally:
         bar.close()
+
+
+def _workers_that_ran(client: Any, futures: list[Any], default: int) -> int:
+    """How many workers hold a finished task's result: those that ran the tasks (a result
+    stays on the worker that computed it). Read at the end: a cluster's workers may join after
+    the batch starts, and a count read at the start missed them. ``default`` when none is
+    held (every task failed or timed out): then the scheduler's count at the end."""
+    finished = [f for f in futures if f.status == "finished"]
+    if not finished:
+        return len(client.scheduler_info().get("workers", {})) or default
+    holders = client.who_has(finished)
+    ran = {address for addresses in holders.values() for address in addresses}
+    return len(ran) or default
 
 
 def _time_out(

@@ -11,11 +11,56 @@ from typing import Any
 
 from leafgate.batch.engine import BatchError
 
-__all__ = ["crossings", "make_out_dir", "read_table", "write_report", "write_table"]
+__all__ = [
+    "SIM_METRICS",
+    "crossings",
+    "make_out_dir",
+    "read_table",
+    "threshold_error",
+    "write_report",
+    "write_table",
+]
 
 #: The metrics the report's distributions and worst cases are about, in order of preference.
 ERROR_METRICS = ("lateral_error_max_m", "lateral_error_rms_m", "heading_error_max_rad")
 WORST_SHOWN = 5
+#: The numbers and flags of a ``batch sim`` row that a sweep's ``thresholds`` may bound: the
+#: numeric keys ``leafgate sim`` writes to metrics.json (the clearance ones only in scenes with
+#: obstacles) and the case's ``exit_status`` and ``case_wall_s``. Named here, not read off the
+#: results, so that a typo in a threshold is refused when the sweep is read, before any case
+#: runs; ``crossings`` checks the same names. ``tests/test_batch.py`` holds it to what a real
+#: case writes, so a metric added to the simulator without this list fails there.
+SIM_METRICS = (
+    *ERROR_METRICS,
+    "final_position_error_m",
+    "final_heading_error_rad",
+    "speed_error_rms_mps",
+    "steer_rate_max_radps",
+    "steer_rate_rms_radps",
+    "steer_rate_sign_changes",
+    "path_steer_sign_changes",
+    "overspeed_max_mps",
+    "progress_m",
+    "route_length_m",
+    "plan_min_turn_radius_m",
+    "solve_time_median_s",
+    "solve_time_p99_s",
+    "solver_not_converged",
+    "input_clips",
+    "duration_s",
+    "wall_time_s",
+    "finished",
+    "can_frames_sent",
+    "can_frames_received",
+    "can_frames_rejected",
+    "can_own_echoes",
+    "can_foreign_frames",
+    "ecu_frames_rejected",
+    "clearance_min_m",
+    "clearance_min_t_s",
+    "exit_status",
+    "case_wall_s",
+)
 
 
 def make_out_dir(path: str | Path) -> Path:
@@ -77,19 +122,27 @@ def read_table(path: str | Path) -> list[dict[str, Any]]:
         return list(csv.DictReader(f))
 
 
+def threshold_error(thresholds: Mapping[str, float | bool], source: str) -> str | None:
+    """The one-line error of the first threshold naming no metric of :data:`SIM_METRICS`."""
+    for name in thresholds:
+        if name not in SIM_METRICS:
+            known = ", ".join(SIM_METRICS)
+            return f"{source}: thresholds.{name}: no such metric (known: {known})"
+    return None
+
+
 def crossings(
     rows: Sequence[Mapping[str, Any]], thresholds: Mapping[str, float | bool], source: str
 ) -> list[str]:
     """One line per case and threshold it crosses (a number is an upper bound, a bool the
     required value); a failed case crosses them all.
 
-    :raises BatchError: a threshold names a metric no case has (names the file and the key)
+    :raises BatchError: a threshold names no metric (names the file and the key); a sweep
+        file's are checked when it is read (``load_sweep``), with the same names
     """
-    ok_rows = [r for r in rows if r.get("status") == "ok"]
-    for name in thresholds:
-        if ok_rows and all(name not in r for r in ok_rows):
-            known = ", ".join(k for k, v in ok_rows[0].items() if isinstance(v, (int, float)))
-            raise BatchError(f"{source}: thresholds.{name}: no such metric (known: {known})")
+    error = threshold_error(thresholds, source)
+    if error is not None:
+        raise BatchError(error)
     lines = []
     for row in rows:
         case = row.get("case_id", row.get("path"))

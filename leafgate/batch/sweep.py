@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from leafgate.batch.results import threshold_error
 from leafgate.config import load_yaml, parse_overrides
 from leafgate.errors import ConfigError
 from leafgate.settings import LeafgateConfig, load_config
@@ -218,6 +219,9 @@ def load_sweep(path: str | Path) -> Sweep:
         thresholds[str(key)] = (
             value if isinstance(value, bool) else _number(where, f"thresholds.{key}", value)
         )
+    error = threshold_error(thresholds, where)  # a typo is refused before any case runs
+    if error is not None:
+        raise ConfigError(error)
     timeout = data.get("timeout_s")
     if timeout is not None and not _number(where, "timeout_s", timeout) > 0:
         raise ConfigError(f"{where}: timeout_s: expected a positive number of seconds")
