@@ -155,6 +155,20 @@ def test_path_steer_sign_changes_counts_the_reversals_the_path_asks_for() -> Non
     assert path_steer_sign_changes(get_scenario("cusp-retrace").trajectory) == 3
 
 
+def test_repeated_waypoints_ask_for_no_steering_reversal() -> None:
+    """Old code: each repeated waypoint was a chord of no length, its heading step a curvature
+    spike: the corner with every third waypoint repeated asked for 11 reversals instead of 1,
+    and the yardstick a run's steering is held to grew with a planner's repeated points."""
+    traj = get_scenario("corner").trajectory
+    n = len(traj)
+    twice = np.repeat(np.arange(n), [2 if i % 3 == 0 else 1 for i in range(n)])  # every third
+    doubled = Trajectory(
+        x=traj.x[twice], y=traj.y[twice], heading=traj.heading[twice], speed=traj.speed[twice]
+    )
+    assert len(doubled) > len(traj)
+    assert path_steer_sign_changes(doubled) == 1
+
+
 def test_offset_start_moves_the_car_left_and_turns_it() -> None:
     sc = offset_start(get_scenario("corner"), 0.9, math.radians(25.0))
     assert (sc.start.x, sc.start.y) == pytest.approx((0.0, 0.9))

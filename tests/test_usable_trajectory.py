@@ -67,6 +67,9 @@ CASES = {
     "overlapping points": _with_overlaps(_line(20), [0, 7, 19]),
     "exact repeats": _with_overlaps(_line(20), [5, 6], gap=0.0),
     "four points, one overlapping": _with_overlaps(_line(3), [2]),
+    "a huge finite x": Trajectory(
+        x=[0.0, 1e300, 1.0, 1.5], y=[0.0] * 4, heading=[0.0] * 4, speed=[1.0] * 4
+    ),
     "an arc": _arc(),
     "an arc, headings in degrees": Trajectory(
         x=_arc().x, y=_arc().y, heading=np.degrees(_arc().heading), speed=_arc().speed
@@ -108,6 +111,10 @@ def test_the_reason_names_the_problem() -> None:
         "trajectory: 3 waypoint(s) (1 overlapping removed), at least 4 are needed"
     )
     assert trajectory_problem(CASES["a NaN"]) == "trajectory: row 3: x is not finite"
+    # old code: accepted, engaged, and numpy overflowed in the reference's arithmetic
+    assert trajectory_problem(CASES["a huge finite x"]) == (
+        "trajectory: row 2: x 1e+300 m is beyond ±1e+08 m"
+    )
 
 
 def test_headings_that_disagree_with_the_path_are_refused_naming_the_row() -> None:

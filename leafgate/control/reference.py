@@ -47,6 +47,10 @@ except ImportError:  # numpy < 2 keeps it elsewhere; the public function gives t
     _interp = np.interp
 
 FIELDS = ("x", "y", "heading", "speed")
+# The largest magnitude of each field that can mean anything, and its unit: map coordinates
+# (UTM northings reach 1e7 m), a heading unwrapped over many turns, a speed. A finite 1e300
+# passed every check and overflowed in the reference's arithmetic.
+LIMITS = {"x": (1e8, "m"), "y": (1e8, "m"), "heading": (1e4, "rad"), "speed": (1e3, "m/s")}
 MIN_POINTS = 4  # the cubic resampling needs four waypoints
 OVERLAP_DISTANCE = 0.01  # m: a waypoint closer than this to the previous one overlaps it and
 # is removed (Autoware's removeOverlapPoints uses the same 1 cm)
@@ -244,7 +248,7 @@ def _parse_yaml(text: str, source: str) -> dict[str, list[float]]:
 def validate(traj: Trajectory, source: str, rows: Sequence[int] | None = None) -> Spacing:
     """Check a trajectory and report its waypoint spacing: **the** rule for a usable plan.
 
-    Checks: every value finite, and at least four waypoints once overlapping points (closer
+    Checks: every value finite and within :data:`LIMITS`, and at least four waypoints once overlapping points (closer
     than :data:`OVERLAP_DISTANCE` to the previous kept one) are removed — those are dropped by
     :func:`remove_overlap_points`, not refused (Autoware's planners emit them). The transport,
     the gateway's engage check and every controller use this same rule, through
@@ -262,9 +266,18 @@ def validate(traj: Trajectory, source: str, rows: Sequence[int] | None = None) -
         return int(rows[index]) if rows is not None else index + 1
 
     for name in FIELDS:
-        bad = np.flatnonzero(~np.isfinite(getattr(traj, name)))
+        values = getattr(traj, name)
+        bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
             raise TrajectoryError(f"{source}: row {row_of(int(bad[0]))}: {name} is not finite")
+        limit, unit = LIMITS[name]
+        bad = np.flatnonzero(np.abs(values) > limit)
+        if bad.size:
+            i = int(bad[0])
+            raise TrajectoryError(
+                f"{source}: row {row_of(i)}: {name} {float(values[i]):g} {unit} is beyond "
+                f"±{limit:g} {unit}"
+            )
     kept = _kept_points(traj)
     if kept.size < MIN_POINTS:
         dropped = f" ({n - kept.size} overlapping removed)" if kept.size < n else ""

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from leafgate.control.reference import chord_directions, tightest_turn
+from leafgate.control.reference import chord_directions, remove_overlap_points, tightest_turn
 from leafgate.geometry import wrap_angle
 from leafgate.messages import FloatArray, Trajectory
 from leafgate.sim.scenarios import clearance
@@ -154,7 +154,13 @@ def path_steer_sign_changes(traj: Trajectory) -> int:
     curvature's rate. At a cusp the car stands while the wheel turns, so the curvature on
     either side of it counts as one profile. The yardstick for a run's
     ``steer_rate_sign_changes``.
+
+    Measured on the plan the controller drives: without overlapping points
+    (:func:`~leafgate.control.reference.remove_overlap_points`). A repeated waypoint is a chord
+    of no length, whose heading change read as a curvature spike: 32 reversals instead of 4 on
+    a course with its points doubled.
     """
+    traj = remove_overlap_points(traj)
     gaps = np.hypot(np.diff(traj.x), np.diff(traj.y))
     direction = chord_directions(traj)
     curvature = direction * np.asarray(wrap_angle(np.diff(traj.heading))) / np.maximum(gaps, 1e-9)
