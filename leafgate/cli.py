@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import json
 import logging
 import math
@@ -19,7 +20,16 @@ from typing import Any
 
 try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line, as later
     from leafgate import __version__
-    from leafgate.cliargs import add_gap_periods, add_overrides, add_profile_options
+    from leafgate.cliargs import (
+        add_gap_periods,
+        add_overrides,
+        add_profile_options,
+        non_negative_int,
+        non_negative_number,
+        non_negative_seconds,
+        positive_number,
+        positive_seconds,
+    )
     from leafgate.config import parse_overrides
     from leafgate.errors import ConfigError, LeafgateError
     from leafgate.journal import setup_logging
@@ -80,8 +90,12 @@ def format_metrics(metrics: dict[str, Any]) -> str:
 
 def _run_recorded(
     cfg: LeafgateConfig, scenario: Scenario, injections: Any, directory: Path, window: Any
-) -> Any:
-    """Run the simulated loop while recording it as the daemon would (CAN log + session)."""
+) -> tuple[Any, bool]:
+    """Run the simulated loop while recording it as the daemon would (CAN log + session).
+
+    :returns: the drive's result, and whether every recording file was written whole (a file
+        given up after a write error, e.g. disk full, is said so and not called recorded)
+    """
     from leafgate.record.recorder import open_recording
     from leafgate.sim.runner import run
 
@@ -99,11 +113,22 @@ def _run_recorded(
         )
     finally:
         recording.close()
-    if recording.fault:
-        print(f"leafgate: warning: recording fault: {recording.fault}", file=sys.stderr)
-    for path in sorted(directory.iterdir()):
-        print(f"recorded {path}")
-    return result
+    whole = True
+    for recorder in recording.recorders:
+        info = recorder.diagnostics()
+        files = info.get("files", [info.get("file")])
+        if not info["fault"]:
+            for path in files:
+                print(f"recorded {path}")
+            continue
+        whole = False
+        written = [path for path in files if path and Path(path).exists()]
+        print(
+            f"leafgate: error: recording failed: {info['fault']}; "
+            + (f"incomplete: {', '.join(written)}" if written else "nothing recorded"),
+            file=sys.stderr,
+        )
+    return result, whole
 
 
 TRAJECTORY_FORMAT = """\
@@ -180,6 +205,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    recorded = True  # every --record file written whole (nothing to say without --record)
     if args.record or args.realtime:
         cfg = _sim_key_file(cfg, Path(args.record) if args.record else out)
     if args.realtime:
@@ -201,7 +227,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
         if args.direct:
             result = run_direct(cfg, scenario)
         elif args.record:
-            result = _run_recorded(cfg, scenario, injections, Path(args.record), window)
+            result, recorded = _run_recorded(cfg, scenario, injections, Path(args.record), window)
         else:
             result = run(cfg, scenario, injections=injections, window=window)
         result.write_trace_csv(out / "trace.csv")
@@ -249,25 +275,37 @@ def cmd_sim(args: argparse.Namespace) -> int:
         + ("" if args.realtime else ", trace.csv")
         + ("" if args.no_plots else ", path.png, steering.png, speed.png")
     )
-    if not metrics.get("finished"):  # an injected fault too: the drive did not finish
+    finished = bool(metrics.get("finished"))
+    if not finished:  # an injected fault too: the drive did not finish
         reason = metrics.get("not_finished_reason") or "the maneuver did not finish"
         print(f"leafgate: {scenario.name}: not finished: {reason}", file=sys.stderr)
-        # the turn the controller slows for (its steer_max on this wheelbase)
-        car = plan_rules(cfg.controller, cfg.vehicle).min_turn_radius
-        section = cfg.controller.section_name
-        plan = metrics["plan_min_turn_radius_m"]
-        if plan < car:  # say it when the plan itself cannot be driven as sent
-            x, y = metrics["plan_min_turn_radius_at"]
-            print(
-                f"leafgate: {scenario.name}: the plan turns tighter than the car can: "
-                f"radius {plan:.2f} m at ({x:.1f}, {y:.1f}) m, the car's tightest "
-                f"{car:.2f} m (vehicle.wheelbase, controller.{section}.steer_max)",
-                file=sys.stderr,
-            )
+    # the turn the controller slows for (its steer_max on this wheelbase)
+    car = plan_rules(cfg.controller, cfg.vehicle).min_turn_radius
+    section = cfg.controller.section_name
+    plan = metrics["plan_min_turn_radius_m"]
+    if plan < car:  # said whenever the plan itself cannot be driven as sent, finished or not
+        x, y = metrics["plan_min_turn_radius_at"]
+        off = (
+            f"; the car was up to {metrics['lateral_error_max_m']:.2f} m off it" if finished else ""
+        )
+        print(
+            f"leafgate: {scenario.name}: the plan turns tighter than the car can: "
+            f"radius {plan:.2f} m at ({x:.1f}, {y:.1f}) m, the car's tightest "
+            f"{car:.2f} m (vehicle.wheelbase, controller.{section}.steer_max){off}",
+            file=sys.stderr,
+        )
+    if not finished:
         return EXIT_ERROR
     hit = collision(metrics)
     if hit is not None:  # the route was driven, through a parked car or over the kerb
         print(f"leafgate: {scenario.name}: collision: {hit}", file=sys.stderr)
+        return EXIT_ERROR
+    if not recorded:  # the drive finished, but --record's files are not whole
+        print(
+            f"leafgate: error: {scenario.name}: the drive finished, but --record "
+            f"{args.record} failed (above)",
+            file=sys.stderr,
+        )
         return EXIT_ERROR
     return 0
 
@@ -514,7 +552,12 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
     if args.file is not None:
         from leafgate.control.reference import load_trajectory, validate
 
-        trajectory = load_trajectory(args.file)
+        # the rule the gateway applies, with its limits: a plan it would drop is not sent
+        trajectory = load_trajectory(
+            args.file,
+            max_speed=cfg.gateway.safety.max_speed,
+            max_points=cfg.zenoh.max_plan_points,
+        )
         spacing = validate(trajectory, args.file)
         print(f"{args.file}: {len(trajectory)} waypoints, spacing {spacing}")
     else:
@@ -547,17 +590,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if args.replay_command == "check":
         from leafgate.replay.check import main_check
 
-        # a rotated log's parts (a glob): each checked in turn, the worst status wins
-        return max(
-            main_check(
-                log,
-                config=args.config,
-                profile=args.profile,
-                as_json=args.json,
-                gap_periods=args.gap_periods,
-                key_file=args.key_file,
-            )
-            for log in args.log
+        # a rotated log's parts are checked as one log; other files each alone, one verdict
+        return main_check(
+            args.log,
+            config=args.config,
+            profile=args.profile,
+            as_json=args.json,
+            gap_periods=args.gap_periods,
+            key_file=args.key_file,
         )
     if args.replay_command == "play":
         from leafgate.replay.play import play_from_args
@@ -577,7 +617,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
     from leafgate.record.logs import recording_context
     from leafgate.replay.decode import decode_log
 
-    context = recording_context(args.log, config=args.config, profile=args.profile)
+    context = recording_context(args.log[0], config=args.config, profile=args.profile)
     return decode_log(
         args.log,
         summary=not args.no_summary,
@@ -678,20 +718,20 @@ def build_parser() -> argparse.ArgumentParser:
     add_overrides(p)
     p.add_argument(
         "--rolling-window",
-        type=float,
+        type=positive_number,
         metavar="M",
         help="send the route as a planner does: the next M metres (e.g. 30), re-sent",
     )
     p.add_argument(
         "--window-period",
-        type=float,
+        type=positive_seconds,
         default=0.5,
         metavar="S",
         help="s between rolling-window plans (default 0.5)",
     )
     p.add_argument(
         "--window-behind",
-        type=float,
+        type=non_negative_number,
         default=0.0,
         metavar="M",
         help="each rolling-window plan also keeps M metres behind the car, as Autoware's "
@@ -792,11 +832,13 @@ def build_parser() -> argparse.ArgumentParser:
             "carried out, 1 refused, 3 nothing to do (already so).",
         )
         p.add_argument("--config", required=True, help="YAML config naming the Zenoh endpoints")
-        p.add_argument("--timeout", type=float, default=None, help="s to wait for the gateway")
+        p.add_argument(
+            "--timeout", type=positive_seconds, default=None, help="s to wait for the gateway"
+        )
         if name == "engage":
             p.add_argument(
                 "--wait",
-                type=float,
+                type=non_negative_seconds,
                 default=ENGAGE_WAIT,
                 metavar="SECONDS",
                 help="while the gateway refuses for want of its inputs (just started, no plan "
@@ -807,7 +849,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("status", help="live diagnostics of a running gateway")
     p.add_argument("--config", required=True)
-    p.add_argument("--duration", type=float, default=1.0, help="s to watch (default 1)")
+    p.add_argument("--duration", type=positive_seconds, default=1.0, help="s to watch (default 1)")
     p.add_argument("--json", action="store_true", help="print the raw JSON records")
     p.set_defaults(func=cmd_status)
 
@@ -836,7 +878,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "log",
         nargs="+",
-        help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap); a rotated log's parts",
+        help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap); a rotated log's parts "
+        "(checked as one log, a missing part reported), or several logs (one verdict)",
     )
     add_profile_options(r, "the deployment config whose limits and profile apply")
     r.add_argument("--json", action="store_true", help="machine-readable report")
@@ -869,17 +912,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("file", nargs="?", help="CSV or YAML trajectory")
     p.add_argument("--scenario", help="a built-in scenario's trajectory instead of a file")
     p.add_argument("--config", required=True)
-    p.add_argument("--period", type=float, default=0.5, help="s between publications (default 0.5)")
     p.add_argument(
-        "--count", type=int, default=0, help="publications before exiting (0: until Ctrl-C)"
+        "--period", type=positive_seconds, default=0.5, help="s between publications (default 0.5)"
     )
-    p.add_argument("--wait", type=float, default=5.0, help="s to wait for the gateway's subscriber")
+    p.add_argument(
+        "--count",
+        type=non_negative_int,
+        default=0,
+        help="publications before exiting (0: until Ctrl-C)",
+    )
+    p.add_argument(
+        "--wait",
+        type=non_negative_seconds,
+        default=5.0,
+        help="s to wait for the gateway's subscriber",
+    )
     p.set_defaults(func=cmd_publish_trajectory)
 
     p = sub.add_parser(
         "decode", help="decode a CAN log (.log/.asc/.blf/.trc/.csv) with the leafgate DBCs"
     )
-    p.add_argument("log")
+    p.add_argument(
+        "log",
+        nargs="+",
+        help="CAN log or session (.mcap); a rotated log's parts are decoded in order as one",
+    )
     add_profile_options(p, "the deployment config naming the vehicle profile and DBCs")
     p.add_argument("--no-summary", action="store_true")
     p.add_argument("--key-file", metavar="FILE", help=KEY_FILE_HELP)
@@ -917,12 +974,46 @@ def _silence_stdout() -> None:
         pass
 
 
+def _closed_standard_streams() -> int:
+    """Refuse to start with stdout closed (``>&-``: ``sys.stdout`` is None); 0 when it is open.
+
+    Every command's product or log goes to stdout: discarding it silently would let a command
+    look as if it had done its work. A closed stderr is pointed at /dev/null (there is nowhere
+    to tell about it), and the exit status still says how the command ended.
+    """
+    if sys.stderr is None:
+        sys.stderr = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115 (for the process)
+    if sys.stdout is None:
+        sys.stdout = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115 (for the process)
+        print(
+            "leafgate: error: standard output is closed; nothing to write to "
+            "(redirect it to a file or to /dev/null instead)",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
+    return 0
+
+
 def _one_line(exc: OSError) -> str:
     """``Permission denied: 'out/x'``: the reason and the path, without the errno prefix."""
     what = exc.strerror or str(exc)
     if exc.filename is not None:
         return f"{what}: {os.fsdecode(exc.filename)}"
     return what
+
+
+#: errors only a write raises (disk full, quota, file too large): the output being written
+_WRITE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+
+
+def _written(exc: OSError, args: argparse.Namespace) -> str:
+    """``" (writing --out DIR)"`` for a write error that names no file (``file.write`` raises
+    ENOSPC without a path): the output options this command writes; "" otherwise."""
+    if exc.filename is not None or exc.errno not in _WRITE_ERRNOS:
+        return ""
+    names = (*OUTPUT_FOLDERS, *OUTPUT_FILES)
+    given = [f"--{n} {getattr(args, n)}" for n in names if getattr(args, n, None)]
+    return f" (writing {' / '.join(given)})" if given else ""
 
 
 #: options naming a folder the command writes into, checked before any work starts
@@ -967,8 +1058,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     - a file or folder that cannot be written: the reason and the path, status 1;
     - stdout closed by the reader (``leafgate decode … | head``): status 141, quietly on
       stdout, one line on stderr;
-    - Ctrl-C: "interrupted", status 130.
+    - Ctrl-C: "interrupted", status 130;
+    - stdout closed before the start (``leafgate decode … >&-``): one line, status 2.
     """
+    closed = _closed_standard_streams()
+    if closed:
+        return closed
     try:
         parser = build_parser()  # imports what the subcommands' options list
     except KeyboardInterrupt:
@@ -1000,7 +1095,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("leafgate: output closed by the reader; stopped", file=sys.stderr)
         return EXIT_PIPE
     except OSError as exc:
-        print(f"leafgate: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"leafgate: error: {_one_line(exc)}{_written(exc, args)}", file=sys.stderr)
         return EXIT_ERROR
 
 

@@ -6,12 +6,48 @@ One definition each, so the same option has the same name, type, default and hel
 from __future__ import annotations
 
 import argparse
+import math
+from typing import Any
 
 PROFILE_HELP = (
     "vehicle profile NAME (leafgate-dbw, leafgate-dbw-auth, sze-hlc, leaf-ze1-lkas) or FILE; "
     "default: the "
     "--config's, or the one a session recorded"
 )
+
+
+def _number(text: str, kind: type[int] | type[float]) -> float:
+    """``text`` as a finite ``kind``; an ``ArgumentTypeError`` argparse reports with the option."""
+    try:
+        value = kind(text)
+    except ValueError:
+        what = "a whole number" if kind is int else "a number"
+        raise argparse.ArgumentTypeError(f"must be {what}, not {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, not {text!r}")
+    return value
+
+
+def _bounded(kind: type[int] | type[float], low: float, strict: bool, what: str) -> Any:
+    """An argparse type: a finite ``kind`` above ``low`` (``strict``) or at least ``low``;
+    ``what`` names what it must be in the error, e.g. ``"a number of seconds > 0"``."""
+
+    def check(text: str) -> float:
+        value = _number(text, kind)
+        if value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"must be {what}, not {text!r}")
+        return kind(value)
+
+    return check
+
+
+#: argparse types, one object each (an option shared by commands has the same type everywhere)
+positive_seconds = _bounded(float, 0.0, True, "a number of seconds > 0")  # timeout, period
+non_negative_seconds = _bounded(float, 0.0, False, "a number of seconds >= 0")  # 0: no wait
+positive_number = _bounded(float, 0.0, True, "a number > 0")  # metres, a factor
+non_negative_number = _bounded(float, 0.0, False, "a number >= 0")
+positive_int = _bounded(int, 1, False, "a whole number >= 1")  # worker processes
+non_negative_int = _bounded(int, 0, False, "a whole number >= 0")  # a count, 0: no limit
 
 
 def add_overrides(parser: argparse.ArgumentParser) -> None:
@@ -32,12 +68,15 @@ def add_profile_options(parser: argparse.ArgumentParser, config_help: str) -> No
 
 
 def add_gap_periods(parser: argparse.ArgumentParser) -> None:
-    """``--gap-periods N`` of ``replay check`` and ``batch check``."""
-    from leafgate.replay.check import DEFAULT_GAP_PERIODS
+    """``--gap-periods N`` of ``replay check`` and ``batch check``: a finite number over 1 and
+    at most 100 (NaN, ``inf`` or ``1e9`` would switch the gap and silence findings off)."""
+    from leafgate.replay.check import DEFAULT_GAP_PERIODS, gap_periods_arg
 
     parser.add_argument(
         "--gap-periods",
-        type=float,
+        type=gap_periods_arg,
         default=DEFAULT_GAP_PERIODS,
-        help=f"a gap is this many periods of silence (default {DEFAULT_GAP_PERIODS:g})",
+        metavar="N",
+        help=f"a gap is this many periods of silence, over 1 and at most 100 "
+        f"(default {DEFAULT_GAP_PERIODS:g})",
     )

@@ -85,3 +85,38 @@ def test_shipped_configs_load(name: str) -> None:
     if not path.exists():
         pytest.skip(f"{name} not written yet")
     load_config(path)
+
+
+# --- a key given twice is refused, with the file, line and key (audit item 4) -----------------
+
+
+def test_duplicate_key_is_refused_naming_file_line_and_key(tmp_path: Path) -> None:
+    bad = write(tmp_path, "controller:\n  kind: stanley\ncontroller:\n  kind: mpc\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(bad)
+    text = str(info.value)
+    assert str(bad) in text and "line 3" in text and "duplicate key 'controller'" in text
+    assert "first at line 1" in text and "\n" not in text
+
+
+def test_duplicate_nested_key_is_refused(tmp_path: Path) -> None:
+    bad = write(tmp_path, "controller:\n  kind: stanley\n  kind: mpc\n")
+    with pytest.raises(ConfigError, match=r"line 3, column 3: duplicate key 'kind'"):
+        load_config(bad)
+
+
+def test_merge_keys_may_still_be_overridden() -> None:
+    from leafgate.config import safe_load_yaml
+
+    data = safe_load_yaml("a: &x {b: 1, c: 2}\nd:\n  <<: *x\n  b: 3\n")
+    assert data["d"] == {"b": 3, "c": 2}
+
+
+def test_shipped_yaml_files_have_no_duplicate_keys() -> None:
+    from leafgate.config import load_yaml
+
+    root = Path(__file__).resolve().parent.parent
+    files = [*(root / "config").glob("*.yaml"), *(root / "leafgate" / "data").rglob("*.yaml")]
+    assert files
+    for path in files:
+        load_yaml(path)

@@ -77,15 +77,20 @@ def test_a_course_tighter_than_the_car_turns_is_stopped_off_the_plan_and_said_wh
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["switch-back", "forward"])
 def test_with_room_to_leave_the_plan_they_are_driven_to_their_goal(
-    name: str, tmp_path: Path
+    name: str, tmp_path: Path, capsys: Any
 ) -> None:
     """Where the user allows it (an empty test ground), the car cuts the turn and drives the
-    whole course, through the switch-back's cusp, onto the goal."""
-    scenario = file_scenario(str(_write(name, tmp_path)))
-    config = load_config(
-        None, {"sim.plant.kind": "kinematic", "gateway.watchdog.max_path_deviation": 10.0}
-    )
-    metrics = run(config, scenario).metrics
+    whole course, through the switch-back's cusp, onto the goal; ``leafgate sim`` still says
+    that the plan turns tighter than the car can, and how far off it the car went (old code:
+    exit 0 and nothing said, the car 6.2 m off the plan)."""
+    csv, out = _write(name, tmp_path), tmp_path / "out"
+    room = "gateway.watchdog.max_path_deviation=10"
+    args = ["sim", "--trajectory", str(csv), "--plant", "kinematic", "--set", room]
+    assert main([*args, "--out", str(out), "--no-plots"]) == 0
+    err = capsys.readouterr().err
+    assert "the plan turns tighter than the car can: radius" in err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert f"the car was up to {metrics['lateral_error_max_m']:.2f} m off it" in err
     assert metrics["finished"], metrics.get("not_finished_reason")
     assert metrics["progress_m"] == pytest.approx(metrics["route_length_m"], abs=0.1)
     assert metrics["final_position_error_m"] <= GOAL_FINAL_POSITION

@@ -113,6 +113,11 @@ def test_sim_refuses_at_load_what_the_gateway_would_refuse(
     assert cli.main([*args, "--out", str(out)]) == 1
     assert "many.csv: 30 waypoints, at most 20" in capsys.readouterr().err
     assert not (out / "metrics.json").exists()
+    # publish-trajectory neither sends a plan the gateway would drop (before any session opens)
+    config = tmp_path / "z.yaml"
+    config.write_text("zenoh: {max_plan_points: 20}\n", encoding="utf-8")
+    assert cli.main(["publish-trajectory", str(many), "--config", str(config)]) == 1
+    assert "many.csv: 30 waypoints, at most 20" in capsys.readouterr().err
 
 
 def test_trace_csv_keeps_map_coordinates_to_the_millimetre(tmp_path: Path) -> None:

@@ -30,7 +30,17 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from hypothesis import strategies as st
+
+try:
+    from hypothesis import strategies as st
+except ModuleNotFoundError as exc:  # the plain install has no hypothesis: say which extra
+    if __name__ != "__main__":
+        raise
+    print(
+        f"generated_routes.py: needs {exc.name}, from the test extra: pip install -e '.[test]'",
+        file=sys.stderr,
+    )
+    raise SystemExit(2) from None
 
 from leafgate.messages import FloatArray, Pose, Trajectory
 from leafgate.sim.scenarios import Scenario, time_budget

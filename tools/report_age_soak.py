@@ -30,7 +30,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "faults")
 sys.path.insert(1, str(Path(__file__).resolve().parents[1]))  # harness imports tests.conftest
 
 import can
-from harness import FaultRun, cpu_hogs, transitions
+
+try:  # the fault harness runs the tests' helpers: pytest, from the test extra
+    from harness import FaultRun, cpu_hogs, transitions
+except ModuleNotFoundError as exc:
+    if __name__ != "__main__" or (exc.name or "leafgate").startswith(("leafgate", "tests")):
+        raise
+    print(
+        f"report_age_soak.py: needs {exc.name}, from the test extra: pip install -e '.[test]'",
+        file=sys.stderr,
+    )
+    raise SystemExit(2) from None
 
 from leafgate.can import e2e
 from leafgate.can.codec import CanCodec

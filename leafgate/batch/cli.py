@@ -10,7 +10,14 @@ from typing import Any
 from leafgate.batch import sweep as sweep_module
 from leafgate.batch.engine import WORKERS_WAIT_S, BatchError, EngineRun, run_tasks
 from leafgate.batch.results import crossings, make_out_dir, write_report, write_table
-from leafgate.cliargs import add_gap_periods, add_overrides, add_profile_options
+from leafgate.cliargs import (
+    add_gap_periods,
+    add_overrides,
+    add_profile_options,
+    non_negative_seconds,
+    positive_int,
+    positive_seconds,
+)
 
 __all__ = ["add_arguments", "cmd_batch"]
 
@@ -25,14 +32,16 @@ def _common(p: argparse.ArgumentParser, out: str) -> None:
     )
     p.add_argument(
         "--wait-workers",
-        type=float,
+        type=non_negative_seconds,
         default=WORKERS_WAIT_S,
         metavar="S",
         help="with --scheduler: s to wait for a first worker to join before failing "
         f"(default: {WORKERS_WAIT_S:g}); --timeout starts only when a worker takes a case",
     )
     p.add_argument(
-        "--workers", type=int, help="worker processes of the local cluster (default: CPU count)"
+        "--workers",
+        type=positive_int,
+        help="worker processes of the local cluster (default: CPU count)",
     )
     p.add_argument("--out", default=out, help=f"output folder (default: ./{out}/)")
 
@@ -51,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("sweep", help="sweep file (YAML), e.g. config/sweep.yaml")
     p.add_argument(
         "--timeout",
-        type=float,
+        type=positive_seconds,
         help="s per case, counted from when a worker starts it (default: the sweep's timeout_s)",
     )
     _common(p, "leafgate-batch")
@@ -65,12 +74,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_profile_options(p, "the deployment config whose limits and profile apply")
     add_gap_periods(p)
-    p.add_argument("--timeout", type=float, help="s per log")
+    p.add_argument("--timeout", type=positive_seconds, help="s per log")
     _common(p, "leafgate-batch-check")
     p = sub.add_parser("rerun", help="`replay rerun` of every session (.mcap) under DIR")
     p.add_argument("dir", help="folder searched recursively")
     add_overrides(p)
-    p.add_argument("--timeout", type=float, help="s per session")
+    p.add_argument("--timeout", type=positive_seconds, help="s per session")
     _common(p, "leafgate-batch-rerun")
 
 

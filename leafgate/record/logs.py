@@ -12,13 +12,24 @@ up to its last complete object (python-can's reader stops there), a text log (``
 ``.asc``) up to its last complete line — a line without its newline is dropped, since its
 beginning may parse as a different frame (``0A0#0102`` of ``0A0#01020304…``). Either way
 :attr:`FrameSource.truncated` tells.
+
+A text log whose content is not of its format (binary content, such as a PNG named ``.asc``,
+or text of which no line is a frame, such as a JSON file) is refused naming the file, never
+read as an empty log.
+
+A rotated log's parts (the recorder's ``can-…_000.blf``, ``can-…_001.blf`` …) are one log:
+:func:`group_parts` finds them among the files given, in number order, with the numbers
+missing, and :class:`ChainedSource` reads them as one.
 """
 
 from __future__ import annotations
 
+import codecs
 import functools
 import json
-from collections.abc import Iterator
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Final
 
@@ -31,8 +42,11 @@ from leafgate.settings import LeafgateConfig, load_config, with_profile
 
 __all__ = [
     "READABLE_SUFFIXES",
+    "ChainedSource",
     "FrameSource",
+    "LogParts",
     "RecordingContext",
+    "group_parts",
     "is_session",
     "recording_context",
 ]
@@ -46,6 +60,39 @@ _TEXT_READERS: dict[str, Any] = {
     ".log": can.CanutilsLogReader,
     ".asc": functools.partial(can.ASCReader, relative_timestamp=False),
 }
+
+
+# The text formats: what each is called in an error, and how a file of it may begin without a
+# frame (a header); a file with text but neither a frame nor such a start is not of the format.
+_TEXT_FORMATS: dict[str, tuple[str, tuple[str, ...]]] = {
+    ".log": ("candump", ()),
+    ".asc": ("ASC", ("date ", "base ", "internal events", "begin triggerblock", "//")),
+    ".csv": ("CSV", ("timestamp,",)),
+    ".trc": ("TRC", (";",)),
+}
+_SNIFF_BYTES: Final = 8192
+
+
+def _binary(path: Path) -> bool:
+    """Whether the file's beginning is not UTF-8 text (a NUL byte, or invalid UTF-8)."""
+    with path.open("rb") as file:
+        head = file.read(_SNIFF_BYTES)
+    if b"\x00" in head:
+        return True
+    try:  # not final: a character cut at the end of the sample is not an error
+        codecs.getincrementaldecoder("utf-8")().decode(head, final=False)
+    except UnicodeDecodeError:
+        return True
+    return False
+
+
+def _first_text_line(path: Path) -> str | None:
+    """The first non-blank line of a text file, stripped (None: the file has none)."""
+    with path.open("r", encoding="utf-8", errors="replace") as file:
+        for line in file:
+            if line.strip():
+                return line.strip()
+    return None
 
 
 class _CompleteLines:
@@ -139,6 +186,12 @@ class FrameSource:
             return None
 
     def __iter__(self) -> Iterator[can.Message]:
+        text_format = _TEXT_FORMATS.get(self.path.suffix.lower())
+        if text_format is not None and _binary(self.path):
+            raise ReplayError(
+                f"{self.path}: unreadable: not a{'n' if text_format[0][0] in 'AEIOU' else ''} "
+                f"{text_format[0]} log: binary content"
+            )
         try:
             for msg in self._frames():
                 self.ended = is_end_marker(msg)
@@ -152,9 +205,25 @@ class FrameSource:
                 raise ReplayError(
                     f"{self.path}: {reason} (readable: {', '.join(READABLE_SUFFIXES)})"
                 ) from None
+            if self.frames == 0 and text_format is not None:
+                raise ReplayError(
+                    f"{self.path}: unreadable: not a{'n' if text_format[0][0] in 'AEIOU' else ''} "
+                    f"{text_format[0]} log: its first line does not parse ({reason})"
+                ) from None
             raise ReplayError(
                 f"{self.path}: unreadable after {self.frames} frames: {reason}"
             ) from None
+        if self.frames == 0 and text_format is not None:
+            # python-can's text readers skip what they do not recognise: text of another kind
+            # reads as no frames. Only an empty file, or one that begins as the format does (a
+            # header without frames), is an empty log.
+            first = _first_text_line(self.path)
+            name, starts = text_format
+            if first is not None and not first.lower().startswith(starts or ("\x00",)):
+                raise ReplayError(
+                    f"{self.path}: unreadable: not a{'n' if name[0] in 'AEIOU' else ''} {name} log: "
+                    f"no line of it is a frame (it begins {first[:40]!r})"
+                )
 
     def _frames(self) -> Iterator[can.Message]:
         if self.path.suffix.lower() == ".mcap":
@@ -202,6 +271,127 @@ class FrameSource:
             reader.stop()
             if file is not None:
                 file.close()
+
+
+_PART_STEM = re.compile(r"^(?P<base>.+)_(?P<number>\d{3,})$")
+
+
+@dataclass(frozen=True)
+class LogParts:
+    """One log as given: a single file, or the parts of a rotated log in number order.
+
+    ``missing`` names the parts absent from the numbering (from ``_000`` to the last given):
+    deleted, lost, or, for several parts given, not among them.
+    """
+
+    paths: tuple[Path, ...]
+    missing: tuple[Path, ...] = ()
+
+    @property
+    def name(self) -> str:
+        """The file, or the first part and how many more."""
+        if len(self.paths) == 1:
+            return str(self.paths[0])
+        return f"{self.paths[0]} … {self.paths[-1].name} ({len(self.paths)} parts)"
+
+
+def _part_number(path: Path) -> tuple[tuple[Path, str, str], int] | None:
+    """(the rotated log's identity: folder, base stem, suffix; the part's number), or None for
+    a name that is not a part's (a session, a file not named ``STEM_NNN.SUFFIX``)."""
+    if is_session(path):
+        return None
+    match = _PART_STEM.match(path.stem)
+    if match is None:
+        return None
+    return (path.parent, match["base"], path.suffix), int(match["number"])
+
+
+def group_parts(paths: Sequence[str | Path]) -> list[LogParts]:
+    """The files as logs, in the order given: the parts of one rotated log (the recorder's
+    ``STEM_000.SUFFIX``, ``STEM_001.SUFFIX`` … in one folder) together and in number order,
+    every other file alone. A file given twice is read once.
+
+    A number between ``_000`` and the last part given that is not given is ``missing`` — unless
+    a single part was given and the others are on disk (one part, checked on purpose).
+    """
+    groups: dict[tuple[Path, str, str], dict[int, Path]] = {}
+    for raw in paths:
+        path = Path(raw)
+        part = _part_number(path)
+        key = (path, "", "") if part is None else part[0]  # a file alone: itself
+        number = -1 if part is None else part[1]
+        groups.setdefault(key, {}).setdefault(number, path)
+    out = []
+    for key, parts in groups.items():
+        numbers = sorted(parts)
+        ordered = tuple(parts[n] for n in numbers)
+        missing: list[Path] = []
+        if numbers[0] >= 0:
+            folder, base, suffix = key
+            width = max(3, len(parts[numbers[0]].stem) - len(base) - 1)
+            for n in range(numbers[-1]):
+                if n in parts:
+                    continue
+                name = folder / f"{base}_{n:0{width}d}{suffix}"
+                if len(parts) == 1 and name.is_file():
+                    continue
+                missing.append(name)
+        out.append(LogParts(ordered, tuple(missing)))
+    return out
+
+
+class ChainedSource:
+    """The frames of a rotated log's parts, one after the other (see :class:`FrameSource`).
+
+    :attr:`spans` holds each part read: (its path, first and last timestamp, whether its last
+    frame was an end-of-recording marker).
+    """
+
+    def __init__(self, paths: Sequence[str | Path], markers: bool = False) -> None:
+        self.sources = [FrameSource(path, markers=markers) for path in paths]
+        self.size = sum(s.size for s in self.sources)
+        self.spans: list[tuple[Path, float, float, bool]] = []
+        self._current = 0
+
+    @property
+    def frames(self) -> int:
+        return sum(s.frames for s in self.sources)
+
+    @property
+    def truncated(self) -> bool:
+        return any(s.truncated for s in self.sources)
+
+    @property
+    def ended(self) -> bool:
+        return self.sources[-1].ended
+
+    @property
+    def session(self) -> SessionReader | None:
+        return self.sources[-1].session
+
+    def fraction(self) -> float | None:
+        """How much of the parts has been read, 0–1 (None when a reader cannot tell)."""
+        if self.size <= 0:
+            return None
+        done = sum(s.size for s in self.sources[: self._current])
+        if self._current < len(self.sources):
+            part = self.sources[self._current].fraction()
+            if part is None:
+                return None
+            done += int(part * self.sources[self._current].size)
+        return min(1.0, done / self.size)
+
+    def __iter__(self) -> Iterator[can.Message]:
+        for index, source in enumerate(self.sources):
+            self._current = index
+            first = last = float("nan")
+            for msg in source:
+                if first != first:
+                    first = msg.timestamp
+                last = msg.timestamp
+                yield msg
+            self.spans.append((source.path, first, last, source.ended))
+        self._current = len(self.sources)
 
 
 class RecordingContext:

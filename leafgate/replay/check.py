@@ -43,9 +43,16 @@ session's ``/can`` topic):
    verified": it never claims a MAC it did not check.
 
 An empty log, a log with no frame on the profile's command IDs (another vehicle's, one made
-with another profile, or one without the gateway) and a log whose command frames could none be
-checked are findings, never "OK". Timestamps that go backwards
+with another profile, or one without the gateway), a log without an engaged command frame
+(cut before the engage, or a drive never engaged), a log whose command frames could none be
+checked and a log in which no command's rates could be checked are findings, never "OK":
+"OK" says what was checked, so nothing checked is not OK. Timestamps that go backwards
 are warned about.
+
+The parts of a rotated log (``can-…_000.blf``, ``can-…_001.blf`` …, given together) are checked
+as one log, frames chained; a part missing from the numbering is an ``incomplete`` finding, as
+is a part before the last without its end-of-recording marker. Several logs give one report
+each and a last line with the verdict over all of them.
 
 Tolerances are 1.5 quantisation steps of the command signals (read from the DBC, through the
 profile's unit and scale): the gate bounds the float command, the frame carries it rounded.
@@ -56,10 +63,11 @@ Exit status: 0 when there is no finding, 1 otherwise.
 from __future__ import annotations
 
 import functools
+import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Final, TextIO
@@ -71,6 +79,7 @@ from leafgate.can.codec import CanCodec, FrameStats
 from leafgate.can.profile import Profile
 from leafgate.can.secoc import tool_key
 from leafgate.config import VehicleConfig
+from leafgate.errors import ReplayError
 from leafgate.gateway.plausibility import MAX_SKEW, cross_check, report_range_error
 from leafgate.gateway.safety import Measured, SafetyLimits, Violation, apply_limits, check
 from leafgate.messages import (
@@ -82,16 +91,39 @@ from leafgate.messages import (
     SteerReport,
     WheelSpeeds,
 )
-from leafgate.record.logs import FrameSource, is_end_marker, recording_context
+from leafgate.record.logs import (
+    ChainedSource,
+    FrameSource,
+    LogParts,
+    group_parts,
+    is_end_marker,
+    recording_context,
+)
 from leafgate.replay.decode import authentication_summary
 from leafgate.replay.report import write_report
 from leafgate.settings import LeafgateConfig
 
-__all__ = ["CheckReport", "Finding", "IdStats", "check_frames", "check_log", "main_check"]
+__all__ = [
+    "MAX_GAP_PERIODS",
+    "MIN_GAP_PERIODS",
+    "CheckReport",
+    "Finding",
+    "IdStats",
+    "check_frames",
+    "check_log",
+    "gap_periods_arg",
+    "gap_periods_error",
+    "main_check",
+]
 
 STEER_KINDS: Final = frozenset({"angle", "angle_rate", "lateral_accel", "non_finite"})
 LONG_KINDS: Final = frozenset({"accel", "jerk", "speed", "gear", "non_finite"})
 DEFAULT_GAP_PERIODS: Final = 3.0  # nominal periods; the watchdog's report timeout, too
+# ``gap_periods`` must be over MIN (an interval of one period is no gap) and at most MAX (a
+# second of silence on a 10 ms frame: far past any timeout; more would switch off the silence
+# and gap findings, and the rate checks across a gap, without saying so)
+MIN_GAP_PERIODS: Final = 1.0
+MAX_GAP_PERIODS: Final = 100.0
 _TOLERANCE_STEPS: Final = 1.5  # quantisation steps of slack on every re-checked bound
 _LOST_FRAME_PERIODS: Final = 1.5  # an interval this long that ends in a counter skip lost frames
 _PROGRESS_EVERY: Final = 0.2  # s of wall time between progress bar updates
@@ -265,7 +297,7 @@ def _ms(value: float | None) -> str:
 class _Progress:
     """A one-line progress bar on a terminal (nothing when the stream is not one)."""
 
-    def __init__(self, stream: TextIO | None, source: FrameSource) -> None:
+    def __init__(self, stream: TextIO | None, source: FrameSource | ChainedSource) -> None:
         self.stream = stream if stream is not None and stream.isatty() else None
         self.source = source
         self.t0 = time.monotonic()
@@ -330,6 +362,7 @@ class _CommandCheck:
     long_time: float = -math.inf
     long_report: LongReport | None = None
     checked: int = 0  # engaged command frames re-checked
+    rates_checked: int = 0  # commands whose rates were re-checked (the previous one known)
     not_checkable: dict[str, int] = field(
         default_factory=lambda: {"state_unknown": 0, "rates_unknown": 0}
     )
@@ -361,6 +394,7 @@ class _CommandCheck:
         if not elapsed <= self.gap:
             self.not_checkable["rates_unknown"] += 1
             return _envelope(self.limits)
+        self.rates_checked += 1
         return _over(self.limits, elapsed)
 
     def _steer(self, t: float, frame_id: int, name: str, value: SteerCommand) -> SteerCommand:
@@ -523,6 +557,9 @@ def check_frames(
     :param key: verifies authenticated frames' MACs, freshness judged against the recorded
         timestamps (None: decoded, "MAC not verified")
     """
+    error = gap_periods_error(gap_periods)
+    if error is not None:
+        raise ReplayError(f"gap_periods: {error}")
     t_start = time.perf_counter()
     template = CanCodec(dbw_dbc, car_dbc, profile, key=key, clock=None)
     angle_tol, long_tol = _tolerances(template)
@@ -560,6 +597,30 @@ def check_frames(
         elapsed=time.perf_counter() - t_start,
         authentication=authentication_summary(template, merged),
     )
+
+
+def gap_periods_error(value: float) -> str | None:
+    """Why ``value`` is no ``gap_periods`` (None: it is one)."""
+    if not MIN_GAP_PERIODS < value <= MAX_GAP_PERIODS:  # NaN and infinities too
+        return (
+            f"must be a number over {MIN_GAP_PERIODS:g} and at most {MAX_GAP_PERIODS:g} "
+            f"(periods of silence that make a gap), not {value:g}"
+        )
+    return None
+
+
+def gap_periods_arg(text: str) -> float:
+    """``--gap-periods N`` as argparse's ``type``: refused (exit 2) when it is no gap_periods."""
+    import argparse
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    error = gap_periods_error(value)
+    if error is not None:
+        raise argparse.ArgumentTypeError(error)
+    return value
 
 
 def _findings(
@@ -661,6 +722,30 @@ def _coverage_findings(scan: _Scan, stats: dict[int, FrameStats]) -> list[Findin
             "the gateway, or made with another profile? give --profile)"
         )
         return [Finding(first, "coverage", None, "profile", detail)]
+    if commands.checked == 0:
+        return [
+            Finding(
+                first,
+                "coverage",
+                None,
+                "commands",
+                f"nothing checked: none of the {command_frames} frames on the command IDs of "
+                f"profile {profile} was sent engaged (a log cut before the engage, or a drive "
+                "never engaged): no command was checked against the limits",
+            )
+        ]
+    if commands.rates_checked == 0:
+        return [
+            Finding(
+                first,
+                "coverage",
+                None,
+                "commands",
+                f"the rates of none of the {commands.checked} engaged command frames could be "
+                "checked (each one's previous command is not in the log): only the envelope "
+                "was checked",
+            )
+        ]
     return []
 
 
@@ -901,7 +986,7 @@ def _merge_gaps(gaps: list[_Gap], names: dict[int, str | None]) -> list[Finding]
 
 
 def check_log(
-    path: str | Path,
+    path: str | Path | LogParts,
     config: LeafgateConfig | str | Path | None = None,
     *,
     profile: str | None = None,
@@ -909,9 +994,10 @@ def check_log(
     progress: TextIO | None = None,
     key_file: str | None = None,
 ) -> CheckReport:
-    """Check a recorded log or session (see the module notes).
+    """Check a recorded log or session, or a rotated log's parts as one (see the module notes).
 
-    :param path: a python-can log, or a ``.mcap`` session
+    :param path: a python-can log, a ``.mcap`` session, or a rotated log's parts
+        (:func:`~leafgate.record.logs.group_parts`)
     :param config: the configuration (or its file) whose safety limits and vehicle profile
         apply; a session's recorded configuration when None
     :param profile: the vehicle profile (``--profile NAME|FILE``), over the configuration's
@@ -922,16 +1008,16 @@ def check_log(
         names the vehicle profile (a python-can log without ``config`` or ``profile``)
     :raises ConfigError: the configuration or profile does not load
     """
-    path = Path(path)
-    context = recording_context(path, config=config, profile=profile)
+    parts = path if isinstance(path, LogParts) else LogParts((Path(path),))
+    context = recording_context(parts.paths[0], config=config, profile=profile)
     cfg = context.config
     limits = SafetyLimits.from_config(cfg.gateway.safety, cfg.vehicle, cfg.gateway.period)
-    source = FrameSource(path, markers=True)
+    source = ChainedSource(parts.paths, markers=True)
     report = check_frames(
         source,
         limits,
         context.profile,
-        path=str(path),
+        path=parts.name,
         gap_periods=gap_periods,
         dbw_dbc=cfg.can.dbw_dbc,
         car_dbc=cfg.can.car_dbc,
@@ -941,11 +1027,52 @@ def check_log(
         key=tool_key(key_file, cfg if config is not None else None),
     )
     report.truncated = source.truncated
+    extra = _part_findings(parts, source)
+    if extra:
+        report.findings = sorted(report.findings + extra, key=lambda f: (f.time, f.kind))
     return report
 
 
+def _part_number(path: Path) -> str:
+    return path.stem.rsplit("_", 1)[-1]
+
+
+def _part_findings(parts: LogParts, source: ChainedSource) -> list[Finding]:
+    """A rotated log's parts missing from the numbering, and parts before the last that end
+    without their end-of-recording marker (the last one's is the check's own finding)."""
+    out = []
+    spans = source.spans
+    for missing in parts.missing:
+        number = int(_part_number(missing))
+        before = [s for s in spans if int(_part_number(s[0])) < number]
+        t = before[-1][2] if before else (spans[0][1] if spans else math.nan)
+        on_disk = " (on disk, not given)" if missing.is_file() else ""
+        out.append(
+            Finding(
+                t,
+                "incomplete",
+                None,
+                "parts",
+                f"part {missing.name} of the rotated log is missing{on_disk}: its frames were "
+                "not checked",
+            )
+        )
+    for span_path, _, last, ended in spans[:-1]:
+        if not ended:
+            out.append(
+                Finding(
+                    last,
+                    "incomplete",
+                    None,
+                    "parts",
+                    f"part {span_path.name} has no end-of-recording marker: it stops early",
+                )
+            )
+    return out
+
+
 def main_check(
-    log: str | Path,
+    log: str | Path | Sequence[str | Path],
     *,
     config: str | Path | None = None,
     profile: str | None = None,
@@ -955,20 +1082,62 @@ def main_check(
     err: TextIO | None = None,
     key_file: str | None = None,
 ) -> int:
-    """``leafgate replay check LOG [--config FILE] [--profile NAME|FILE] [--json] …``.
+    """``leafgate replay check LOG… [--config FILE] [--profile NAME|FILE] [--json] …``.
 
-    :return: 0 when the log has no finding, 1 otherwise
-    :raises LeafgateError: unreadable log, configuration or profile (the CLI prints it)
+    The files are grouped into logs (:func:`~leafgate.record.logs.group_parts`: a rotated
+    log's parts are one log); each log gets its report. With several logs, an unreadable one
+    is reported and counted as failed, the others still checked, and a last line (or, with
+    ``--json``, one object ``{"ok", "logs"}``) gives the verdict over all of them.
+
+    :return: 0 when no log has a finding, 1 otherwise
+    :raises LeafgateError: unreadable log (of a single one), configuration or profile
     """
     out = out or sys.stdout
     err = err or sys.stderr
-    report = check_log(
-        log, config, profile=profile, gap_periods=gap_periods, progress=err, key_file=key_file
-    )
-    if report.backwards:
-        err.write(
-            f"leafgate: warning: {log}: timestamps go backwards at {report.backwards} frames "
-            f"(by up to {report.worst_backwards * 1e3:.1f} ms)\n"
-        )
-    write_report(report, as_json, out)
-    return 0 if report.ok else 1
+    paths = [log] if isinstance(log, (str, Path)) else list(log)
+    groups = group_parts(paths)
+    reports: list[CheckReport] = []
+    failed: list[str] = []
+    unreadable: list[dict[str, Any]] = []
+    for parts in groups:
+        try:
+            report = check_log(
+                parts,
+                config,
+                profile=profile,
+                gap_periods=gap_periods,
+                progress=err,
+                key_file=key_file,
+            )
+        except ReplayError as exc:
+            if len(groups) == 1:
+                raise
+            err.write(f"leafgate: error: {exc}\n")
+            failed.append(parts.name)
+            unreadable.append({"path": parts.name, "ok": False, "error": str(exc)})
+            if not as_json:
+                out.write(f"FAILED: {parts.name}: not checked: {exc}\n")
+            continue
+        if report.backwards:
+            err.write(
+                f"leafgate: warning: {report.path}: timestamps go backwards at "
+                f"{report.backwards} frames (by up to {report.worst_backwards * 1e3:.1f} ms)\n"
+            )
+        reports.append(report)
+        if not report.ok:
+            failed.append(report.path)
+        if len(groups) == 1 or not as_json:
+            write_report(report, as_json, out)
+    if len(groups) > 1:
+        if as_json:
+            logs = [r.to_dict() for r in reports] + unreadable
+            json.dump({"ok": not failed, "logs": logs}, out, indent=2)
+            out.write("\n")
+        elif failed:
+            out.write(
+                f"FAILED: {len(failed)} of {len(groups)} logs failed the check: "
+                f"{', '.join(failed)}\n"
+            )
+        else:
+            out.write(f"OK: all {len(groups)} logs checked without a finding\n")
+    return 1 if failed else 0

@@ -21,12 +21,19 @@ Authenticated frames (profile ``leafgate-dbw-auth``) are verified only with the 
 (``--key-file``, or the ``--config``'s ``can.auth_key_file``): a bad MAC or a stale freshness
 value is the frame's error. Without the key they are decoded and marked ``ok (MAC not
 verified)``, and the summary says that no MAC was checked.
+
+Several files: the parts of a rotated log (``can-…_000.blf``, ``can-…_001.blf`` …) are
+decoded in order as one log (one summary; a part missing from the numbering is named in it),
+other files each alone. The summary's first line says when the recording is incomplete: a
+session cut before its footer "(truncated session)", a log or session without the recorder's
+end-of-recording marker "no end-of-recording marker".
 """
 
 from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TextIO
 
@@ -34,6 +41,7 @@ import can
 
 from leafgate.can.codec import CanCodec, Decoded, FrameStats
 from leafgate.can.profile import Profile
+from leafgate.record.logs import ChainedSource, LogParts, group_parts
 
 __all__ = ["authentication_summary", "decode_log", "format_frame", "format_summary"]
 
@@ -115,7 +123,7 @@ def authentication_summary(codec: CanCodec, stats: dict[int, FrameStats]) -> str
 
 
 def decode_log(
-    path: str | Path,
+    path: str | Path | LogParts | Sequence[str | Path],
     out: TextIO | None = None,
     *,
     profile: Profile | str,
@@ -127,7 +135,9 @@ def decode_log(
 ) -> int:
     """Decode a CAN log, one line per frame, then a per-ID summary.
 
-    :param path: the log file; its suffix selects the reader
+    :param path: the log file (its suffix selects the reader), a rotated log's parts, or
+        several files (grouped as :func:`~leafgate.record.logs.group_parts` does, each log
+        decoded with its own summary)
     :param out: where the lines go (standard output when None)
     :param profile: the vehicle profile the frames follow (no default: a log of one car read
         with another car's profile shows every frame as an unknown ID)
@@ -142,7 +152,53 @@ def decode_log(
     """
     out = out if out is not None else sys.stdout
     err = err if err is not None else sys.stderr
-    path = Path(path)
+    if isinstance(path, LogParts):
+        groups = [path]
+    else:
+        groups = group_parts([path] if isinstance(path, (str, Path)) else list(path))
+    for parts in groups:
+        _decode_parts(
+            parts,
+            out,
+            err,
+            profile=profile,
+            summary=summary,
+            dbw_dbc=dbw_dbc,
+            car_dbc=car_dbc,
+            key=key,
+        )
+    return 0
+
+
+def _incomplete_note(parts: LogParts, source: ChainedSource) -> str:
+    """What the summary's first line says of an incomplete recording ("" for a complete one)."""
+    notes = []
+    if source.truncated:
+        notes.append(" (truncated session)" if source.session is not None else " (cut short)")
+    if source.frames and not source.ended:
+        notes.append("; no end-of-recording marker: the recording stops early")
+    for span_path, _, _, ended in source.spans[:-1]:
+        if not ended:
+            notes.append(f"; part {span_path.name} has no end-of-recording marker")
+    if parts.missing:
+        names = ", ".join(m.name for m in parts.missing)
+        notes.append(f"; missing part{'s' if len(parts.missing) > 1 else ''} {names}")
+    return "".join(notes)
+
+
+def _decode_parts(
+    parts: LogParts,
+    out: TextIO,
+    err: TextIO,
+    *,
+    profile: Profile | str,
+    summary: bool,
+    dbw_dbc: str | Path | None,
+    car_dbc: str | Path | None,
+    key: bytes | None,
+) -> None:
+    """Decode one log (a file, or a rotated log's parts as one): see :func:`decode_log`."""
+    path = parts.paths[0] if len(parts.paths) == 1 else Path(parts.name)
     # fails early on a bad DBC; freshness is judged against the recorded timestamps
     template = CanCodec(dbw_dbc, car_dbc, profile, key=key, clock=None)
     codecs: dict[object, CanCodec] = {}  # one per recorded channel: separate counter state
@@ -160,9 +216,8 @@ def decode_log(
     latest = -math.inf
     backwards = 0
     worst = 0.0
-    from leafgate.record.logs import FrameSource  # the one reader of logs and sessions
-
-    for msg in FrameSource(path):
+    source = ChainedSource(parts.paths)  # the one reader of logs and sessions
+    for msg in source:
         codec = codec_for(msg.channel)
         decoded = codec.decode(msg)
         line = format_frame(codec, msg, decoded)
@@ -180,6 +235,9 @@ def decode_log(
             f"leafgate: warning: {path}: timestamps go backwards at {backwards} frames "
             f"(by up to {worst * 1e3:.1f} ms)\n"
         )
+    note = _incomplete_note(parts, source)
+    if note and not summary:
+        err.write(f"leafgate: warning: {parts.name}: incomplete{note}\n")
     if summary:
         merged: dict[int, FrameStats] = {}
         names: dict[int, str | None] = {}
@@ -190,11 +248,10 @@ def decode_log(
                     names[frame_id] = codec.name_of(frame_id)
         out.write(
             f"# {path.name}: {sum(s.frames for s in merged.values())} frames, "
-            f"profile {template.profile.name}\n"
+            f"profile {template.profile.name}{note}\n"
         )
         for line in format_summary(merged, names):
             out.write("# " + line + "\n")
         auth = authentication_summary(template, merged)
         if auth:
             out.write(f"# {auth}\n")
-    return 0

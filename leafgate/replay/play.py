@@ -31,6 +31,7 @@ import can
 
 from leafgate.can.bus import copy_frame, open_bus
 from leafgate.can.profile import PROFILE_NAMES
+from leafgate.cliargs import non_negative_number, non_negative_seconds
 from leafgate.config.can import BusConfig
 from leafgate.errors import BusError, ConfigError, ReplayError
 from leafgate.record.logs import FrameSource, is_end_marker, is_session
@@ -280,9 +281,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "a CAN log names none: give it or --config (a session's recorded one is used)",
     )
     parser.add_argument(
-        "--speed", type=float, default=1.0, help="speed factor (0: as fast as possible)"
+        "--speed",
+        type=non_negative_number,
+        default=1.0,
+        help="speed factor (0: as fast as possible)",
     )
-    parser.add_argument("--start", type=float, default=0.0, help="s into the log to start at")
+    parser.add_argument(
+        "--start", type=non_negative_seconds, default=0.0, help="s into the log to start at"
+    )
     which = parser.add_mutually_exclusive_group()
     which.add_argument(
         "--ids",

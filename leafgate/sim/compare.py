@@ -36,6 +36,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
+from leafgate.cliargs import positive_int
 from leafgate.errors import ConfigError
 from leafgate.jsonconv import to_json
 from leafgate.progress import Progress
@@ -431,7 +432,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--direct", action="store_true", help="controller drives the plant (skip CAN and gateway)"
     )
-    parser.add_argument("--workers", type=int, help="parallel processes (default: CPU count)")
+    parser.add_argument(
+        "--workers", type=positive_int, help="parallel processes (default: CPU count)"
+    )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
 
 
