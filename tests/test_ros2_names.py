@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import ros2_peer
+import xxhash
 import yaml
 
 from leafgate.config import from_mapping
@@ -126,6 +127,17 @@ def test_attachment_layout_is_seq_stamp_gid_length_gid() -> None:
     assert ros2_peer.read_attachment(data) == (5, 1_700_000_000_123_456_789, gid)
     with pytest.raises(TransportError, match="not an rmw_zenoh attachment"):
         ros2.parse_attachment(data[:-1])
+
+
+def test_gid_is_rmw_zenohs_xxh3_128_of_the_token_low_half_first() -> None:
+    """rmw_zenoh (liveliness_utils.cpp, ``Entity::Entity``) copies the token's XXH3-128 into
+    the GID as ``low64`` then ``high64``, each little-endian. Old code: blake2b of the token,
+    so the GID in leafgate's attachments was not the one ``ros2 topic info -v`` lists."""
+    # XXH3-128 of no bytes (xxHash's test vector): high64 99aa06d3014798d8, low64 6001c324468d497f
+    assert ros2.gid_of("") == bytes.fromhex("7f498d4624c30160d8984701d306aa99")
+    token = "@ros2_lv/0/aac3178e146ba6f1fc6e6a4085e77f21/0/11/MP/%/%/talker/%chatter/std_msgs"
+    canonical = xxhash.xxh3_128_digest(token.encode())  # high64, low64, each big-endian
+    assert ros2.gid_of(token) == canonical[8:][::-1] + canonical[:8][::-1]
 
 
 def test_bridge_tokens_follow_zenoh_plugin_ros2dds() -> None:

@@ -26,19 +26,19 @@ description), computed from the ``.msg`` definitions for the configured ROS dist
 ``tests/test_ros2_names.py`` checks them against published Jazzy values (``std_msgs/msg/String``
 and the ``example_interfaces/srv/AddTwoInts`` service from the design document,
 ``nav_msgs/msg/Odometry`` and seven Autoware messages) and against an independent REP-2011
-implementation. The GID of an entity is 16 bytes derived from its liveliness token (rmw_zenoh
-uses XXH3-128 of the token; the design document fixes only the size, and peers treat it as an
-opaque identity).
+implementation. The GID of an entity is the XXH3-128 of its liveliness token, as rmw_zenoh
+computes it (:func:`gid_of`), so the GID in leafgate's attachments is the one ROS tools list for
+its endpoints.
 """
 
 from __future__ import annotations
 
 import functools
-import hashlib
 import struct
 from dataclasses import dataclass
 from typing import Any
 
+import xxhash
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 from rosbags.typesys.store import Typestore
@@ -226,8 +226,11 @@ def type_hash(typename: str, distro: str = "jazzy") -> str:
 
 
 def gid_of(token: str) -> bytes:
-    """A 16-byte GID for the entity whose liveliness token is ``token`` (stable per token)."""
-    return hashlib.blake2b(token.encode(), digest_size=GID_SIZE).digest()
+    """The 16-byte GID of the entity whose liveliness token is ``token``, as rmw_zenoh derives
+    it (``Entity::Entity`` in rmw_zenoh_cpp's liveliness_utils.cpp): the XXH3-128 hash of the
+    token, its low 64 bits then its high 64, each little-endian — the GID a ROS node lists for
+    leafgate's endpoints (``ros2 topic info -v``) and finds in its messages' attachments."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
 
 
 def attachment(sequence: int, stamp_ns: int, gid: bytes) -> bytes:
