@@ -162,10 +162,12 @@ def test_speed_rows_of_the_constraints_are_the_prediction_s(model: str, directio
     """The constant speed rows in ``M`` are the speed rows of the prediction's ``S`` (both models,
     both gears): ``−direction · v_k``'s dependence on the moves."""
     traj = routes.leg([(10.0, 0.1)], v_max=1.0)
-    if direction < 0:
-        traj = Trajectory(traj.x, traj.y, traj.heading, -traj.speed)
+    heading = 0.15
+    if direction < 0:  # the same path driven backwards: the car faces against its motion
+        traj = Trajectory(traj.x, traj.y, traj.heading + math.pi, -traj.speed)
+        heading += math.pi
     ctrl = _Recording(MpcConfig(model=model), VehicleConfig(), PERIOD)  # type: ignore[arg-type]
-    out = ctrl.step(Pose(2.0, 0.1, 0.15, direction * 0.7), 0.05, traj)
+    out = ctrl.step(Pose(2.0, 0.1, heading, direction * 0.7), 0.05, traj)
     assert out.converged and ctrl.ST is not None
     Np = ctrl.Np
     speed_S = ctrl.ST[:, 2 * Np : 3 * Np].T

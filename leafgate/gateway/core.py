@@ -504,12 +504,20 @@ class Gateway:
                 self._stop(now, replaced)
 
     def _plan_refusal(self, wd: WatchdogReport) -> str | None:
-        """Why a plan that replaced the followed one must not be chased, or None.
+        """Why a plan that replaced the followed one must not be chased, or None: it cannot be
+        driven (:func:`~leafgate.control.reference.trajectory_problem`), or the car is outside
+        its engage envelope.
 
         Runs once per new plan object (the runtime keeps one object while a planner re-publishes
         the same waypoints), so its cost does not fall on every tick.
         """
         traj = wd.trajectory
+        if traj is not None:
+            # a newer plan that cannot be driven: the planner's latest word is not the plan
+            # followed, and chasing the older one would ignore it
+            refused = self.watchdogs.trajectory.refused_since(traj.received)
+            if refused:
+                return f"trajectory replaced by one that cannot be driven: {refused}"
         if traj is None or traj.value is self._plan or wd.pose is None:
             return None
         self._plan = traj.value

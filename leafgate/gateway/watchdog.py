@@ -421,6 +421,7 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
         self.config = config
         self.max_speed = max_speed  # m/s, the maneuver limit a plan must respect
         self.problem = ""  # why the last unusable plan was refused (the controller's reason)
+        self.problem_at = -math.inf  # s, when that plan arrived
 
     def _is_valid(self, sample: Stamped[Trajectory]) -> bool:
         if self.last is not None and sample.value is self.last.value:
@@ -429,6 +430,22 @@ class TrajectoryWatchdog(_SlotWatchdog[Trajectory]):
         if problem is not None:
             self.problem = problem  # shown while no usable plan has been received
         return problem is None
+
+    def _take(self, sample: Stamped[Trajectory] | None) -> bool:
+        new = sample is not None and (self.last is None or sample.received != self.last.received)
+        taken = super()._take(sample)
+        if new and not taken and sample is not None:  # refused, here or by the transport
+            if not sample.valid:  # the transport's refusal: the same rule says why
+                self.problem = trajectory_problem(sample.value, max_speed=self.max_speed) or (
+                    "refused by the transport"
+                )
+            self.problem_at = sample.received
+        return taken
+
+    def refused_since(self, received: float) -> str:
+        """Why a plan that arrived after ``received`` (s, the followed plan's arrival) was
+        refused; "" when none was."""
+        return self.problem if self.problem_at > received else ""
 
     def update(self, now: float, sample: Stamped[Trajectory] | None) -> Check:
         """Feed this tick's slot content and judge it."""

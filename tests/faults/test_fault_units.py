@@ -80,6 +80,7 @@ class EngagedRig:
         self.k = 0
         self.enabled = False
         self.trajectory = STRAIGHT
+        self.trajectory_valid = True  # False: refused where it arrived (the transport)
 
     @property
     def now(self) -> float:
@@ -90,7 +91,7 @@ class EngagedRig:
         e = self.enabled
         inputs = GatewayInputs(
             pose=Stamped(Pose(now * speed, 0.0, 0.0, speed), now),
-            trajectory=Stamped(self.trajectory, now),
+            trajectory=Stamped(self.trajectory, now, self.trajectory_valid),
             steer_report=Stamped(SteerReport(0.0, 0.0, 0.0, e, False, False, False), now),
             long_report=Stamped(
                 LongReport(speed, 0.0, Gear.D, 0.0, 0.0, e, False, False, False), now
@@ -190,10 +191,27 @@ def test_plan_replaced_within_the_engage_envelope_is_followed() -> None:
 def test_plan_replaced_with_a_reversed_heading_stops() -> None:
     rig = EngagedRig()
     rig.engage()
-    rig.trajectory = dataclasses.replace(STRAIGHT, heading=np.full(64, math.pi))
+    # the same line driven the other way: a plan the car, facing +x, is 180° off
+    rig.trajectory = dataclasses.replace(STRAIGHT, x=STRAIGHT.x[::-1], heading=np.full(64, math.pi))
     state, reason = rig.step()
     assert state == GatewayState.STOPPING
     assert "heading 180.0° off the new plan" in reason, reason
+
+
+@pytest.mark.parametrize("by_transport", [False, True])
+def test_plan_replaced_by_one_that_cannot_be_driven_stops_naming_why(by_transport: bool) -> None:
+    """Old code: the refused plan was dropped and the car went on with the older one, the
+    planner's newest word unheard (here: headings against the way the path runs)."""
+    rig = EngagedRig()
+    rig.engage()
+    bad = dataclasses.replace(STRAIGHT, heading=np.full(64, math.pi))
+    rig.trajectory = bad
+    if by_transport:  # refused where it arrived (the transport's check marks it invalid)
+        rig.trajectory_valid = False
+    state, reason = rig.step()
+    assert state == GatewayState.STOPPING
+    assert reason.startswith("trajectory replaced by one that cannot be driven: trajectory: row 1:")
+    assert "heading 3.142 rad is 180° off the way the path runs" in reason, reason
 
 
 # --- runtime: own frames and foreign ones ---------------------------------------------------------
