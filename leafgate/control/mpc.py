@@ -172,6 +172,10 @@ _EPS_CLIP = 1e-6  # a first move farther than this outside a limit counts as a c
 # tolerances leave smaller excursions, which are clipped but not counted)
 
 
+_REACH_LAG = 0.5  # m/s: a plan this much faster than the car at its place is placed no
+# farther than the car can get (a plan that asks for its speed from rest: :meth:`_reference`)
+
+
 class _NoMove(Exception):
     """A QP solved for the drive-off angle gave no first move (not converged, not finite)."""
 
@@ -219,6 +223,9 @@ class MpcController:
         self.steps: FloatArray = self.Ts * np.arange(
             1, Np + 1, dtype=np.float64
         )  # s, times of the predicted outputs
+        # m, how far the drive limit alone carries the car from rest by each step: a plan
+        # faster than the car can get is placed no farther than it gets (:meth:`_reference`)
+        self._accel_reach = 0.5 * cfg.accel_max * self.steps**2
         self._speed_lead_index = min(max(round(cfg.speed_lead_time / self.Ts) - 1, 0), Np - 1)
 
         # constraints on ΔU = [Δa₀, Δt₀, Δa₁, Δt₁, …] (t = tan δ), eq. 30:
@@ -552,10 +559,19 @@ class MpcController:
         E and f do not depend on the order of the rows.
         """
         assert self._path is not None
-        pts, ref_speed = self._path.horizon(seg, s0, self.steps)
+        gx, gy, gv, gth, _ = start
+        # The plan's time places the points; never farther than the car can get from its speed
+        # at the drive limit. A plan that asks for 2 m/s from rest on a bend put them where
+        # the car could not be yet, and the MPC steered to reach their lateral offset: 21° at
+        # the drive-off where the bend needs 7.7°.
+        reach = None
+        along = max(seg.direction * gv, 0.0)  # the car's speed along the gear
+        if abs(self._path.speed_at(seg, s0)) - along > _REACH_LAG:  # the plan runs ahead
+            reach = self.steps * along
+            reach += self._accel_reach
+        pts, ref_speed = self._path.horizon(seg, s0, self.steps, reach)
         ox, oy, psi0 = pts[:, 0].tolist()
         c, s = math.cos(psi0), math.sin(psi0)
-        gx, gy, gv, gth, _ = start
         dx, dy = gx - ox, gy - oy
         kin = [c * dx + s * dy, -s * dx + c * dy, gv, _wrap(gth - psi0)]
         if self.cfg.delay_compensation > 0.0 and not self.steer_model:

@@ -704,11 +704,16 @@ class ReferencePath:
                 t = fraction(i)
         return i, t
 
-    def horizon(self, seg: Segment, s0: float, steps: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def horizon(
+        self, seg: Segment, s0: float, steps: FloatArray, reach: FloatArray | None = None
+    ) -> tuple[FloatArray, FloatArray]:
         """The horizon's reference in one call: :meth:`horizon_arclength`, :meth:`sample` at
         ``s0`` and those arc lengths, and :meth:`reference_speed` there (the same values).
 
         :param s0: m, arc length of the vehicle's projection, inside the segment
+        :param reach: m, the farthest the car can get from ``s0`` by each horizon step (its
+            speed and acceleration limit); a plan faster than that is placed no farther. None:
+            where the plan's time puts them.
         :returns: rows ``x, y, heading`` at ``s0`` and at the ``len(steps)`` horizon points,
             shape (3, len(steps) + 1) — the transpose of :meth:`sample`'s — and the signed
             reference speed at the horizon points
@@ -720,6 +725,8 @@ class ReferencePath:
         # within the segment already (projection and interpolation both clamp): no clipping
         t0 = _interp_scalar(s0, arrays.s_list, arrays.time_list)
         sq[1:] = _interp(t0 + steps, t_seg, s_seg)
+        if reach is not None:  # a view: capped in place
+            np.minimum(sq[1:], reach + s0, out=sq[1:])
         # interval i: s_i ≤ s < s_{i+1}, the last one also for s at the segment's end (the
         # search over the interval starts only caps i there without an extra call)
         i = np.searchsorted(arrays.starts, sq, side="right")
