@@ -510,9 +510,15 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     except ConfigError as exc:  # a check across sections: name the file too
         raise ConfigError(f"{args.file}: {exc}") from None
     _scenario(cfg.sim.scenario)
+    from leafgate.config.checks import offline_checks
+
+    report = offline_checks(cfg)  # the daemon's start-up runs the same checks
+    for line in report.warnings:
+        print(f"leafgate: warning: {line}", file=sys.stderr)
     port = f" port {cfg.can.dbw.kwargs['port']}" if "port" in cfg.can.dbw.kwargs else ""
+    unchecked = "; ".join(report.unchecked) or "nothing"
     print(
-        f"{args.file}: ok — controller {cfg.controller.kind} at {cfg.gateway.rate_hz:g} Hz, "
+        f"{args.file}: ok offline (not checked here: {unchecked}) — controller {cfg.controller.kind} at {cfg.gateway.rate_hz:g} Hz, "
         f"dbw bus {cfg.can.dbw.interface}:{cfg.can.dbw.channel}{port}, "
         f"car bus {'shared' if cfg.can.car is None else cfg.can.car.interface + ':' + cfg.can.car.channel}, "
         f"zenoh {cfg.zenoh.mode} prefix {cfg.zenoh.prefix!r}"

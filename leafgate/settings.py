@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from leafgate.can.profile import Profile, SteerRateTable, load_profile
+from leafgate.can.profile import PROFILE_NAMES, Profile, SteerRateTable, load_profile
 from leafgate.config import _UNIT_SUFFIXES, VehicleConfig, apply_overrides, from_mapping, load_yaml
 from leafgate.config.can import CanConfig
 from leafgate.config.control import ControllerConfig
@@ -38,6 +38,9 @@ class LeafgateConfig:
     # line each (``check-config`` prints them, the daemon logs them).
     explicit: Mapping[str, str] = field(default_factory=dict, init=False, compare=False, repr=False)
     adjustments: tuple[str, ...] = field(default=(), init=False, compare=False, repr=False)
+    # Not read from a file either: where the config came from, for error lines naming it
+    # (the file name, "defaults", "… with command-line overrides").
+    source: str = field(default="config", init=False, compare=False, repr=False)
 
     @property
     def profile(self) -> Profile:
@@ -63,9 +66,18 @@ def load_config(
     :raises ConfigError: naming the file and the key of the first problem
     """
     if path is None and not overrides:
-        return apply_profile(LeafgateConfig())
-    data = {} if path is None else apply_bench(load_yaml(path), str(path))
+        return _with_source(apply_profile(LeafgateConfig(), "defaults"), "defaults")
+    data = {} if path is None else load_yaml(path)
     source = "defaults" if path is None else str(path)
+    bench_where = source
+    if overrides and "bench" in overrides:
+        # `--set bench=N` picks the bench like the file's own `bench:` key (ports derived)
+        if not isinstance(data, dict) and data is not None:
+            raise ConfigError(f"{source}: the configuration is not a mapping")
+        overrides = dict(overrides)
+        data = {**(data or {}), "bench": overrides.pop("bench")}
+        bench_where = "--set"
+    data = apply_bench(data, bench_where, use_env=bench_where != "--set")
     explicit = dict.fromkeys(explicit_keys(data), source)
     file_source = source
     if overrides:
@@ -76,16 +88,33 @@ def load_config(
         apply_overrides(data, overrides, source)
         explicit.update(dict.fromkeys(explicit_keys(_nested(overrides)), "command line"))
     cfg = from_mapping(LeafgateConfig, data, source)
-    key_file = cfg.can.auth_key_file
-    if (
-        path is not None
-        and key_file is not None
-        and explicit.get("can.auth_key_file") == file_source
-    ):
-        # a key file named in the config file is found next to it, as the file's author means
-        key = Path(path).parent / Path(key_file).expanduser()
-        cfg = dataclasses.replace(cfg, can=dataclasses.replace(cfg.can, auth_key_file=str(key)))
-    return apply_profile(cfg, source, explicit)
+    if path is not None:
+        # A relative file path named in the config file is found next to it, as the file's
+        # author means (not in the daemon's working directory: under systemd that is "/").
+        base = Path(path).parent
+        can, vehicle, zenoh = cfg.can, cfg.vehicle, cfg.zenoh
+        key_file = can.auth_key_file
+        if key_file is not None and explicit.get("can.auth_key_file") == file_source:
+            can = dataclasses.replace(can, auth_key_file=str(base / Path(key_file).expanduser()))
+        if (
+            vehicle.profile not in PROFILE_NAMES
+            and Path(vehicle.profile).suffix in (".yaml", ".yml")  # a file, not a name
+            and explicit.get("vehicle.profile") == file_source
+        ):
+            vehicle = dataclasses.replace(
+                vehicle, profile=str(base / Path(vehicle.profile).expanduser())
+            )
+        if zenoh.config_file is not None and explicit.get("zenoh.config_file") == file_source:
+            zenoh = dataclasses.replace(
+                zenoh, config_file=str(base / Path(zenoh.config_file).expanduser())
+            )
+        cfg = dataclasses.replace(cfg, can=can, vehicle=vehicle, zenoh=zenoh)
+    return _with_source(apply_profile(cfg, source, explicit), source)
+
+
+def _with_source(cfg: LeafgateConfig, source: str) -> LeafgateConfig:
+    object.__setattr__(cfg, "source", source)  # frozen: set once, here
+    return cfg
 
 
 def _nested(overrides: Mapping[str, Any]) -> dict[str, Any]:
@@ -133,7 +162,7 @@ def bench_ports(bench: int) -> tuple[int, int]:
     return BENCH_CAN_PORT + bench, BENCH_ZENOH_PORT + bench
 
 
-def apply_bench(data: Any, where: str) -> Any:
+def apply_bench(data: Any, where: str, *, use_env: bool = True) -> Any:
     """Derive a simulation bench's ports from its number, so two benches on a host stay apart.
 
     A config with ``bench: N`` (``LEAFGATE_BENCH=N`` or ``leafgate --bench N`` overrides N)
@@ -141,6 +170,8 @@ def apply_bench(data: Any, where: str) -> Any:
     unless the file sets them itself (test harnesses pick free ports that way). A config
     without ``bench:`` is left as written (the car's config names its own buses and endpoints).
 
+    :param use_env: let ``LEAFGATE_BENCH`` override the number (not for ``--set bench=N``,
+        the more specific choice)
     :raises ConfigError: a bench that is not a number in 0–999
     """
     if not isinstance(data, dict) or "bench" not in data:
@@ -149,7 +180,7 @@ def apply_bench(data: Any, where: str) -> Any:
     value: Any = data.pop("bench")
     source = f"{where}: bench"
     override = os.environ.get(BENCH_ENV, "").strip()
-    if override:
+    if override and use_env:
         value, source = override, f"{BENCH_ENV}={override!r}"
     try:
         bench = int(value)
@@ -179,7 +210,8 @@ def with_profile(cfg: LeafgateConfig, profile: str) -> LeafgateConfig:
     """
     vehicle = dataclasses.replace(cfg.vehicle, profile=profile)
     explicit = {k: v for k, v in cfg.explicit.items() if k != "vehicle.profile"}
-    return apply_profile(dataclasses.replace(cfg, vehicle=vehicle), "--profile", explicit)
+    out = apply_profile(dataclasses.replace(cfg, vehicle=vehicle), "--profile", explicit)
+    return _with_source(out, cfg.source)
 
 
 def apply_profile(

@@ -33,6 +33,9 @@ from leafgate.errors import ConfigError
 T = TypeVar("T")
 
 _PLAIN_KEY = re.compile(r"[\w\-]+")  # keys shown as they are in messages; others as repr
+# A number YAML 1.1 leaves a string: `1e-3` (no dot before the exponent), `+1e9`. Only digits,
+# sign, dot and exponent: "nan", "inf" and "1_000" stay strings.
+_NUMBER_TEXT = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
 
 _UNIT_SUFFIXES: dict[str, float] = {
     "_deg": math.pi / 180.0,  # deg → rad
@@ -177,6 +180,8 @@ def _convert(tp: Any, value: Any, source: str, dotted: str) -> Any:
             return value
         raise ConfigError(f"{source}: {dotted}: expected an integer, got {_show(value)}")
     if tp is float:
+        if isinstance(value, str) and _NUMBER_TEXT.fullmatch(value.strip()):
+            value = float(value)  # `latency: 1e-3`: a number YAML 1.1 reads as a string
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             if not math.isfinite(value if isinstance(value, float) else _int_as_float(value)):
                 raise ConfigError(

@@ -1,8 +1,9 @@
 """Zenoh section of the configuration (``zenoh:``).
 
-Peer mode with explicit ``listen``/``connect`` endpoints and multicast scouting off is the
-default. For router mode, TLS and access control name a Zenoh JSON5 file in ``config_file``;
-the file is then the base configuration and only non-empty ``listen``/``connect`` lists and the
+The session is built from this section: ``mode`` (``peer`` by default; the shipped configs set
+``router``), explicit ``listen``/``connect`` endpoints, multicast scouting off. For TLS and
+access control name a Zenoh JSON5 file in ``config_file`` (a relative path is taken from the
+config file's directory); the file is then the base configuration and only non-empty ``listen``/``connect`` lists and the
 ``extra`` entries of this section are applied on top of it (``mode`` and
 ``multicast_scouting`` are the file's).
 
@@ -34,7 +35,7 @@ gateway uses it as written, and each tool points it at the gateway and at its ow
 with ``extra`` (the file's header shows the lines), e.g. for the operator::
 
     zenoh:
-      config_file: config/zenoh/secure.json5
+      config_file: zenoh/secure.json5    # next to config/leafgate.yaml
       connect: ["tls/127.0.0.1:7447"]
       extra:
         mode: '"client"'

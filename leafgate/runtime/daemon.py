@@ -372,6 +372,11 @@ def run_daemon(
     stop = stop or threading.Event()
     clock = time.perf_counter
     codec = CanCodec.for_config(cfg)  # CanCodecError: a DBC missing/invalid
+    # what `leafgate check-config` checks offline, checked the same way before anything opens
+    from leafgate.config.checks import offline_checks
+
+    for line in offline_checks(cfg, zenoh=session is None).warnings:
+        log.warning("%s", line)
     requests = RequestBox()
     from leafgate.record.recorder import open_recording
     from leafgate.runtime.node import GatewayTransport  # zenoh loads only where it is used

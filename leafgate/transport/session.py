@@ -134,6 +134,69 @@ def _check_tls_files(config: zenoh.Config, config_file: str | None) -> None:
             raise TransportError(f"{key}: {value}: no such file (from {where})")
 
 
+# Endpoints of the IP-based links: ``proto/host:port`` (an IPv6 host in brackets), with optional
+# ``?metadata`` and ``#config`` tails.
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_ENDPOINT = re.compile(r"([A-Za-z0-9][A-Za-z0-9-]*)/([^?#]+)(?:[?#].*)?")
+_HOST_PORT = re.compile(r"(\[[0-9A-Fa-f:.%\w]+\]|[^\s:/\[\]]+):(\d+)")
+
+
+def endpoint_problem(endpoint: str, side: str) -> str | None:
+    """Why ``endpoint`` is not a well-formed Zenoh endpoint, or None.
+
+    ``proto/host:port`` with a port in 1–65535 for the IP links (tcp, udp, tls, quic, ws); a
+    ``listen`` endpoint may also give port 0 (a port of the system's choosing). Other links
+    (``unixsock-stream/PATH``, ``serial/…``) need a non-empty address after the ``/``.
+    """
+    match = _ENDPOINT.fullmatch(endpoint.strip())
+    if match is None:
+        return "expected proto/host:port, e.g. tcp/127.0.0.1:7447"
+    proto, address = match.group(1), match.group(2)
+    if proto not in _IP_PROTOCOLS:
+        return None
+    hp = _HOST_PORT.fullmatch(address)
+    if hp is None:
+        return f"expected {proto}/host:port, e.g. {proto}/127.0.0.1:7447"
+    port = int(hp.group(2))
+    lowest = 0 if side == "listen" else 1
+    if not lowest <= port <= 65535:
+        return f"port {port} is not in {lowest}–65535"
+    return None
+
+
+def _check_endpoints(config: zenoh.Config, cfg: ZenohConfig) -> None:
+    """Every endpoint the session would listen on or connect to is well formed.
+
+    :raises TransportError: naming the key (``zenoh.listen``, or the JSON5 file) and endpoint
+    """
+    mode = _get(config, "mode") or "peer"
+    for side in ("listen", "connect"):
+        endpoints = _get(config, f"{side}/endpoints")
+        if isinstance(endpoints, dict):  # per mode: {router: [...], peer: [...]}
+            endpoints = endpoints.get(mode)
+        for endpoint in endpoints or ():
+            problem = endpoint_problem(str(endpoint), side)
+            if problem is None:
+                continue
+            ours = str(endpoint) in getattr(cfg, side)
+            where = f"zenoh.{side}" if ours or cfg.config_file is None else cfg.config_file
+            raise TransportError(f"{where}: bad endpoint {str(endpoint)!r}: {problem}")
+
+
+def checked_config(cfg: ZenohConfig) -> zenoh.Config:
+    """:func:`build_config`, then what can be checked without opening anything: the endpoints
+    are well formed and the TLS certificates and keys the session will load exist.
+
+    ``leafgate check-config`` and the daemon's start-up run this same check.
+
+    :raises TransportError: one line naming the file, key, endpoint or TLS setting at fault
+    """
+    config = build_config(cfg)
+    _check_endpoints(config, cfg)
+    _check_tls_files(config, cfg.config_file)
+    return config
+
+
 def open_session(cfg: ZenohConfig) -> zenoh.Session:
     """Open a Zenoh session as ``cfg`` says.
 
@@ -142,8 +205,7 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
 
     :raises TransportError: one line naming the file, endpoint or TLS certificate at fault
     """
-    config = build_config(cfg)
-    _check_tls_files(config, cfg.config_file)
+    config = checked_config(cfg)
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
