@@ -537,3 +537,34 @@ def test_ctrl_c_at_the_terminal_stops_the_batch_and_its_workers_in_one_line(
     while time.monotonic() < deadline and any(_alive(p) for p in workers):
         time.sleep(0.2)
     assert not any(_alive(p) for p in workers), "worker processes outlived the batch"
+
+
+def test_batch_rerun_refuses_an_override_a_rerun_cannot_honour(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Refused up front (exit 2, one line naming the key), before any session is re-run."""
+    (tmp_path / "in").mkdir()
+    args = ["batch", "rerun", str(tmp_path / "in"), "--out", str(tmp_path / "out")]
+    assert main([*args, "--set", "sim.plant.kind=dynamic"]) == 2
+    err = capsys.readouterr().err
+    assert "--set sim.plant.kind:" in err and "vehicle, controller, gateway" in err
+
+
+def test_batch_check_line_names_the_kinds_of_findings(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A log whose findings are neither limits, E2E errors nor gaps says what they are."""
+    logs = tmp_path / "in"
+    logs.mkdir()
+    (logs / "foreign.log").write_text(
+        "(1700000000.000000) vcan0 123#0011223344556677\n"
+        "(1700000000.010000) vcan0 123#0011223344556677\n"
+    )
+    args = ["batch", "check", str(logs), "--profile", "leafgate-dbw", "--workers", "1"]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 1
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if x.startswith(f"{logs / 'foreign.log'}:"))
+    assert "FINDINGS: coverage 1, incomplete 1; 2 frames" in line, line
+    assert "first: coverage: profile: no frame of profile leafgate-dbw" in line
+    row = read_table(tmp_path / "out" / "results.parquet")[0]
+    assert row["finding_kinds"] == "coverage 1, incomplete 1"

@@ -169,3 +169,38 @@ def test_compare_drives_the_route_library(tmp_path: Path) -> None:
     assert all(finished[name] for name in library), finished
     text = (tmp_path / "report.md").read_text()
     assert "## tight-hairpin" in text and "Infeasible by design" in text
+
+
+def test_command_line_lists_unfinished_drives_and_fails_on_a_feasible_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A drive on a feasible scenario that did not finish is a failed comparison (exit 1, named
+    on stderr with its reason); one on an infeasible scenario is listed as expected (exit 0)."""
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    common = ["--plant", "steer-lag", "--controller", "pure-pursuit", "--workers", "1"]
+    args = parser.parse_args(
+        ["--out", str(tmp_path / "a"), "--scenario", "u-turn,tight-hairpin", "--no-plots", *common]
+    )
+    assert cmd_compare(args) == 1
+    captured = capsys.readouterr()
+    assert "u-turn:" in captured.err and "pure-pursuit × steer-lag plant: " in captured.err
+    assert "off-goal" in captured.err and "tight-hairpin" not in captured.err
+    assert "did not finish, as expected" in captured.out and "tight-hairpin:" in captured.out
+    assert "1 feasible drives did not finish" in captured.out
+    saved = json.loads((tmp_path / "a" / "report.json").read_text(encoding="utf-8"))
+    assert {(d["scenario"], d["feasible"]) for d in saved["not_finished"]} == {
+        ("u-turn", True),
+        ("tight-hairpin", False),
+    }
+    text = (tmp_path / "a" / "report.md").read_text(encoding="utf-8")
+    assert "## Drives that did not finish" in text and "Not compared" in text
+
+    args = parser.parse_args(
+        ["--out", str(tmp_path / "b"), "--scenario", "tight-hairpin", "--no-plots", *common]
+    )
+    assert cmd_compare(args) == 0  # the infeasible hairpin is expected not to finish
+    captured = capsys.readouterr()
+    assert captured.err == "" and "tight-hairpin:" in captured.out
+    assert "0 feasible drives did not finish" in captured.out
+    assert "Exit status" in (parser.epilog or "")

@@ -267,6 +267,28 @@ def test_rerun_with_changed_weight_reports_divergence(drive: Drive) -> None:
     assert "DIVERGED" in out.getvalue()
 
 
+@pytest.mark.parametrize(
+    "override", ["sim.plant.kind=dynamic", "can.dbw.channel=vcan9", "recording.directory=/tmp/x"]
+)
+def test_rerun_refuses_an_override_it_cannot_honour(
+    drive: Drive, override: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A re-run feeds recorded inputs to the controller and gateway: a sim/can/recording key
+    changes nothing, so an IDENTICAL verdict would be about a change never tested."""
+    from leafgate.cli import main
+    from leafgate.errors import ConfigError
+
+    key = override.partition("=")[0]
+    with pytest.raises(ConfigError, match=rf"--set {key}: .*vehicle, controller, gateway"):
+        rerun_session(drive.session, {key: override.partition("=")[2]})
+    assert main(["replay", "rerun", str(drive.session), "--set", override]) == 2
+    captured = capsys.readouterr()
+    assert "IDENTICAL" not in captured.out and f"--set {key}:" in captured.err
+    # the sections a re-run builds from are still accepted
+    ok = ["gateway.safety.max_steer_angle_deg=31", "vehicle.profile=leafgate-dbw"]
+    assert main_rerun(drive.session, overrides=ok, out=io.StringIO()) in (0, 1)
+
+
 # --- plot --------------------------------------------------------------------------------------
 
 

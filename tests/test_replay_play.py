@@ -165,7 +165,7 @@ def test_the_profiles_commands_are_left_out_and_counted_without_the_end_marker(
         )
         got = received(rx)
     assert got == [0x123] * counts[0x123]
-    assert "10 frames sent (0 skipped, 20 of the gateway's command IDs 001, 005 left out" in (
+    assert "10 frames sent (0 skipped; 20 of the gateway's command IDs 001, 005 left out" in (
         out.getvalue()
     )
 
@@ -178,3 +178,75 @@ def test_explicit_ids_or_all_ids_need_no_profile(tmp_path: Path) -> None:
         assert received(rx) == [0x123] * counts[0x123]
         main_play(tmp_path / "hlc.log", bus=bus, speed=0, all_ids=True, out=io.StringIO())
         assert len(received(rx)) == sum(counts.values())  # the end marker is not played
+
+
+def timed_log(path: Path, t0: float, n: int = 20) -> None:
+    with can.Logger(path) as writer:
+        for i in range(n):
+            writer.on_message_received(
+                can.Message(timestamp=t0 + 0.01 * i, arbitration_id=0x123, data=bytes(8))
+            )
+
+
+@pytest.mark.parametrize("order", ["foreign-first", "fresh-first"])
+def test_parts_whose_times_do_not_continue_are_refused_before_anything_is_sent(
+    tmp_path: Path, order: str
+) -> None:
+    """A foreign log from 2023 and a fresh recording: in one order the playback would wait out
+    years at --speed 1, in the other skip the second file as if before --start."""
+    timed_log(tmp_path / "foreign.log", 1_700_000_000.0)
+    timed_log(tmp_path / "fresh.log", 1_790_000_000.0)
+    parts = [tmp_path / "foreign.log", tmp_path / "fresh.log"]
+    if order == "fresh-first":
+        parts.reverse()
+    with can.Bus(interface="virtual", channel="play-8") as rx:
+        bus = BusConfig(interface="virtual", channel="play-8")
+        with pytest.raises(ReplayError) as info:
+            main_play(parts, bus=bus, speed=1, all_ids=True, out=io.StringIO())
+        assert received(rx) == []
+    text = str(info.value)
+    assert str(parts[0]) in text and str(parts[1]) in text
+    assert ("after" if order == "foreign-first" else "before") in text
+
+
+def test_parts_that_continue_each_other_play_as_one_log(tmp_path: Path) -> None:
+    timed_log(tmp_path / "part1.log", 100.0)
+    timed_log(tmp_path / "part2.log", 100.2)  # 10 ms after part 1's last frame
+    out = io.StringIO()
+    with can.Bus(interface="virtual", channel="play-9") as rx:
+        bus = BusConfig(interface="virtual", channel="play-9")
+        parts = [tmp_path / "part1.log", tmp_path / "part2.log"]
+        assert main_play(parts, bus=bus, speed=0, all_ids=True, out=out) == 0
+        assert len(received(rx)) == 40
+    assert "40 frames sent (0 skipped)" in out.getvalue()
+
+
+def test_skipped_frames_are_counted_by_reason() -> None:
+    frames = [
+        can.Message(timestamp=t, arbitration_id=i)
+        for t, i in ((10.0, 1), (10.1, 2), (10.5, 1), (9.0, 1), (10.6, 1))
+    ]
+    with can.Bus(interface="virtual", channel="play-10") as bus:
+        stats = play_frames(frames, bus, speed=0, start=0.2, ids={1})
+    assert (stats.sent, stats.skipped) == (2, 3)
+    assert (stats.before_start, stats.not_selected, stats.out_of_order) == (1, 1, 1)
+    assert stats.skipped_text(0.2) == (
+        "3 skipped: 1 before --start 0.2 s, 1 not in --ids, "
+        "1 out of order: timed before the log's first frame"
+    )
+
+
+def test_out_of_order_frames_are_said_and_fail_the_playback(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "mixed.log").write_text(  # written as is: python-can's writer reorders
+        "".join(f"({t:.6f}) vcan0 123#00\n" for t in (100.0, 100.01, 50.0, 100.02))
+    )
+    out = io.StringIO()
+    with can.Bus(interface="virtual", channel="play-11") as rx:
+        bus = BusConfig(interface="virtual", channel="play-11")
+        status = main_play(tmp_path / "mixed.log", bus=bus, speed=0, all_ids=True, out=out)
+        assert len(received(rx)) == 3
+    assert status == 1
+    assert "1 skipped: 1 out of order" in out.getvalue()
+    assert "1 frames not sent" in capsys.readouterr().err

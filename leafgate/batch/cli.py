@@ -212,10 +212,17 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
         if r["status"] != "ok":
             verdict = f"FAILED: {r['error']}"
         else:
-            verdict = (
-                f"{'OK' if r['ok'] else 'FINDINGS'}: {r['frames']} frames, "
-                f"{r['violations']} limit violations, {r['e2e_errors']} E2E errors, {r['gaps']} gaps"
+            counts = (
+                f"{r['frames']} frames, {r['violations']} limit violations, "
+                f"{r['e2e_errors']} E2E errors, {r['gaps']} gaps"
             )
+            if r["ok"]:
+                verdict = f"OK: {counts}"
+            else:  # every kind of finding, not only the counted ones (coverage, incomplete …)
+                verdict = f"FINDINGS: {r.get('finding_kinds') or r['findings']}; {counts}"
+                first = json.loads(r["first_finding"]) if r.get("first_finding") else None
+                if first:
+                    verdict += f"; first: {first['kind']}: {first['name']}: {first['detail']}"
         bad += r["status"] != "ok" or not r["ok"]
         print(f"{r['path']}: {verdict}")
     table = _save(out, rows, run, {"dir": args.dir})
@@ -228,8 +235,10 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
 def cmd_batch_rerun(args: argparse.Namespace) -> int:
     from leafgate.batch.tasks import rerun_case
     from leafgate.config import parse_overrides
+    from leafgate.replay.rerun import check_rerun_overrides
 
     overrides = parse_overrides(args.set)
+    check_rerun_overrides(overrides)  # once, up front, not as a failure of every session
     files = _files(args.dir, (".mcap",))
     out = make_out_dir(args.out)
     run, rows = _per_file(args, rerun_case, files, (overrides,), "sessions")

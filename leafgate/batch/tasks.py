@@ -11,6 +11,7 @@ import io
 import json
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Sequence
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -78,11 +79,13 @@ def check_case(
     report.pop("ids")
     report.pop("path")
     first = findings[0] if findings else None
+    kinds = Counter(str(f["kind"]) for f in findings)  # in the order they first occur
     return {
         "status": "ok",
         "error": None,
         **report,
         "findings": len(findings),
+        "finding_kinds": ", ".join(f"{kind} {n}" for kind, n in kinds.items()),
         "first_finding": None if first is None else json.dumps(first),
     }
 

@@ -12,7 +12,14 @@ so a playback onto a live bus never commands the car. They are the vehicle profi
 session names its own; a CAN log names none, and there is no default (another car's log would
 play its commands and leave out only the default car's), so without ``--profile`` or
 ``--config`` the playback of a CAN log is refused. A session's ``/can`` topic plays as well,
-and a rotated log plays as one when its parts are given in order.
+and a rotated log plays as one when its parts are given in order. Parts whose times do not
+continue each other — the next part starts more than :data:`MAX_PART_JUMP` s after the
+previous one ends, or more than :data:`MAX_PART_BACK` s before — are refused before any frame is
+sent, naming the two files: played on, the gap would be waited out (at ``--speed 1``, possibly
+for years), and frames from before the log's first one cannot be placed on its timeline.
+Frames that are not played are counted by reason (before ``--start``, not in ``--ids``,
+out of order: earlier than the log's first frame); an out-of-order frame is a selected frame
+left unsent, so the playback then exits with status 1.
 
 Playback is a tool, not the control path: a send error stops it with an error.
 """
@@ -37,8 +44,11 @@ from leafgate.errors import BusError, ConfigError, ReplayError
 from leafgate.record.logs import FrameSource, is_end_marker, is_session
 
 __all__ = [
+    "MAX_PART_BACK",
+    "MAX_PART_JUMP",
     "PlayStats",
     "add_arguments",
+    "check_continuity",
     "default_ids",
     "main_play",
     "parse_ids",
@@ -47,18 +57,41 @@ __all__ = [
 ]
 
 
+#: s: the largest forward jump from one part's last frame to the next part's first that a
+#: playback of several files accepts (a rotated log's parts follow each other within ms).
+MAX_PART_JUMP = 60.0
+#: s: the largest backward jump accepted there (clock jitter; more is the wrong order or
+#: another recording).
+MAX_PART_BACK = 1.0
+
+
 @dataclass(frozen=True)
 class PlayStats:
     """What a playback did."""
 
     sent: int  # frames sent
-    skipped: int  # frames before the start offset or filtered out
+    skipped: int  # frames not sent: the sum of the reasons below
     duration: float  # s of log time played
     wall_time: float  # s
     max_lateness: float  # s, worst delay of a send behind its deadline
+    before_start: int = 0  # frames within --start of the first frame
+    not_selected: int = 0  # frames whose ID is not in --ids
+    markers: int = 0  # end-of-recording markers (not frames of the drive)
+    out_of_order: int = 0  # frames timed before the log's first frame: no place on its timeline
 
     def to_dict(self) -> dict[str, Any]:
         return vars(self).copy()
+
+    def skipped_text(self, start: float = 0.0) -> str:
+        """``"12 skipped: 10 before --start 5 s, 2 not in --ids"`` (just ``"0 skipped"``)."""
+        reasons = [
+            (self.before_start, f"before --start {start:g} s"),
+            (self.not_selected, "not in --ids"),
+            (self.markers, "end-of-recording markers"),
+            (self.out_of_order, "out of order: timed before the log's first frame"),
+        ]
+        parts = [f"{n} {why}" for n, why in reasons if n]
+        return f"{self.skipped} skipped" + (f": {', '.join(parts)}" if parts else "")
 
 
 def parse_ids(text: str | None) -> frozenset[int] | None:
@@ -100,21 +133,26 @@ def play_frames(
     """
     if speed < 0:
         raise ReplayError(f"speed must be 0 (as fast as possible) or positive, got {speed}")
-    sent = skipped = 0
+    sent = before_start = not_selected = markers = out_of_order = 0
     t0_log: float | None = None  # log time of the first frame
     base_log: float | None = None  # log time that maps to base_wall
     base_wall = clock()
     last_log = 0.0
     max_late = 0.0
     for msg in frames:
+        if is_end_marker(msg):  # the recorder's, not a frame of the drive
+            markers += 1
+            continue
         if t0_log is None:
             t0_log = msg.timestamp
-        if (
-            msg.timestamp - t0_log < start
-            or (ids is not None and msg.arbitration_id not in ids)
-            or is_end_marker(msg)  # the recorder's, not a frame of the drive
-        ):
-            skipped += 1
+        if ids is not None and msg.arbitration_id not in ids:
+            not_selected += 1
+            continue
+        if msg.timestamp < t0_log:
+            out_of_order += 1
+            continue
+        if msg.timestamp - t0_log < start:
+            before_start += 1
             continue
         if base_log is None:
             base_log, base_wall = msg.timestamp, clock()
@@ -133,10 +171,14 @@ def play_frames(
         sent += 1
     return PlayStats(
         sent=sent,
-        skipped=skipped,
+        skipped=before_start + not_selected + markers + out_of_order,
         duration=0.0 if base_log is None else last_log - base_log,
         wall_time=clock() - base_wall,
         max_lateness=max_late,
+        before_start=before_start,
+        not_selected=not_selected,
+        markers=markers,
+        out_of_order=out_of_order,
     )
 
 
@@ -190,9 +232,57 @@ def default_ids(
 
 
 def chained(sources: Sequence[FrameSource]) -> Iterator[can.Message]:
-    """The frames of several files in the order given (a rotated log's parts)."""
+    """The frames of several files in the order given (a rotated log's parts).
+
+    Check the parts first with :func:`check_continuity`: this chains whatever it is given.
+    """
     for source in sources:
         yield from source
+
+
+def _time_span(path: Path) -> tuple[float, float] | None:
+    """The timestamps of a file's first and last frame (None: no frames)."""
+    first: float | None = None
+    last = 0.0
+    for msg in FrameSource(path):
+        if first is None:
+            first = msg.timestamp
+        last = msg.timestamp
+    return None if first is None else (first, last)
+
+
+def check_continuity(
+    paths: Sequence[str | Path],
+    max_jump: float = MAX_PART_JUMP,
+    max_back: float = MAX_PART_BACK,
+) -> None:
+    """Refuse files whose times do not continue each other, before anything is played.
+
+    Each part must start at most ``max_jump`` s after the previous one (with frames) ends and
+    at most ``max_back`` s before. Reads every part once (one file: nothing to check).
+
+    :raises ReplayError: naming the two files, their times and the jump
+    """
+    if len(paths) < 2:
+        return
+    previous: tuple[Path, float] | None = None  # (file, its last frame's time)
+    for path in map(Path, paths):
+        span = _time_span(path)
+        if span is None:
+            continue
+        first, last = span
+        if previous is not None:
+            prev_path, prev_last = previous
+            jump = first - prev_last
+            if jump > max_jump or jump < -max_back:
+                direction = "after" if jump > 0 else "before"
+                raise ReplayError(
+                    f"replay play: {path} starts {abs(jump):.3f} s {direction} {prev_path} ends "
+                    f"(at {first:.6f} s, the other's last frame at {prev_last:.6f} s): not parts "
+                    f"of one log in order (accepted: up to {max_jump:g} s after, {max_back:g} s "
+                    "before); play them one at a time"
+                )
+        previous = (path, last)
 
 
 def main_play(
@@ -215,13 +305,16 @@ def main_play(
     :param profile: the vehicle profile whose command IDs are left out (over the config's)
     :param ids: play only these IDs (hex, comma-separated), the gateway's commands included
     :param all_ids: play every frame, the gateway's commands included
-    :return: 0 when every selected frame was sent
-    :raises LeafgateError: unreadable log, no profile for a CAN log (:class:`ConfigError`),
-        unknown interface or a send error (the CLI prints it)
+    :return: 0 when every selected frame was sent; 1 when some were out of order (timed
+        before the log's first frame) and left unsent
+    :raises LeafgateError: unreadable log, parts whose times do not continue each other
+        (:func:`check_continuity`), no profile for a CAN log (:class:`ConfigError`), unknown
+        interface or a send error (the CLI prints it)
     """
     out = out or sys.stdout
     paths = [logs] if isinstance(logs, (str, Path)) else list(logs)
     sources = [FrameSource(path) for path in paths]  # a missing file first: the plainer error
+    check_continuity(paths)
     if bus is None:
         if config is None:
             raise ReplayError("replay play: give the bus (-i INTERFACE -c CHANNEL) or --config")
@@ -249,9 +342,9 @@ def main_play(
         opened.shutdown()
     names = Path(paths[0]).name + (f" and {len(paths) - 1} more" if len(paths) > 1 else "")
     out.write(
-        f"{names}: {stats.sent} frames sent ({stats.skipped} skipped"
+        f"{names}: {stats.sent} frames sent ({stats.skipped_text(start)}"
         + (
-            f", {left_out} of the gateway's command IDs "
+            f"; {left_out} of the gateway's command IDs "
             f"{', '.join(f'{i:03X}' for i in sorted(excluded))} left out: --all-ids plays them"
             if excluded
             else ""
@@ -259,6 +352,13 @@ def main_play(
         + f"), {stats.duration:.3f} s of log in {stats.wall_time:.3f} s, "
         f"worst lateness {stats.max_lateness * 1e3:.2f} ms\n"
     )
+    if stats.out_of_order:
+        print(
+            f"leafgate replay play: {stats.out_of_order} frames not sent: timed before the "
+            "log's first frame (out of order), so they have no place on its timeline",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

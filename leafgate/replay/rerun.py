@@ -10,7 +10,14 @@ configuration reproduce every command bit for bit; a changed weight shows where 
 would have gone differently (open loop: the recorded vehicle does not react to the new
 commands, so differences after the first divergence are indicative only).
 
-Exit status: 0 when every command is identical, 1 when any signal diverges.
+Only the ``vehicle``, ``controller`` and ``gateway`` sections build what a re-run runs (the
+vehicle profile, the controller, the gateway and its longitudinal mode); the other sections
+(``can``, ``zenoh``, ``sim``, ``recording``) concern the bus, the middleware, the simulator and
+the recorder, whose effects are already in the recorded inputs. An override of such a key is
+refused (:func:`check_rerun_overrides`): an IDENTICAL verdict would say nothing about it.
+
+Exit status: 0 when every command is identical, 1 when any signal diverges, 2 for an override
+a re-run cannot honour (or a configuration that does not load).
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from typing import Any, Final, TextIO
 
 from leafgate.config import parse_overrides
 from leafgate.control import make_controller
-from leafgate.errors import ReplayError
+from leafgate.errors import ConfigError, ReplayError
 from leafgate.gateway.core import Gateway
 from leafgate.messages import Commands, GatewayState, Trajectory
 from leafgate.record.session import (
@@ -39,7 +46,36 @@ from leafgate.record.session import (
 )
 from leafgate.replay.report import write_report
 
-__all__ = ["RerunReport", "SignalDiff", "main_rerun", "parse_overrides", "rerun_session"]
+__all__ = [
+    "RERUN_SECTIONS",
+    "RerunReport",
+    "SignalDiff",
+    "check_rerun_overrides",
+    "main_rerun",
+    "parse_overrides",
+    "rerun_session",
+]
+
+#: The configuration sections a re-run builds from (:func:`rerun_session`): the vehicle (its
+#: profile adjusts the gateway), the controller (and the longitudinal mode of its MPC), the
+#: gateway. Everything else acts before the recorded inputs and cannot change a re-run.
+RERUN_SECTIONS: Final = ("vehicle", "controller", "gateway")
+
+
+def check_rerun_overrides(overrides: Mapping[str, Any] | None) -> None:
+    """Refuse overrides of keys a re-run does not use.
+
+    :raises ConfigError: naming the first such key and the sections a re-run uses
+    """
+    for key in overrides or {}:
+        section = key.split(".", 1)[0]
+        if section not in RERUN_SECTIONS:
+            raise ConfigError(
+                f"--set {key}: a re-run feeds the recorded gateway inputs to a controller and "
+                f"gateway built from the {', '.join(RERUN_SECTIONS)} sections only; "
+                f"{section}.* cannot change its commands (override one of those sections)"
+            )
+
 
 #: The compared signals, in report order.
 SIGNALS: Final = (
@@ -177,8 +213,10 @@ def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) 
     """Re-run a session through a fresh gateway and compare the commands.
 
     :raises ReplayError: not a session, or one without configuration or ticks
-    :raises ConfigError: the recorded configuration (with the overrides) does not load
+    :raises ConfigError: an override outside :data:`RERUN_SECTIONS`, or the recorded
+        configuration (with the overrides) does not load
     """
+    check_rerun_overrides(overrides)
     path = Path(path)
     report = RerunReport(str(path), dict(overrides or {}))
     with SessionReader(path) as reader:
@@ -232,7 +270,8 @@ def main_rerun(
     """``leafgate replay rerun SESSION.mcap [--set KEY=VALUE …] [--json]``.
 
     :return: 0 when every command is reproduced exactly, 1 when any diverges
-    :raises LeafgateError: unreadable session or configuration (the CLI prints it)
+    :raises LeafgateError: unreadable session or configuration, or an override a re-run does
+        not use (a :class:`ConfigError`; the CLI prints it, exit 2)
     """
     out = out or sys.stdout
     report = rerun_session(session, parse_overrides(overrides))

@@ -30,6 +30,7 @@ import json
 import math
 import os
 import signal
+import sys
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -195,6 +196,7 @@ def run_compare(
         "runs": records,
         "best_lateral_max": _best(results, scenario_names, plant_names, controller_names),
         "mpc_not_best": _mpc_not_best(results, scenario_names, plant_names, controller_names),
+        "not_finished": _not_finished(results),
     }
     figures: dict[str, str] = {}
     if plots:
@@ -203,6 +205,24 @@ def run_compare(
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     (out / "report.md").write_text(_markdown(report, results, figures), encoding="utf-8")
     return report
+
+
+def _not_finished(results: dict[tuple[str, str, str], SimResult]) -> list[dict[str, Any]]:
+    """Each drive that did not finish, in report order, with its reason and whether its
+    scenario is feasible (an infeasible one is not expected to finish)."""
+    out = []
+    for (s, p, c), r in results.items():
+        if not r.metrics.get("finished"):
+            out.append(
+                {
+                    "scenario": s,
+                    "plant": p,
+                    "controller": c,
+                    "feasible": get_scenario(s).feasible,
+                    "reason": str(r.metrics.get("not_finished_reason") or "not finished"),
+                }
+            )
+    return out
 
 
 def _best(
@@ -390,8 +410,18 @@ def _markdown(
         if links:
             lines += ["Plots: " + ", ".join(links), ""]
     lines += ["## Where the MPC is not the most accurate", ""]
-    if not report["mpc_not_best"]:
-        lines.append("Nowhere: on every scenario and plant both MPC variants beat both baselines.")
+    compared_mpc = [c for c in report["controllers"] if c in MPC_NAMES]
+    compared_base = [c for c in report["controllers"] if c in BASELINE_NAMES]
+    if not compared_mpc or not compared_base:
+        lines.append("Not compared: this run did not drive both an MPC variant and a baseline.")
+    elif not report["mpc_not_best"]:
+        lines.append(
+            "Nowhere: on every scenario and plant "
+            + ", ".join(f"`{c}`" for c in compared_mpc)
+            + " beat "
+            + ", ".join(f"`{c}`" for c in compared_base)
+            + "."
+        )
     else:
         lines += [
             "Each MPC variant (kinematic or steering-aware model) whose max lateral error is not "
@@ -404,6 +434,22 @@ def _markdown(
             f"{item['lateral_error_max_m']:.3f} m, matched or beaten by "
             + ", ".join(f"`{b}`" for b in item["at_least_as_good"])
         )
+    lines.append("")
+    lines += ["## Drives that did not finish", ""]
+    if not report["not_finished"]:
+        lines.append("None: every drive finished.")
+    for feasible, title in (
+        (True, "Feasible scenarios (failures)"),
+        (False, "Infeasible by design (expected)"),
+    ):
+        drives = [d for d in report["not_finished"] if d["feasible"] == feasible]
+        if drives:
+            lines += [f"{title}:", ""]
+            lines += [
+                f"- {d['scenario']}, `{d['controller']}`, {d['plant']} plant: {d['reason']}"
+                for d in drives
+            ]
+            lines.append("")
     lines.append("")
     paper = [f"[{k}]({v})" for k, v in figures.items() if k.startswith("paper/")]
     if paper:
@@ -436,6 +482,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--workers", type=positive_int, help="parallel processes (default: CPU count)"
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.epilog = (
+        "Exit status: 0 when every drive on a feasible scenario finished (drives on scenarios "
+        "infeasible by design, such as tight-hairpin, are listed but expected not to finish); "
+        "1 when a feasible drive did not finish (each one and why on stderr; the report is "
+        "written all the same); 2 for a bad config or an unknown name."
+    )
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
@@ -456,13 +508,45 @@ def cmd_compare(args: argparse.Namespace) -> int:
         workers=getattr(args, "workers", None),
         plots=not getattr(args, "no_plots", False),
     )
+    print(f"{'scenario':<20} the most accurate controller (smallest max lateral error) per plant")
     for s, per_plant in report["best_lateral_max"].items():
         print(f"{s:<20} " + "  ".join(f"{p}: {c}" for p, c in per_plant.items()))
+    unfinished = report["not_finished"]
+    expected = [d for d in unfinished if not d["feasible"]]
+    failed = [d for d in unfinished if d["feasible"]]
+    runs = len(report["runs"])
     print(
-        f"{len(report['runs'])} drives in {report['wall_time_s']:.1f} s; "
+        f"{runs} drives in {report['wall_time_s']:.1f} s: {runs - len(unfinished)} finished, "
+        f"{len(expected)} did not finish as expected (infeasible scenarios), "
+        f"{len(failed)} feasible drives did not finish; "
         f"wrote {out / 'report.md'} and {out / 'report.json'}"
     )
+    if expected:
+        print(f"{len(expected)} drives did not finish, as expected (infeasible by design):")
+        for line in _unfinished_lines(expected):
+            print(line)
+    if failed:
+        print(
+            f"leafgate compare: {len(failed)} of {runs} drives on feasible scenarios did not "
+            "finish (exit 1):",
+            file=sys.stderr,
+        )
+        for line in _unfinished_lines(failed):
+            print(line, file=sys.stderr)
+        return 1
     return 0
+
+
+def _unfinished_lines(drives: list[dict[str, Any]]) -> list[str]:
+    """The drives that did not finish, grouped by scenario: ``controller × plant: reason``."""
+    lines: list[str] = []
+    scenario = None
+    for d in drives:
+        if d["scenario"] != scenario:
+            scenario = d["scenario"]
+            lines.append(f"  {scenario}:")
+        lines.append(f"    {d['controller']} × {d['plant']} plant: {d['reason']}")
+    return lines
 
 
 __all__ = [
