@@ -21,7 +21,6 @@ from typing import Any
 try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line, as later
     from leafgate import __version__
     from leafgate.cliargs import (
-        add_gap_periods,
         add_overrides,
         add_profile_options,
         non_negative_int,
@@ -510,7 +509,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     except ConfigError as exc:  # a check across sections: name the file too
         raise ConfigError(f"{args.file}: {exc}") from None
     _scenario(cfg.sim.scenario)
-    from leafgate.config.checks import offline_checks
+    from leafgate.runtime.checks import offline_checks
 
     report = offline_checks(cfg)  # the daemon's start-up runs the same checks
     for line in report.warnings:
@@ -889,6 +888,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_profile_options(r, "the deployment config whose limits and profile apply")
     r.add_argument("--json", action="store_true", help="machine-readable report")
+    from leafgate.replay.check import add_gap_periods
+
     add_gap_periods(r)
     r.add_argument("--key-file", metavar="FILE", help=KEY_FILE_HELP)
     r = rsub.add_parser(

@@ -65,18 +65,3 @@ def add_profile_options(parser: argparse.ArgumentParser, config_help: str) -> No
     """``--config FILE`` and ``--profile NAME|FILE``: what a tool that reads frames decodes with."""
     parser.add_argument("--config", help=config_help)
     parser.add_argument("--profile", metavar="NAME|FILE", help=PROFILE_HELP)
-
-
-def add_gap_periods(parser: argparse.ArgumentParser) -> None:
-    """``--gap-periods N`` of ``replay check`` and ``batch check``: a finite number over 1 and
-    at most 100 (NaN, ``inf`` or ``1e9`` would switch the gap and silence findings off)."""
-    from leafgate.replay.check import DEFAULT_GAP_PERIODS, gap_periods_arg
-
-    parser.add_argument(
-        "--gap-periods",
-        type=gap_periods_arg,
-        default=DEFAULT_GAP_PERIODS,
-        metavar="N",
-        help=f"a gap is this many periods of silence, over 1 and at most 100 "
-        f"(default {DEFAULT_GAP_PERIODS:g})",
-    )

@@ -12,8 +12,8 @@ import pytest
 
 from leafgate import cli
 from leafgate.config import parse_overrides
-from leafgate.config.checks import offline_checks, recording_directory_problem
 from leafgate.errors import ConfigError
+from leafgate.runtime.checks import offline_checks, recording_directory_problem
 from leafgate.runtime.daemon import run_daemon
 from leafgate.settings import BENCH_ENV, bench_ports, load_config
 

@@ -11,7 +11,6 @@ from leafgate.batch import sweep as sweep_module
 from leafgate.batch.engine import WORKERS_WAIT_S, BatchError, EngineRun, run_tasks
 from leafgate.batch.results import crossings, make_out_dir, write_report, write_table
 from leafgate.cliargs import (
-    add_gap_periods,
     add_overrides,
     add_profile_options,
     non_negative_seconds,
@@ -73,6 +72,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "readable suffix: .log .asc .blf .trc .csv .mf4 .mcap)",
     )
     add_profile_options(p, "the deployment config whose limits and profile apply")
+    from leafgate.replay.check import add_gap_periods
+
     add_gap_periods(p)
     p.add_argument("--timeout", type=positive_seconds, help="s per log")
     _common(p, "leafgate-batch-check")

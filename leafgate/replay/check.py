@@ -62,6 +62,7 @@ Exit status: 0 when there is no finding, 1 otherwise.
 
 from __future__ import annotations
 
+import argparse
 import functools
 import json
 import math
@@ -109,6 +110,7 @@ __all__ = [
     "CheckReport",
     "Finding",
     "IdStats",
+    "add_gap_periods",
     "check_frames",
     "check_log",
     "gap_periods_arg",
@@ -609,10 +611,22 @@ def gap_periods_error(value: float) -> str | None:
     return None
 
 
+def add_gap_periods(parser: argparse.ArgumentParser) -> None:
+    """``--gap-periods N`` of ``replay check`` and ``batch check`` (one definition, here where
+    it is judged): a finite number over 1 and at most 100 (NaN, ``inf`` or ``1e9`` would switch
+    the gap and silence findings off)."""
+    parser.add_argument(
+        "--gap-periods",
+        type=gap_periods_arg,
+        default=DEFAULT_GAP_PERIODS,
+        metavar="N",
+        help=f"a gap is this many periods of silence, over {MIN_GAP_PERIODS:g} and at most "
+        f"{MAX_GAP_PERIODS:g} (default {DEFAULT_GAP_PERIODS:g})",
+    )
+
+
 def gap_periods_arg(text: str) -> float:
     """``--gap-periods N`` as argparse's ``type``: refused (exit 2) when it is no gap_periods."""
-    import argparse
-
     try:
         value = float(text)
     except ValueError:

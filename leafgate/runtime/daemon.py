@@ -373,7 +373,7 @@ def run_daemon(
     clock = time.perf_counter
     codec = CanCodec.for_config(cfg)  # CanCodecError: a DBC missing/invalid
     # what `leafgate check-config` checks offline, checked the same way before anything opens
-    from leafgate.config.checks import offline_checks
+    from leafgate.runtime.checks import offline_checks
 
     for line in offline_checks(cfg, zenoh=session is None).warnings:
         log.warning("%s", line)
