@@ -114,7 +114,7 @@ def load_trajectory(
 def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | None) -> None:
     """Raise when the plan comes to rest before a direction segment's end (``to_the_end``)."""
     kept = _kept_points(traj)
-    plan = remove_overlap_points(traj)
+    plan = _subset(traj, kept)
     for seg in split_segments(plan):
         stop = stop_point(np.maximum(seg.direction * plan.speed[seg.start : seg.end + 1], 0.0))
         if stop is None:
@@ -355,7 +355,7 @@ def trajectory_problem(
             f"{source}: row {row_of(int(kept[i + 1]))}: heading turns "
             f"{math.degrees(float(steps[i])):.0f}° from the waypoint before (a flip)"
         )
-    return _heading_problem(remove_overlap_points(traj), kept, source, row_of)
+    return _heading_problem(_subset(traj, kept), kept, source, row_of)
 
 
 def _heading_problem(
@@ -405,7 +405,11 @@ def remove_overlap_points(traj: Trajectory) -> Trajectory:
 
     Returns ``traj`` itself when nothing overlaps.
     """
-    kept = _kept_points(traj)
+    return _subset(traj, _kept_points(traj))
+
+
+def _subset(traj: Trajectory, kept: npt.NDArray[np.intp]) -> Trajectory:
+    """``traj``'s waypoints ``kept`` (:func:`_kept_points`); ``traj`` itself when all are."""
     if kept.size == len(traj):
         return traj
     return Trajectory(

@@ -712,18 +712,16 @@ def _coverage_findings(scan: _Scan, stats: dict[int, FrameStats]) -> list[Findin
     profile = scan.template.profile.name
     if n == 0:
         return [Finding(math.nan, "coverage", None, "log", "the log has no frames")]
+
+    def about_commands(detail: str) -> list[Finding]:
+        return [Finding(first, "coverage", None, "commands", detail)]
+
     if commands.checked == 0 and sum(commands.not_checkable.values()) > 0:
         why = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in commands.not_checkable.items())
-        return [
-            Finding(
-                first,
-                "coverage",
-                None,
-                "commands",
-                f"{command_frames} frames on the command IDs of profile {profile}, none could "
-                f"be checked ({why}: no long report with a known gear before them)",
-            )
-        ]
+        return about_commands(
+            f"{command_frames} frames on the command IDs of profile {profile}, none could "
+            f"be checked ({why}: no long report with a known gear before them)"
+        )
     known = sum(s.frames - s.unknown_id for s in stats.values())
     if command_frames == 0:
         ids = ", ".join(f"{i:03X}" for i in sorted(command_ids))
@@ -737,29 +735,17 @@ def _coverage_findings(scan: _Scan, stats: dict[int, FrameStats]) -> list[Findin
         )
         return [Finding(first, "coverage", None, "profile", detail)]
     if commands.checked == 0:
-        return [
-            Finding(
-                first,
-                "coverage",
-                None,
-                "commands",
-                f"nothing checked: none of the {command_frames} frames on the command IDs of "
-                f"profile {profile} was sent engaged (a log cut before the engage, or a drive "
-                "never engaged): no command was checked against the limits",
-            )
-        ]
+        return about_commands(
+            f"nothing checked: none of the {command_frames} frames on the command IDs of "
+            f"profile {profile} was sent engaged (a log cut before the engage, or a drive "
+            "never engaged): no command was checked against the limits"
+        )
     if commands.rates_checked == 0:
-        return [
-            Finding(
-                first,
-                "coverage",
-                None,
-                "commands",
-                f"the rates of none of the {commands.checked} engaged command frames could be "
-                "checked (each one's previous command is not in the log): only the envelope "
-                "was checked",
-            )
-        ]
+        return about_commands(
+            f"the rates of none of the {commands.checked} engaged command frames could be "
+            "checked (each one's previous command is not in the log): only the envelope "
+            "was checked"
+        )
     return []
 
 
