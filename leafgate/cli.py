@@ -686,7 +686,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     from leafgate.sim.compare import CONTROLLERS, PLANTS
-    from leafgate.sim.names import TO_SIM, TO_SIM_ECU, injection_names
+    from leafgate.sim.names import TO_SIM, TO_SIM_ECU, injection_names, only_here
     from leafgate.sim.realtime import SIM_ECU_INJECTIONS
     from leafgate.sim.runner import INJECTION_KINDS
     from leafgate.sim.scenarios import SCENARIOS
@@ -701,7 +701,10 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=f"scenarios: {', '.join(SCENARIOS)}.\n"
         f"controllers: {', '.join(CONTROLLERS)}.\n"
         f"injections: {injection_names(INJECTION_KINDS, TO_SIM)}.\n"
-        "The same names as `compare` and `sim-ecu`.\n\n" + TRAJECTORY_FORMAT,
+        "Scenarios and controllers have the same names in `compare`; a fault `sim-ecu` "
+        "takes too has the same name there.\n"
+        f"Only `sim` injects: {only_here(INJECTION_KINDS, SIM_ECU_INJECTIONS, TO_SIM)}.\n\n"
+        + TRAJECTORY_FORMAT,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--config", help="YAML config (default: the embedded simulation defaults)")
@@ -802,7 +805,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="simulated drive-by-wire ECU and plant on a real bus, localization on Zenoh",
         epilog=f"scenarios: {', '.join(SCENARIOS)}. "
         f"injections: {injection_names(SIM_ECU_INJECTIONS, TO_SIM_ECU)}. "
-        "The same names as `sim`.",
+        "A fault `sim` takes too has the same name there. Only `sim-ecu` injects: "
+        f"{only_here(SIM_ECU_INJECTIONS, INJECTION_KINDS, TO_SIM_ECU)}.",
     )
     p.add_argument("--config", required=True, help="YAML config, e.g. config/sim.yaml")
     p.add_argument(

@@ -508,8 +508,9 @@ class Gateway:
         driven (:func:`~leafgate.control.reference.trajectory_problem`), or the car is outside
         its engage envelope.
 
-        Runs once per new plan object (the runtime keeps one object while a planner re-publishes
-        the same waypoints), so its cost does not fall on every tick.
+        Called on every ENGAGED tick: the refused-plan test is one comparison of receive times;
+        the envelope test (a path search) runs once per new plan object, as the runtime keeps
+        one object while a planner re-publishes the same waypoints.
         """
         traj = wd.trajectory
         if traj is not None:

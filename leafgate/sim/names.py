@@ -23,3 +23,10 @@ def injection_names(kinds: Iterable[str], aliases: dict[str, str]) -> str:
     """``a, b (= c), …``: the kinds one command runs, each with its other spelling."""
     other = {v: k for k, v in aliases.items()}
     return ", ".join(f"{k} (= {other[k]})" if k in other else k for k in sorted(kinds))
+
+
+def only_here(kinds: Iterable[str], other: Iterable[str], aliases: dict[str, str]) -> str:
+    """The kinds of ``kinds`` the other command does not run, under either spelling (``aliases``
+    maps the other command's names to these), comma-separated; ``-`` when there are none."""
+    theirs = {aliases.get(k, k) for k in other}
+    return ", ".join(sorted(set(kinds) - theirs)) or "-"

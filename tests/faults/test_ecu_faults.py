@@ -1,7 +1,7 @@
 """ECU-side faults across processes: its reports stop, or arrive with a bad CRC or a stuck
 alive counter; the driver overrides by steering torque or by the brake pedal.
 
-docs/watchdogs.md: a report older than 3 periods → FAULT (here 10: see REPORT_TIMEOUT); report
+docs/watchdogs.md: a report older than 3 periods → FAULT (here 20: see REPORT_TIMEOUT); report
 CRC/counter errors counted +1 bad / −1 good reaching 5 → FAULT; an ECU OVERRIDE → STANDBY (a new
 engage needed).
 """
@@ -12,7 +12,7 @@ import re
 from collections.abc import Callable
 
 import pytest
-from harness import PROCESS_TEST, FaultRun, read_trace, transitions
+from harness import PROCESS_TEST, REPORT_TIMEOUT_PERIODS, FaultRun, read_trace, transitions
 
 from leafgate.messages import GatewayState
 
@@ -20,9 +20,9 @@ pytestmark = PROCESS_TEST
 
 SLACK = 0.4  # s, scheduling noise of four processes on two cores
 MAX_SPEED = 2.0  # m/s, the s-curve's top speed
-REPORT_TIMEOUT = 10 * 0.010  # s, the harness's 10 periods of DBW_STEER_RPT: docs/watchdogs.md's 3
-# (30 ms) is shorter than a scheduling stall of four processes on two loaded cores, which then
-# faults the run before its injection; test_watchdog.py holds the gateway to the 3 periods
+REPORT_TIMEOUT = REPORT_TIMEOUT_PERIODS * 0.010  # s, of DBW_STEER_RPT (100 Hz): docs/watchdogs.md's
+# 3 periods (30 ms) are shorter than a scheduling stall of four processes on two loaded cores,
+# which then faults the run before its injection; test_watchdog.py holds the gateway to the 3
 ERROR_LIMIT = 5  # bad report frames (docs/watchdogs.md)
 REPORT_RATE = 100 + 50 + 10  # DBW report frames per second (steer, long, system)
 DRIVER_DECEL = 2.0  # m/s², the simulated driver brakes once the ECU hands back
