@@ -92,22 +92,30 @@ def load_config(
         # A relative file path named in the config file is found next to it, as the file's
         # author means (not in the daemon's working directory: under systemd that is "/").
         base = Path(path).parent
+
+        def beside(key: str, value: str | None) -> str | None:
+            """``value`` found next to the config file, when the file named it."""
+            if value is None or explicit.get(key) != file_source:
+                return value
+            return str(base / Path(value).expanduser())
+
         can, vehicle, zenoh = cfg.can, cfg.vehicle, cfg.zenoh
-        key_file = can.auth_key_file
-        if key_file is not None and explicit.get("can.auth_key_file") == file_source:
-            can = dataclasses.replace(can, auth_key_file=str(base / Path(key_file).expanduser()))
+        can = dataclasses.replace(
+            can,
+            auth_key_file=beside("can.auth_key_file", can.auth_key_file),
+            dbw_dbc=beside("can.dbw_dbc", can.dbw_dbc),
+            car_dbc=beside("can.car_dbc", can.car_dbc),
+        )
         if (
             vehicle.profile not in PROFILE_NAMES
             and Path(vehicle.profile).suffix in (".yaml", ".yml")  # a file, not a name
-            and explicit.get("vehicle.profile") == file_source
         ):
             vehicle = dataclasses.replace(
-                vehicle, profile=str(base / Path(vehicle.profile).expanduser())
+                vehicle, profile=beside("vehicle.profile", vehicle.profile) or vehicle.profile
             )
-        if zenoh.config_file is not None and explicit.get("zenoh.config_file") == file_source:
-            zenoh = dataclasses.replace(
-                zenoh, config_file=str(base / Path(zenoh.config_file).expanduser())
-            )
+        zenoh = dataclasses.replace(
+            zenoh, config_file=beside("zenoh.config_file", zenoh.config_file)
+        )
         cfg = dataclasses.replace(cfg, can=can, vehicle=vehicle, zenoh=zenoh)
     return _with_source(apply_profile(cfg, source, explicit), source)
 

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from leafgate import cli
+from leafgate.can.codec import CanCodec
 from leafgate.config import parse_overrides
 from leafgate.errors import ConfigError
 from leafgate.runtime.checks import offline_checks, recording_directory_problem
@@ -125,6 +126,27 @@ def test_relative_profile_and_zenoh_file_are_taken_from_the_config_directory(
     assert cfg.vehicle.profile == str(folder / "mycar.yaml")
     assert cfg.zenoh.config_file == str(folder / "z.json5")
     assert cfg.profile.where.endswith("mycar.yaml")
+
+
+def test_relative_dbc_and_key_files_are_taken_from_the_config_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The codec opens the DBCs a config names wherever the daemon was started."""
+    folder = tmp_path / "etc"
+    folder.mkdir()
+    packaged = ROOT / "dbc"
+    shutil.copy(packaged / "leafgate_dbw.dbc", folder / "dbw.dbc")
+    shutil.copy(packaged / "leaf_aze0_car.dbc", folder / "car.dbc")
+    path = write(folder, "can: {dbw_dbc: dbw.dbc, car_dbc: car.dbc, auth_key_file: k.key}\n")
+    monkeypatch.chdir(tmp_path)  # not the config's directory (systemd: "/")
+    cfg = load_config(path)
+    assert (cfg.can.dbw_dbc, cfg.can.car_dbc, cfg.can.auth_key_file) == tuple(
+        str(folder / name) for name in ("dbw.dbc", "car.dbc", "k.key")
+    )
+    codec = CanCodec.for_config(cfg, key=bytes(16))
+    assert [db.messages[0].name for db in codec.databases] == [
+        db.messages[0].name for db in CanCodec.for_config(load_config(None)).databases
+    ]
 
 
 def test_a_packaged_profile_name_is_not_a_path(tmp_path: Path) -> None:

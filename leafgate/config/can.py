@@ -69,7 +69,8 @@ class BusConfig:
 class CanConfig:
     """The two channels of the research Leaf; ``car: null`` means CAR-CAN shares the dbw bus.
 
-    ``dbw_dbc`` / ``car_dbc`` name other DBC files than the packaged ones (None: packaged).
+    ``dbw_dbc`` / ``car_dbc`` name other DBC files than the packaged ones (None: packaged;
+    relative to the config file's directory).
     ``auth_key_file``: the key of a profile with authenticated frames
     (:func:`leafgate.can.secoc.load_key`; relative to the config file's directory).
     """
