@@ -146,6 +146,22 @@ trajectory files (--trajectory, publish-trajectory):
 """
 
 
+def _warn_coarse_chords(scenario: Scenario) -> None:
+    """Say when the plan's waypoints are too far apart for the lateral error to mean much."""
+    from leafgate.control.reference import CHORD_SAGITTA_WARN, chord_sagitta
+
+    traj = scenario.trajectory
+    cut, i, gap = chord_sagitta(traj)
+    if cut > CHORD_SAGITTA_WARN:
+        print(
+            f"leafgate: warning: {scenario.name}: waypoints {gap:.2f} m apart in a turn at "
+            f"({traj.x[i]:.1f}, {traj.y[i]:.1f}) m: the car follows a curve through them, "
+            f"the lateral error is measured from the straight chords, which cut it by up to "
+            f"{cut * 100:.1f} cm (a planner sends 0.5-1.0 m)",
+            file=sys.stderr,
+        )
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from leafgate.control import plan_rules
     from leafgate.sim.metrics import collision
@@ -185,6 +201,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             max_speed=cfg.gateway.safety.max_speed,
             max_points=cfg.zenoh.max_plan_points,
         )
+        _warn_coarse_chords(scenario)
     else:
         scenario = _scenario(args.scenario or cfg.sim.scenario)
     injections = tuple(Injection.parse(text) for text in args.inject)

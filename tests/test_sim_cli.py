@@ -79,7 +79,29 @@ def test_sim_drives_a_csv_trajectory_file_and_writes_trace_csv(
     assert max(float(r["accel_cmd_mps2"]) for r in rows) > 0.1
     end = rows[-1]
     assert math.hypot(float(end["x_m"]) - route[-1][0], float(end["y_m"]) - route[-1][1]) < 0.1
-    assert "trace.csv" in capsys.readouterr().out
+    out_text, err = capsys.readouterr()
+    assert "trace.csv" in out_text
+    assert "chords" not in err  # 0.5 m apart on a gentle bend: the chords are the curve
+
+
+def test_sim_warns_when_sparse_waypoints_make_the_lateral_error_coarse(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A 90° arc of 10 m radius with waypoints 3.1 m apart: the car follows a curve through
+    them, the lateral error is measured from chords that cut it by R (1 − cos(Δθ/2)), and the
+    sim says so instead of reporting the cut as the car's error without a word."""
+    radius, n = 10.0, 6
+    angle = np.linspace(0.0, math.pi / 2, n)
+    lines = ["x,y,heading,speed"] + [
+        f"{radius * math.sin(a):.6f},{radius * (1 - math.cos(a)):.6f},{a:.6f},{1.0 if k < n - 1 else 0.0}"
+        for k, a in enumerate(angle)
+    ]
+    (tmp_path / "sparse.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert _sim("--trajectory", str(tmp_path / "sparse.csv"), "--out", str(tmp_path / "o")) == 0
+    err = capsys.readouterr().err
+    cut = radius * (1.0 - math.cos(0.5 * angle[1]))  # m, the sagitta of one chord
+    assert f"cut it by up to {cut * 100:.1f} cm" in err, err
+    assert f"{2 * radius * math.sin(0.5 * angle[1]):.2f} m apart" in err
 
 
 def test_sim_drives_a_yaml_trajectory_from_a_given_start(tmp_path: Path) -> None:
