@@ -169,6 +169,34 @@ def test_repeated_waypoints_ask_for_no_steering_reversal() -> None:
     assert path_steer_sign_changes(doubled) == 1
 
 
+@pytest.mark.parametrize(("spacing", "decimals"), [(0.5, 3), (0.1, 4), (0.05, 4)])
+def test_the_precision_a_plan_was_written_with_asks_for_no_steering_reversal(
+    spacing: float, decimals: int
+) -> None:
+    """PythonRobotics' forward course (a natural spline through seven points, the tangent's
+    yaw), sampled densely and written with rounded numbers, asks for the reversals of the
+    exact course. Old code: a chord's heading step of 0.1 m read rounding as curvature, 1543
+    reversals instead of 5 with 4 decimals, and a run's steering was held to that."""
+    from scipy.interpolate import CubicSpline
+
+    ax = [0.0, 60.0, 125.0, 50.0, 75.0, 30.0, -10.0]
+    ay = [0.0, 0.0, 50.0, 65.0, 30.0, 50.0, -20.0]
+    knots = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(ax), np.diff(ay)))))
+    sx, sy = CubicSpline(knots, ax, bc_type="natural"), CubicSpline(knots, ay, bc_type="natural")
+    s = np.arange(0.0, knots[-1], spacing)
+    speed = np.full(s.shape, 2.0)
+    speed[-1] = 0.0
+    exact = Trajectory(x=sx(s), y=sy(s), heading=np.arctan2(sy(s, 1), sx(s, 1)), speed=speed)
+    rounded = Trajectory(
+        x=np.round(exact.x, decimals),
+        y=np.round(exact.y, decimals),
+        heading=np.round(exact.heading, decimals),
+        speed=speed,
+    )
+    assert path_steer_sign_changes(exact) == 5
+    assert path_steer_sign_changes(rounded) == 5
+
+
 def test_offset_start_moves_the_car_left_and_turns_it() -> None:
     sc = offset_start(get_scenario("corner"), 0.9, math.radians(25.0))
     assert (sc.start.x, sc.start.y) == pytest.approx((0.0, 0.9))
