@@ -25,8 +25,8 @@ if TYPE_CHECKING:
 #: scheduling stall is not the failure the test is about. The defaults are tested in
 #: test_watchdog.py, and tests/faults/ keeps them where a test is about that watchdog.
 RELAXED_WATCHDOG = {
-    "localization_stop_age": 0.3,
-    "localization_fault_age": 1.0,
+    "localization_stop_age": 0.5,  # 0.304 s stalls were seen beside two other test sessions
+    "localization_fault_age": 1.5,
     "report_timeout_periods": 25,
     "max_overruns": 25,
     "max_stall_periods": 25.0,

@@ -257,3 +257,20 @@ def test_decode_says_a_recording_is_incomplete(drive: Drive, tmp_path: Path) -> 
     decode_log(drive.log, out, profile=PROFILE)
     header = [ln for ln in out.getvalue().splitlines() if ln.startswith("# can_000")]
     assert "marker" not in header[0] and "truncated" not in header[0]
+
+
+def test_batch_check_checks_a_rotated_log_as_one(
+    drive: Drive, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: every part was a log of its own, so each part after the first began
+    mid-drive and the parts were counted as that many logs, none of them whole."""
+    logs = tmp_path / "in"
+    logs.mkdir()
+    for part in drive.parts:
+        shutil.copy(part, logs)
+    argv = ["batch", "check", str(logs), "--profile", PROFILE, "--workers", "1"]
+    assert cli.main([*argv, "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    whole = check_log(drive.log, profile=PROFILE)
+    assert f"({len(drive.parts)} parts): OK: {whole.frames} frames" in out, out
+    assert "1 logs, 0 with findings" in out

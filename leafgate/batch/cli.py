@@ -207,7 +207,20 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
         from leafgate.settings import load_config
 
         load_config(config)  # a bad config is one error, not one per log
-    run, rows = _per_file(args, check_case, files, (config, args.gap_periods, args.profile), "logs")
+    from leafgate.record.logs import group_parts
+
+    # a rotated log's parts are one log, checked as one (as `replay check` does with them)
+    logs = {parts.name: [str(f) for f in parts.paths] for parts in group_parts(files)}
+    run = run_tasks(
+        check_case,
+        {name: (paths, config, args.gap_periods, args.profile) for name, paths in logs.items()},
+        scheduler=args.scheduler,
+        workers=args.workers,
+        timeout=args.timeout,
+        what="logs",
+        wait_workers=args.wait_workers,
+    )
+    rows = [{"path": name, **run.rows[name]} for name in logs]
     bad = 0
     for r in rows:
         if r["status"] != "ok":

@@ -64,15 +64,18 @@ def sim_case(argv: Sequence[str]) -> dict[str, Any]:
 
 
 def check_case(
-    path: str, config: str | None, gap_periods: float, profile: str | None = None
+    paths: str | list[str], config: str | None, gap_periods: float, profile: str | None = None
 ) -> dict[str, Any]:
-    """``leafgate replay check PATH``: the summary counts of its report."""
+    """``leafgate replay check PATH…`` of one log (a file, or a rotated log's parts): the
+    summary counts of its report."""
+    from leafgate.record.logs import group_parts
     from leafgate.replay.check import check_log
     from leafgate.settings import load_config
 
     try:
         cfg = load_config(config) if config is not None else None
-        report = check_log(path, cfg, profile=profile, gap_periods=gap_periods).to_dict()
+        (log,) = group_parts([paths] if isinstance(paths, str) else paths)
+        report = check_log(log, cfg, profile=profile, gap_periods=gap_periods).to_dict()
     except Exception as exc:
         return _error(exc)
     findings = report.pop("findings")

@@ -49,7 +49,7 @@ from leafgate.messages import (
     SystemCommand,
     SystemReport,
 )
-from tests.conftest import free_port, private_group, udp_multicast_works
+from tests.conftest import RELAXED_WATCHDOG, free_port, private_group, udp_multicast_works
 
 ROOT = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "leafgate.cli"]
@@ -88,7 +88,9 @@ def write_config(
     if localization_design_thresholds:
         wd.update({"localization_stop_age": 0.1, "localization_fault_age": 0.5})
     else:
-        wd.update({"localization_stop_age": 0.3, "localization_fault_age": 1.0})
+        wd.update(
+            {k: RELAXED_WATCHDOG[k] for k in ("localization_stop_age", "localization_fault_age")}
+        )
     wd["report_timeout_periods"] = REPORT_TIMEOUT_PERIODS
     if not overrun_design_threshold:
         wd["max_overruns"] = 25  # late ticks in a row: 0.5 s instead of the default 3
