@@ -146,6 +146,25 @@ trajectory files (--trajectory, publish-trajectory):
 """
 
 
+def _realtime_starved(cfg: LeafgateConfig, metrics: dict[str, Any]) -> str:
+    """Why an ECU report was late in ``sim --realtime``, when the simulator itself was late.
+
+    The simulated ECU shares this machine with the gateway; on a loaded one its loop wakes late
+    and its reports reach the gateway late, which the report watchdog takes, as it must, for a
+    late ECU. Said, with the figure, so the fault is not read as the gateway's.
+    """
+    late = metrics.get("ecu_loop_max_lateness_s")
+    if not (isinstance(late, float) and late > 0.010) or "report" not in metrics["final_reason"]:
+        return ""
+    periods = cfg.gateway.watchdog.report_timeout_periods
+    return (
+        f"; the simulated ECU's own loop woke up to {late * 1000:.0f} ms late on this machine "
+        f"(load), so its reports were late: the gateway keeps the car's timeout "
+        f"(gateway.watchdog.report_timeout_periods {periods:g}); on a loaded machine try "
+        "--set gateway.watchdog.report_timeout_periods=10"
+    )
+
+
 def _warn_coarse_chords(scenario: Scenario) -> None:
     """Say when the plan's waypoints are too far apart for the lateral error to mean much."""
     from leafgate.control.reference import CHORD_SAGITTA_WARN, chord_sagitta
@@ -234,10 +253,10 @@ def cmd_sim(args: argparse.Namespace) -> int:
         metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
         final = metrics["final_state"]
         metrics["finished"], reason = finish_verdict(
-            metrics, final == "STANDBY", f"the gateway ended in {final}"
+            metrics, final == "STANDBY", f"the gateway ended in {final}: {metrics['final_reason']}"
         )
         if reason:
-            metrics["not_finished_reason"] = reason
+            metrics["not_finished_reason"] = reason + _realtime_starved(cfg, metrics)
         loop = "real time (daemon runtime, in-process Zenoh, virtual CAN)"
     else:
         if args.direct:

@@ -42,7 +42,7 @@ from leafgate.errors import ConfigError, LeafgateError
 from leafgate.messages import GatewayState, Pose
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.ecu import INJECTION_KINDS as ECU_INJECTION_KINDS
-from leafgate.sim.ecu import SimulatedEcu, run_ecu_realtime
+from leafgate.sim.ecu import RealtimeStats, SimulatedEcu, run_ecu_realtime
 from leafgate.sim.metrics import clearance_metrics, path_errors, tracking_metrics
 from leafgate.sim.names import TO_SIM_ECU
 from leafgate.sim.plots import Trace
@@ -449,10 +449,14 @@ def run_realtime(
     timeline: list[tuple[float, str]] = []
     wall0 = time.perf_counter()
 
+    ecu_stats: list[RealtimeStats] = []
+
     def guarded(fn: Any, *args: Any, **kwargs: Any) -> Any:
         def body() -> None:
             try:
-                fn(*args, **kwargs)
+                result = fn(*args, **kwargs)
+                if isinstance(result, RealtimeStats):
+                    ecu_stats.append(result)
             except BaseException as exc:  # surfaced to the caller after the join
                 errors.append(exc)
                 stop_ecu.set()
@@ -540,6 +544,7 @@ def run_realtime(
     metrics.update(
         {
             "final_state": runtime.gateway.state.name,
+            "final_reason": runtime.gateway.machine.reason,
             "duration_s": float(ts[-1] - ts[0]) if len(ts) else 0.0,
             "wall_time_s": time.perf_counter() - wall0,
             "loop_compute_median_s": loop["compute_median_s"],
@@ -547,6 +552,8 @@ def run_realtime(
             "loop_start_lateness_p99_s": loop["start_lateness_p99_s"],
             "loop_overruns": loop["overruns"],
             "localization_published": feed.published,
+            # the simulator shares this machine: a late ECU loop is a late report to the gateway
+            "ecu_loop_max_lateness_s": ecu_stats[0].max_lateness if ecu_stats else math.nan,
         }
     )
     speed_ref = path_errors(scenario.trajectory, x, y, heading, speed).speed_ref
