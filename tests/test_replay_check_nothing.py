@@ -172,6 +172,31 @@ def test_a_rotated_log_with_a_part_missing_is_not_ok(
     assert _verdict(out).startswith("FAILED")
 
 
+def test_a_rotated_log_without_its_last_part_is_not_ok(
+    drive: Drive, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each part the recorder closes to go on in the next ends with a marker saying so: old
+    code closed it with the recording's end marker, so the parts without the last one read as
+    a whole recording, OK, with the end of the drive never checked."""
+    for part in drive.parts[:-1]:
+        shutil.copy(part, tmp_path)
+    last = drive.parts[-1].name
+    given = sorted(tmp_path.glob("*.blf"))
+    assert cli.main(["replay", "check", *map(str, given), "--profile", PROFILE]) == 1
+    out = capsys.readouterr().out
+    assert f"goes on in part {last}, which is missing: its frames were not checked" in out, out
+    assert _verdict(out).startswith("FAILED")
+    decoded = io.StringIO()
+    decode_log(group_parts(given)[0], out=decoded, profile=PROFILE)
+    assert f"the recording goes on in part {last}, missing" in decoded.getvalue()
+    # the whole drive, and a part checked on its own with the next one beside it, are fine
+    assert main_check([str(p) for p in drive.parts], profile=PROFILE) == 0
+    shutil.copy(drive.parts[-1], tmp_path)
+    for path in given:
+        log = check_log(group_parts([path])[0], profile=PROFILE)
+        assert not any("goes on in part" in f.detail for f in log.findings)
+
+
 def test_several_logs_end_with_one_verdict_over_all(
     drive: Drive, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -125,26 +125,30 @@ class _CompleteLines:
 # closed properly. `replay check` reports a log without it as incomplete, with where it stops.
 END_MARKER_ID: Final = 0x1FFFFFFF  # extended ID, outside every DBC
 END_MARKER_DATA: Final = b"LGEND\x00\x00\x00"
+# A rotated log's part closed properly, the recording going on in the next part: so a check of
+# the parts given can tell that the last of them is not the recording's end.
+PART_MARKER_DATA: Final = b"LGNXT\x00\x00\x00"
 
 
-def end_marker(timestamp: float, channel: Any = None) -> can.Message:
-    """The end-of-recording marker frame."""
+def end_marker(timestamp: float, channel: Any = None, continues: bool = False) -> can.Message:
+    """The end-of-recording marker frame (``continues``: of a part, the next part follows)."""
     return can.Message(
         timestamp=timestamp,
         arbitration_id=END_MARKER_ID,
         is_extended_id=True,
-        data=END_MARKER_DATA,
+        data=PART_MARKER_DATA if continues else END_MARKER_DATA,
         channel=channel,
         is_rx=False,
     )
 
 
 def is_end_marker(msg: can.Message) -> bool:
-    """Whether ``msg`` is the end-of-recording marker."""
+    """Whether ``msg`` is an end-of-recording marker: the file was closed properly (the
+    recording's end, or a part's before the next one)."""
     return (
         msg.is_extended_id
         and msg.arbitration_id == END_MARKER_ID
-        and bytes(msg.data) == END_MARKER_DATA
+        and bytes(msg.data) in (END_MARKER_DATA, PART_MARKER_DATA)
     )
 
 
@@ -168,6 +172,7 @@ class FrameSource:
         self.path = Path(path)
         self.markers = markers
         self.ended = False  # the last frame read was an end-of-recording marker
+        self.continues = False  # … one saying the recording goes on in the next part
         if not self.path.is_file():
             raise ReplayError(f"{self.path}: no such file")
         self.size = self.path.stat().st_size
@@ -195,6 +200,7 @@ class FrameSource:
         try:
             for msg in self._frames():
                 self.ended = is_end_marker(msg)
+                self.continues = self.ended and bytes(msg.data) == PART_MARKER_DATA
                 if self.markers or not self.ended:
                     yield msg
         except ReplayError:
@@ -306,6 +312,26 @@ def _part_number(path: Path) -> tuple[tuple[Path, str, str], int] | None:
     return (path.parent, match["base"], path.suffix), int(match["number"])
 
 
+def next_part(path: Path) -> Path | None:
+    """The rotated log's part after ``path`` (None: ``path`` is not named as a part)."""
+    part = _part_number(path)
+    if part is None:
+        return None
+    (folder, base, suffix), number = part
+    width = max(3, len(path.stem) - len(base) - 1)
+    return folder / f"{base}_{number + 1:0{width}d}{suffix}"
+
+
+def unread_next_part(parts: LogParts, continues: bool) -> Path | None:
+    """The part a rotated log goes on in after the last one given, when it was not given and
+    is not left out on purpose (a single part given, the next on disk: as :func:`group_parts`
+    counts missing parts)."""
+    nxt = next_part(parts.paths[-1]) if continues else None
+    if nxt is None or (len(parts.paths) == 1 and nxt.is_file()):
+        return None
+    return nxt
+
+
 def group_parts(paths: Sequence[str | Path]) -> list[LogParts]:
     """The files as logs, in the order given: the parts of one rotated log (the recorder's
     ``STEM_000.SUFFIX``, ``STEM_001.SUFFIX`` … in one folder) together and in number order,
@@ -364,6 +390,11 @@ class ChainedSource:
     @property
     def ended(self) -> bool:
         return self.sources[-1].ended
+
+    @property
+    def continues(self) -> bool:
+        """The last part read says the recording goes on in a next part."""
+        return self.sources[-1].continues
 
     @property
     def session(self) -> SessionReader | None:

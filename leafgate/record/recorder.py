@@ -467,7 +467,7 @@ class CanLogRecorder(_FileRecorder):
     def _rotate(self) -> None:
         if self._writer is not None:
             writer, self._writer = self._writer, None
-            self._mark_end(writer)
+            self._mark_end(writer, continues=True)
             writer.stop()
         name = self._next_name()
         name.parent.mkdir(parents=True, exist_ok=True)
@@ -517,10 +517,13 @@ class CanLogRecorder(_FileRecorder):
         if self.max_bytes and self._writer.file_size() >= self.max_bytes:
             self._rotate()
 
-    def _mark_end(self, writer: can.io.generic.FileIOMessageWriter[Any]) -> None:
+    def _mark_end(
+        self, writer: can.io.generic.FileIOMessageWriter[Any], continues: bool = False
+    ) -> None:
         stamp = self.tx_clock() if self.tx_clock is not None else time.time()
         # never before the last frame: a simulated drive's clock runs ahead of the wall clock
-        writer.on_message_received(end_marker(max(stamp, self._last_written), self.channel))
+        marker = end_marker(max(stamp, self._last_written), self.channel, continues)
+        writer.on_message_received(marker)
 
     def _finish(self) -> None:
         if self._writer is not None:

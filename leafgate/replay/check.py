@@ -99,6 +99,7 @@ from leafgate.record.logs import (
     group_parts,
     is_end_marker,
     recording_context,
+    unread_next_part,
 )
 from leafgate.replay.decode import authentication_summary
 from leafgate.replay.report import write_report
@@ -1055,6 +1056,19 @@ def _part_findings(parts: LogParts, source: ChainedSource) -> list[Finding]:
                 "parts",
                 f"part {missing.name} of the rotated log is missing{on_disk}: its frames were "
                 "not checked",
+            )
+        )
+    after = unread_next_part(parts, source.continues)
+    if after is not None:
+        on_disk = " (on disk, not given)" if after.is_file() else ""
+        out.append(
+            Finding(
+                spans[-1][2],
+                "incomplete",
+                None,
+                "parts",
+                f"part {spans[-1][0].name} ends where the recording goes on in part "
+                f"{after.name}, which is missing{on_disk}: its frames were not checked",
             )
         )
     for span_path, _, last, ended in spans[:-1]:

@@ -41,7 +41,7 @@ import can
 
 from leafgate.can.codec import CanCodec, Decoded, FrameStats
 from leafgate.can.profile import Profile
-from leafgate.record.logs import ChainedSource, LogParts, group_parts
+from leafgate.record.logs import ChainedSource, LogParts, group_parts, unread_next_part
 
 __all__ = ["authentication_summary", "decode_log", "format_frame", "format_summary"]
 
@@ -180,6 +180,9 @@ def _incomplete_note(parts: LogParts, source: ChainedSource) -> str:
     for span_path, _, _, ended in source.spans[:-1]:
         if not ended:
             notes.append(f"; part {span_path.name} has no end-of-recording marker")
+    after = unread_next_part(parts, source.continues)
+    if after is not None:
+        notes.append(f"; the recording goes on in part {after.name}, missing")
     if parts.missing:
         names = ", ".join(m.name for m in parts.missing)
         notes.append(f"; missing part{'s' if len(parts.missing) > 1 else ''} {names}")
