@@ -136,3 +136,28 @@ def test_a_preemption_between_two_clock_reads_does_not_age_a_frame() -> None:
     msg.timestamp = clocks.wall() - 0.002  # arrived 2 ms ago
     arrived = clocks.now - 0.002
     assert abs(receiver.received_at(msg) - arrived) < 1e-6  # epoch floats: 0.2 µs steps
+
+
+def test_a_stall_right_after_the_first_frame_is_judged_by_the_profiles_period() -> None:
+    """At start-up (Zenoh opening, the controller built) the receive thread stalled after the
+    first report of each ID, before any interval was measured: old code counted each ID's skip
+    as a report error, six at once, and the daemon latched FAULT before anyone engaged. The
+    profile's send period stands in until the frames show theirs."""
+    clocks, receiver, ecu = rig()
+    prompt(receiver, clocks, ecu, 1)
+    start = clocks.now
+    for _ in range(20):
+        steer(ecu)  # dropped while nobody read
+    clocks.now = start + 0.3
+    deliver(receiver, clocks, steer(ecu), start + 0.21)
+    assert receiver.take_counts()[1] == 0
+    assert receiver.stall_skips == 1
+
+
+def test_a_skip_right_after_the_first_frame_without_a_stall_stays_an_error() -> None:
+    clocks, receiver, ecu = rig()
+    prompt(receiver, clocks, ecu, 1)
+    steer(ecu)  # not delivered, the thread on time: a sender skipping
+    prompt(receiver, clocks, ecu, 1)
+    assert receiver.take_counts()[1] == 1
+    assert receiver.stall_skips == 0

@@ -154,6 +154,16 @@ class CanReceiver(can.Listener):
         # per ID: receive time and read lag of its last frame, its usual interval (s, 0 until
         # known), and whether a stall has been excused since its last good frame
         self._rx_timing: dict[int, list[Any]] = {}
+        # the profile's send period of each periodic report, the usual interval until the
+        # frames have shown theirs: a stall right after the first frame of an ID (start-up,
+        # while the daemon opens Zenoh and builds the controller) skipped six counters at once
+        # with no interval known, and latched a FAULT no ECU caused
+        profile = codec.profile
+        self._nominal = {
+            codec.frame_id(spec.name): spec.period
+            for spec in profile.frames_of("report")
+            if not spec.on_change
+        }
         self.on_frame: Callable[[can.Message, Decoded], None] | None = None  # recorder hook
 
     def received_at(self, msg: can.Message) -> float:
@@ -196,6 +206,7 @@ class CanReceiver(can.Listener):
             self._rx_timing[frame_id] = [received, lag, 0.0, False]
             return False
         last, last_lag, interval, excused = timing
+        usual = interval if interval > 0.0 else self._nominal.get(frame_id, 0.0)
         gap = received - last
         timing[0], timing[1] = received, lag
         if valid:
@@ -203,7 +214,7 @@ class CanReceiver(can.Listener):
                 timing[2] = gap if interval == 0.0 else 0.9 * interval + 0.1 * gap
             timing[3] = False
             return False
-        stalled = max(lag, last_lag) > STALL_LAG and interval > 0.0 and gap > STALL_GAP * interval
+        stalled = max(lag, last_lag) > STALL_LAG and usual > 0.0 and gap > STALL_GAP * usual
         if stalled and not excused:
             timing[3] = True
             return True
