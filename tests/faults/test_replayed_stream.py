@@ -98,7 +98,12 @@ def movement(run: FaultRun, started: float) -> tuple[float, float]:
 def test_replayed_stream_racing_the_gateway_never_drives_the_car(
     make_run: Callable[..., FaultRun],
 ) -> None:
-    run = make_run("replayed stream races the gateway's counters")
+    # Not about the reports: a starved receive thread on a loaded machine loses datagrams of
+    # six report IDs at once, which reached the default error limit before the race's own
+    # conflict once (beside other sessions). Relaxed, as test_localization_spoofed.py does.
+    run = make_run(
+        "replayed stream races the gateway's counters", watchdog={"max_report_errors": 50}
+    )
     with run.start():
         time.sleep(1.0)  # the gateway in STANDBY, sending ENABLE=0
         racer, started = attack(run, lambda bus: Racer(bus, run))
