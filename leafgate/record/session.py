@@ -316,6 +316,7 @@ def encode_inputs(inputs: GatewayInputs, trajectory: tuple[int, int] | None) -> 
         "bad_report_frames": inputs.bad_report_frames,
         "request": None if inputs.request is None else inputs.request.name,
         "overrun": inputs.overrun,
+        "lateness": inputs.lateness,
         "bus_errors": inputs.bus_errors,
         "foreign_command_frames": inputs.foreign_command_frames,
         "foreign_command_names": list(inputs.foreign_command_names),
@@ -346,6 +347,9 @@ def decode_inputs(
         bad_report_frames=int(d["bad_report_frames"]),
         request=None if d["request"] is None else enum_from_json(OperatorRequest, d["request"]),
         overrun=bool(d["overrun"]),
+        # absent in sessions recorded before the loop's stall was an input: a stall FAULT of
+        # such a session is not reproduced (a re-run reports the divergence)
+        lateness=float(d.get("lateness", 0.0)),
         bus_errors=int(d["bus_errors"]),
         # absent in sessions recorded before the gateway watched its command IDs
         foreign_command_frames=int(d.get("foreign_command_frames", 0)),
@@ -445,6 +449,7 @@ def _json_schemas() -> dict[str, tuple[str, dict[str, Any]]]:
         bad_report_frames=integer,
         request=_nullable(json_schema(OperatorRequest)),
         overrun=boolean,
+        lateness=_NUMBER,
         bus_errors=integer,
         foreign_command_frames=integer,
         foreign_command_names={"type": "array", "items": string},

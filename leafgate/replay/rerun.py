@@ -202,7 +202,12 @@ class RerunReport:
             lines.append(
                 f"{s.name:<22} {s.max_abs:>12.6g} {s.rms:>12.6g} {s.differing:>7} {first:>11}"
             )
-        if self.identical:
+        if self.identical and self.truncated:
+            lines.append(
+                f"IDENTICAL up to the cut: the {self.ticks} ticks the truncated session holds "
+                "reproduced bit for bit; the drive after the cut was not recorded, not re-run"
+            )
+        elif self.identical:
             lines.append("IDENTICAL: every command reproduced bit for bit")
         else:
             lines.append(f"DIVERGED: first at {self.first_divergence:.3f} s")
