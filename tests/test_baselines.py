@@ -14,6 +14,7 @@ from leafgate.control.baselines import PurePursuit, PurePursuitConfig, Stanley, 
 from leafgate.errors import ConfigError
 from leafgate.messages import Gear, Pose, Trajectory
 from leafgate.settings import LeafgateConfig
+from leafgate.sim.compare import drive_config
 from leafgate.sim.runner import run_direct
 from leafgate.sim.scenarios import Scenario, get_scenario
 
@@ -94,6 +95,46 @@ def test_parking_commands_stay_within_angle_and_rate_limits(kind: str) -> None:
     assert np.max(np.abs(cmd)) <= limits.steer_max + 1e-12
     assert np.max(np.abs(np.diff(cmd))) <= limits.steer_rate_max * PERIOD + 1e-12
     assert result.metrics["finished"]  # both cusps driven, stopped at the goal
+
+
+def _braking_line(direction: int, length: float, cruise: float, decel: float) -> Trajectory:
+    """A straight line along x driven forward (+x) or reversing (−x) at ``cruise`` m/s, whose
+    planned speed falls as √(2 b d) over the last metres to rest on the end, the way the
+    scenarios' plans brake (``decel`` = b, m/s²)."""
+    s = np.linspace(0.0, length, round(length / 0.5) + 1)  # m, waypoints 0.5 m apart
+    v = np.minimum(cruise, np.sqrt(2.0 * decel * (length - s)))
+    return Trajectory(
+        x=direction * s, y=np.zeros(len(s)), heading=np.zeros(len(s)), speed=direction * v
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("plant", ["steer-lag", "dynamic"])
+@pytest.mark.parametrize("direction", [+1, -1])
+@pytest.mark.parametrize("kind", ["pure-pursuit", "stanley"])
+def test_baseline_comes_to_rest_on_the_end_despite_the_longitudinal_lag(
+    kind: str, direction: int, plant: str
+) -> None:
+    """On a plant whose acceleration lags the command, the car follows the plan's braking ramp
+    and stops on the end: neither past it nor short of it by more than a few centimetres.
+
+    Without the feed-forward of the planned deceleration the PI loop lagged the ramp by about
+    0.3 m/s and the car stopped about 0.3 m past the end, outside the goal tolerance: "off-goal".
+    """
+    length, cruise = 20.0, 2.0  # m, m/s
+    traj = _braking_line(direction, length, cruise, decel=0.4)
+    scenario = Scenario(
+        "braking-line", "20 m at 2 m/s, braking to the end", traj, Pose(0.0, 0.0, 0.0, 0.0), 40.0
+    )
+    cfg = drive_config(LeafgateConfig(), kind, plant)
+    tracker = cfg.controller.pure_pursuit if kind == "pure-pursuit" else cfg.controller.stanley
+    result = run_direct(cfg, scenario)
+    travelled = direction * result.trace.x  # m, along the direction of travel
+    assert travelled.max() - length <= 0.05  # never more than 5 cm past the end
+    assert length - travelled[-1] <= 0.05  # nor stopped short of it
+    assert result.metrics["finished"], result.metrics.get("not_finished_reason")
+    assert result.metrics["final_position_error_m"] < tracker.goal_tolerance
+    assert abs(result.trace.speed[-1]) <= tracker.stop_speed
 
 
 def test_make_controller_builds_both_baselines_from_yaml_sections() -> None:

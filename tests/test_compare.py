@@ -175,17 +175,31 @@ def test_command_line_lists_unfinished_drives_and_fails_on_a_feasible_one(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A drive on a feasible scenario that did not finish is a failed comparison (exit 1, named
-    on stderr with its reason); one on an infeasible scenario is listed as expected (exit 0)."""
+    on stderr with its reason); one on an infeasible scenario is listed as expected (exit 0).
+
+    Every feasible drive finishes with the default config, so the failure is made: a goal
+    tolerance of 1 mm, which Pure Pursuit cannot stop within, keeps the U-turn from ending."""
+    config = tmp_path / "tight.yaml"
+    config.write_text("controller:\n  pure_pursuit:\n    goal_tolerance: 0.001\n", encoding="utf-8")
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    common = ["--plant", "steer-lag", "--controller", "pure-pursuit", "--workers", "1"]
+    common = [
+        "--plant",
+        "steer-lag",
+        "--controller",
+        "pure-pursuit",
+        "--workers",
+        "1",
+        "--no-plots",
+    ]
+    tight = ["--config", str(config)]
     args = parser.parse_args(
-        ["--out", str(tmp_path / "a"), "--scenario", "u-turn,tight-hairpin", "--no-plots", *common]
+        ["--out", str(tmp_path / "a"), "--scenario", "u-turn,tight-hairpin", *tight, *common]
     )
     assert cmd_compare(args) == 1
     captured = capsys.readouterr()
     assert "u-turn:" in captured.err and "pure-pursuit × steer-lag plant: " in captured.err
-    assert "off-goal" in captured.err and "tight-hairpin" not in captured.err
+    assert "tight-hairpin" not in captured.err
     assert "did not finish, as expected" in captured.out and "tight-hairpin:" in captured.out
     assert "1 feasible drives did not finish" in captured.out
     saved = json.loads((tmp_path / "a" / "report.json").read_text(encoding="utf-8"))
@@ -193,12 +207,12 @@ def test_command_line_lists_unfinished_drives_and_fails_on_a_feasible_one(
         ("u-turn", True),
         ("tight-hairpin", False),
     }
+    (u_turn,) = [d for d in saved["not_finished"] if d["scenario"] == "u-turn"]
+    assert u_turn["reason"] in captured.err  # the reason, as the report has it
     text = (tmp_path / "a" / "report.md").read_text(encoding="utf-8")
     assert "## Drives that did not finish" in text and "Not compared" in text
 
-    args = parser.parse_args(
-        ["--out", str(tmp_path / "b"), "--scenario", "tight-hairpin", "--no-plots", *common]
-    )
+    args = parser.parse_args(["--out", str(tmp_path / "b"), "--scenario", "tight-hairpin", *common])
     assert cmd_compare(args) == 0  # the infeasible hairpin is expected not to finish
     captured = capsys.readouterr()
     assert captured.err == "" and "tight-hairpin:" in captured.out

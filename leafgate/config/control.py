@@ -162,6 +162,8 @@ class TrackerConfig:
     speed_integral_band: float = 0.2  # m/s, integrate only within this speed error (anti-windup)
     creep_speed: float = 0.3  # m/s, slowest target speed while the segment's end is ahead
     stop_decel: float = 0.4  # m/s², target speed ≤ √(2 b d) over the distance d to the end
+    stop_reaction_time: float = 0.3  # s, braking acts this late (actuator lag, jerk-limited
+    # ramp): the stopping curve keeps |v|·t of the distance to the end in reserve
     accel_min: float = -3.0  # m/s², gear-relative braking limit
     accel_max: float = 1.5  # m/s², gear-relative drive limit
     jerk_max: float = 2.0  # m/s³
@@ -191,7 +193,7 @@ class TrackerConfig:
             "align_tolerance",
             "search_window",
         )
-        for name in ("speed_ki", "hold_decel"):
+        for name in ("speed_ki", "hold_decel", "stop_reaction_time"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise ValueError(f"{name} must be a number ≥ 0, got {value!r}")

@@ -214,18 +214,47 @@ class _Tracker:
                 status="stopping",
             )
 
-        # speed: planned speed, at least creeping, and a stopping curve before the end
-        remaining = max(float(path.s[seg.end]) - s0, 0.0)
-        planned = abs(float(path.reference_speed(np.array([s0]))[0]))
-        stop_curve = math.sqrt(2.0 * cfg.stop_decel * remaining)
-        target_speed = min(max(planned, cfg.creep_speed), stop_curve)
-        feedforward = -cfg.stop_decel if stop_curve < max(planned, cfg.creep_speed) else 0.0
         along = direction * pose.speed
+        target_speed, feedforward = self._speed_target(path, seg, s0, abs(pose.speed))
         a_rel = self._speed.step(
             self.period, target_speed, along, feedforward, cfg.accel_min, cfg.accel_max
         )
         accel = self._ramp(direction * a_rel)
         return self._output(steer, accel, direction * target_speed, direction, t0)
+
+    def _speed_target(
+        self, path: ReferencePath, seg: Segment, s: float, speed: float
+    ) -> tuple[float, float]:
+        """The target speed magnitude at arc length ``s`` (m/s) and the acceleration following
+        it asks for (m/s², the feed-forward of :class:`SpeedPi`).
+
+        The target is the planned speed, at least creeping, under a stopping curve before the
+        end. Two things let the car stop *on* the end rather than past it:
+
+        - The feed-forward of a falling planned speed, ``v dv/ds``. On the plan's braking ramp
+          a PI loop alone lags by about ``b / kp`` (0.3 m/s at 0.4 m/s²) and, outside its
+          integration band, never catches up: the car reached the end still rolling. A rising
+          planned speed gets none: arriving late at a higher speed costs nothing, while the
+          acceleration asked for on a short parking move's brief rise is still acting, through
+          the jerk limit and the actuator's lag, when its braking should begin.
+        - The stopping curve ``√(2 b (d − |v| t_r))`` keeps the distance covered during the
+          reaction time ``t_r`` (the braking asked for acts only after the actuator's lag and
+          the jerk-limited ramp) in reserve, as a braking distance ``v t_r + v²/2b`` does.
+
+        :param speed: the car's speed magnitude, m/s
+        """
+        cfg = self.cfg
+        remaining = float(path.s[seg.end]) - s - speed * cfg.stop_reaction_time  # m
+        stop_curve = math.sqrt(2.0 * cfg.stop_decel * max(remaining, 0.0))  # m/s
+        planned, slope = _planned_speed(path, seg, s)
+        if stop_curve < max(planned, cfg.creep_speed):
+            # on the curve v² = 2 b (d − v t_r): dv/dt = −b v / (v + b t_r), −b without reserve
+            reserve = cfg.stop_decel * cfg.stop_reaction_time  # m/s
+            decel = cfg.stop_decel * stop_curve / (stop_curve + reserve) if stop_curve else 0.0
+            return stop_curve, -decel
+        if planned > cfg.creep_speed:
+            return planned, min(planned * slope, 0.0)
+        return cfg.creep_speed, 0.0
 
     # --- the law (subclasses) ---
 
@@ -288,6 +317,21 @@ class _Tracker:
             solve_time=time.perf_counter() - t0,
             **self._where(),
         )
+
+
+def _planned_speed(path: ReferencePath, seg: Segment, s: float) -> tuple[float, float]:
+    """The planned speed magnitude at arc length ``s`` on ``seg`` (m/s) and its slope along the
+    direction of travel, d|v|/ds (1/s): the reference is linear in ``s`` between waypoints, so
+    the slope is that of the chord the car is on (the one ahead, on a waypoint)."""
+    xs = path.s
+    j = int(np.searchsorted(xs, s, side="right")) - 1
+    j = min(max(j, seg.start), seg.end - 1)
+    s_j, s_k = float(xs[j]), float(xs[j + 1])
+    v_j = seg.direction * float(path.speed[j])
+    v_k = seg.direction * float(path.speed[j + 1])
+    slope = (v_k - v_j) / (s_k - s_j) if s_k > s_j else 0.0
+    t = min(max(s - s_j, 0.0), s_k - s_j)
+    return max(v_j + slope * t, 0.0), slope
 
 
 def point_on_path(path: ReferencePath, seg: Segment, s: float) -> tuple[float, float, float]:
