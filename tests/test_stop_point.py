@@ -71,6 +71,21 @@ def test_the_car_stops_at_the_stop_point_and_the_gateway_waits_engaged() -> None
     assert result.metrics["finished"] is False  # the route's end was not reached
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("controller", ["pure-pursuit", "stanley"])
+def test_the_baselines_stop_at_the_stop_point_too(controller: str) -> None:
+    """Old code: the baselines' target speed never fell below the creep speed before the
+    segment's end, so they rolled through a planner's stop line."""
+    scenario = Scenario("stop", "a plan that stops at 10 m", _stopping_plan(), Pose(0, 0, 0, 0), 20)
+    cfg = load_config(None, {"sim.plant.kind": "kinematic", "controller.kind": controller})
+    result = run(cfg, scenario)
+    x = result.series["x"]
+    assert x.max() < STOP + 0.1, x.max()
+    assert x[-1] == pytest.approx(STOP, abs=0.1)
+    assert result.states[-1] == "ENGAGED"
+    assert not any("no progress" in what for _, what in result.timeline)
+
+
 def _write(path: Path, rows: list[tuple[float, float, float, float]]) -> Path:
     lines = ["x,y,heading,speed"] + [",".join(f"{v:.6f}" for v in r) for r in rows]
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")

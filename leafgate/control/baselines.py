@@ -214,6 +214,16 @@ class _Tracker:
                 status="stopping",
             )
 
+        stop = path.stops.get(seg)
+        if at_rest and stop is not None and s0 >= stop - cfg.goal_tolerance:
+            # the plan comes to rest here (a planner's stop line): hold, as the MPC does, and
+            # wait for a plan that moves on
+            out = self._output(steer, self._ramp(-direction * cfg.hold_decel), 0.0, direction, t0)
+            return replace(
+                out,
+                status=f"stop-point: the plan stands from {stop:.2f} m of "
+                f"{prog.route_length:.2f} m on",
+            )
         along = direction * pose.speed
         target_speed, feedforward = self._speed_target(path, seg, s0, abs(pose.speed))
         a_rel = self._speed.step(
@@ -229,7 +239,8 @@ class _Tracker:
         it asks for (m/s², the feed-forward of :class:`SpeedPi`).
 
         The target is the planned speed, at least creeping, under a stopping curve before the
-        end. Two things let the car stop *on* the end rather than past it:
+        end, or before the plan's stop point (:attr:`ReferencePath.stops`: old code crept on
+        through it at the creep speed). Two things let the car stop *on* the end rather than past it:
 
         - The feed-forward of a falling planned speed, ``v dv/ds``. On the plan's braking ramp
           a PI loop alone lags by about ``b / kp`` (0.3 m/s at 0.4 m/s²) and, outside its
@@ -244,7 +255,8 @@ class _Tracker:
         :param speed: the car's speed magnitude, m/s
         """
         cfg = self.cfg
-        remaining = float(path.s[seg.end]) - s - speed * cfg.stop_reaction_time  # m
+        end = path.stops.get(seg, float(path.s[seg.end]))  # m, where the plan stops the car
+        remaining = end - s - speed * cfg.stop_reaction_time  # m
         stop_curve = math.sqrt(2.0 * cfg.stop_decel * max(remaining, 0.0))  # m/s
         planned, slope = _planned_speed(path, seg, s)
         if stop_curve < max(planned, cfg.creep_speed):
