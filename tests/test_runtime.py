@@ -390,15 +390,40 @@ def test_frames_waiting_sees_unread_data_in_a_bus_socket() -> None:
 
 
 @pytest.mark.timeout(20)
-def test_a_signal_that_lands_while_the_loop_sleeps_on_stop_still_stops_it() -> None:
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_signal_that_lands_while_the_loop_sleeps_on_stop_still_stops_it(
+    sig: signal.Signals,
+) -> None:
     """The control loop sleeps in ``stop.wait``; a signal handled while that call holds the
     event's lock once made ``Event.set`` in the handler wait for the lock its own thread held:
-    the daemon ignored Ctrl-C for good (CI: "run × sigint: still running")."""
+    the daemon ignored Ctrl-C for good (CI: "run × sigint: still running"). SIGHUP (a closed
+    terminal) stops it as SIGTERM does; it killed the daemon while ENGAGED."""
     stop = threading.Event()
-    before = signal.getsignal(signal.SIGTERM)
-    with signals_set(stop):
+    before = signal.getsignal(sig)
+    with signals_set(stop) as request:
         with stop._cond:  # type: ignore[attr-defined]  # the lock stop.wait holds at times
-            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), sig)
             time.sleep(0.1)  # the handler runs here, on this thread, inside the lock
         assert stop.wait(timeout=10.0)
-    assert signal.getsignal(signal.SIGTERM) == before  # the handler is restored
+        assert request.reason == f"{sig.name} received"
+    assert signal.getsignal(sig) == before  # the handler is restored
+
+
+@pytest.mark.timeout(20)
+def test_a_stop_signal_held_from_the_commands_first_line_reaches_the_daemon() -> None:
+    """``leafgate`` holds SIGTERM and SIGHUP before its imports; the daemon's handlers take
+    over what came meanwhile, and leave the handlers from before the hold."""
+    from leafgate.runtime import signals
+
+    before = signal.getsignal(signal.SIGTERM)
+    signals.hold()
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)
+        stop = threading.Event()
+        with signals_set(stop) as request:
+            assert stop.wait(timeout=10.0)
+            assert request.reason == "SIGTERM received"
+    finally:
+        signals.release()
+    assert signal.getsignal(signal.SIGTERM) == before

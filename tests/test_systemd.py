@@ -137,3 +137,47 @@ def test_a_start_that_fails_on_the_bus_leaves_no_recording(tmp_path: Path) -> No
     with pytest.raises(LeafgateError):
         run_daemon(cfg)
     assert not rec.exists() or not any(rec.iterdir()), sorted(rec.iterdir())
+
+
+@pytest.mark.timeout(60)
+def test_ready_goes_out_before_the_first_watchdog_ping(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """systemd counts WatchdogSec from READY=1; the first tick's WATCHDOG=1 went out before it."""
+    import dataclasses
+    import os
+    import socket
+    import threading
+
+    from leafgate.config.can import BusConfig
+    from leafgate.runtime.daemon import run_daemon
+    from leafgate.settings import load_config
+    from tests.conftest import free_port
+
+    cfg = load_config(ROOT / "config" / "sim.yaml")
+    cfg = dataclasses.replace(
+        cfg,
+        can=dataclasses.replace(
+            cfg.can, dbw=BusConfig(interface="virtual", channel=f"notify-{os.getpid()}")
+        ),
+        zenoh=dataclasses.replace(cfg.zenoh, listen=(f"tcp/127.0.0.1:{free_port()}",)),
+    )
+    address = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind(address)
+        server.settimeout(20.0)
+        monkeypatch.setenv("NOTIFY_SOCKET", address)
+        monkeypatch.setenv("WATCHDOG_USEC", "200000")  # a ping every 0.1 s
+        monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+        stop = threading.Event()
+        thread = threading.Thread(target=run_daemon, args=(cfg, stop))
+        thread.start()
+        sent: list[str] = []
+        try:
+            while sent.count("WATCHDOG=1") < 3:
+                sent.append(server.recv(64).decode())
+        finally:
+            stop.set()
+            thread.join(timeout=20)
+    assert not thread.is_alive()
+    assert sent[0] == "READY=1", sent

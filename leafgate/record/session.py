@@ -315,6 +315,7 @@ def encode_inputs(inputs: GatewayInputs, trajectory: tuple[int, int] | None) -> 
         "good_report_frames": inputs.good_report_frames,
         "bad_report_frames": inputs.bad_report_frames,
         "request": None if inputs.request is None else inputs.request.name,
+        "request_reason": inputs.request_reason,
         "overrun": inputs.overrun,
         "bus_errors": inputs.bus_errors,
         "foreign_command_frames": inputs.foreign_command_frames,
@@ -345,6 +346,8 @@ def decode_inputs(
         good_report_frames=int(d["good_report_frames"]),
         bad_report_frames=int(d["bad_report_frames"]),
         request=None if d["request"] is None else enum_from_json(OperatorRequest, d["request"]),
+        # absent in sessions recorded before a signal's stop named itself
+        request_reason=str(d.get("request_reason", "")),
         overrun=bool(d["overrun"]),
         bus_errors=int(d["bus_errors"]),
         # absent in sessions recorded before the gateway watched its command IDs
@@ -444,6 +447,7 @@ def _json_schemas() -> dict[str, tuple[str, dict[str, Any]]]:
         good_report_frames=integer,
         bad_report_frames=integer,
         request=_nullable(json_schema(OperatorRequest)),
+        request_reason=string,
         overrun=boolean,
         bus_errors=integer,
         foreign_command_frames=integer,
