@@ -427,3 +427,55 @@ def test_a_stop_signal_held_from_the_commands_first_line_reaches_the_daemon() ->
     finally:
         signals.release()
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+REPLY_FIELDS = {"accepted", "state", "reason", "changed", "already"}
+
+
+def test_engage_vetoed_by_the_shell_replies_in_the_format_and_after_the_fault() -> None:
+    """A failing required recording refuses engage in STANDBY with the reply format's five
+    fields; in FAULT the core's ``fault latched (…); reset first`` comes first (it was the
+    recording's reason, without ``changed``/``already``)."""
+    veto = "recording is required but failing: disk full"
+    now = [0.0]
+    ecu = CanCodec(profile="leafgate-dbw")
+    with can.Bus(interface="virtual", channel="rt-veto") as bus:
+        runtime, receiver = make_runtime(bus, lambda: now[0])
+        runtime.engage_veto = lambda: veto
+        for k in range(5):
+            now[0] = k * 0.02
+            feed_reports(receiver, ecu)
+            runtime.tick(now[0])
+        replies: list[dict] = []
+        asker = _asker(runtime.requests, OperatorRequest.ENGAGE, replies)
+        _wait_pending(runtime.requests, 1)
+        feed_reports(receiver, ecu)
+        runtime.tick(0.1)
+        asker.join(timeout=2)
+    assert replies[0] == {
+        "accepted": False,
+        "state": "STANDBY",
+        "reason": veto,
+        "changed": False,
+        "already": False,
+    }
+    assert runtime.gateway.state.name == "STANDBY"
+
+    failing = FailingBus()
+    runtime, receiver = make_runtime(failing, lambda: now[0])
+    runtime.engage_veto = lambda: veto
+    for k in range(5):
+        now[0] = k * 0.02
+        feed_reports(receiver, ecu)
+        runtime.tick(now[0])
+    assert runtime.gateway.state.name == "FAULT"
+    replies.clear()
+    asker = _asker(runtime.requests, OperatorRequest.ENGAGE, replies)
+    _wait_pending(runtime.requests, 1)
+    runtime.tick(0.1)
+    asker.join(timeout=2)
+    failing.shutdown()
+    assert set(replies[0]) == REPLY_FIELDS
+    assert (
+        replies[0]["reason"].startswith("fault latched (") and "reset first" in replies[0]["reason"]
+    )

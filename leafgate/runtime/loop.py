@@ -123,6 +123,8 @@ class TakenRequests:
                     "accepted": False,
                     "state": state,
                     "reason": f"{item.request.value} superseded by a disengage",
+                    "changed": False,
+                    "already": False,
                 }
             )
 
@@ -158,6 +160,8 @@ class RequestBox:
                 "accepted": False,
                 "state": "UNKNOWN",
                 "reason": f"busy: {waiting} requests already wait for the control loop",
+                "changed": False,
+                "already": False,
             }
         try:
             return item.future.result(timeout=timeout)
@@ -167,6 +171,8 @@ class RequestBox:
                     "accepted": False,
                     "state": "UNKNOWN",
                     "reason": "control loop did not answer in time (request withdrawn)",
+                    "changed": False,
+                    "already": False,
                 }
             return item.future.result()  # taken by this very tick: its answer comes at once
 
@@ -362,7 +368,13 @@ class Runtime:
         pending.answer(
             reply.to_dict()
             if reply is not None
-            else {"accepted": False, "state": state, "reason": "no reply"},
+            else {
+                "accepted": False,
+                "state": state,
+                "reason": "no reply",
+                "changed": False,
+                "already": False,
+            },
             state,
         )
         frames = self._encode(result, now)
