@@ -17,6 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 UNIT = ROOT / "tools" / "leafgate.service"
 SYSUSERS = ROOT / "tools" / "leafgate.sysusers"
+README = ROOT / "README.md"
 INSTALLED = "/opt/leafgate/.venv/bin/leafgate"
 MAX_EXPOSURE = 3.0
 
@@ -56,6 +57,44 @@ def test_unit_has_watchdog_bindsto_and_no_process_wide_realtime() -> None:
     assert service["LimitRTPRIO"] == ["50"]
     assert service["CapabilityBoundingSet"] == [""] and service["AmbientCapabilities"] == [""]
     assert "RestrictRealtime" not in service  # the control thread needs SCHED_FIFO
+
+
+def test_unit_starts_again_when_its_buses_return() -> None:
+    """BindsTo= only stops the unit when can0 or can1 goes away, and Restart= does not undo
+    a stop a dependency caused: the device units' wants (WantedBy=) start it when they return.
+    The comment once promised that without anything doing it."""
+    unit = _unit()
+    bound = set(" ".join(unit["Unit"]["BindsTo"]).split())
+    wanted_by = set(" ".join(unit["Install"]["WantedBy"]).split())
+    assert bound <= wanted_by and "multi-user.target" in wanted_by
+    text = UNIT.read_text(encoding="utf-8")
+    assert "start again when they return" not in text
+
+
+def test_unit_names_no_score_of_its_own_and_its_readme_exists_where_it_says() -> None:
+    """One figure for ``systemd-analyze security``: README's (the unit said 2.x, README 1.6);
+    the Documentation= README is the clone's under the install the unit assumes."""
+    text = UNIT.read_text(encoding="utf-8")
+    assert not re.search(r"scores? (this unit )?\d", text)
+    (doc,) = _unit()["Unit"]["Documentation"]
+    clone = INSTALLED.removesuffix("/.venv/bin/leafgate")
+    assert doc == f"file://{clone}/README.md"
+    assert f"clone in\n`{clone}`" in README.read_text(encoding="utf-8")
+
+
+def test_readme_security_score_is_the_measured_one() -> None:
+    tool = _analyze()
+    readme = README.read_text(encoding="utf-8")
+    match = re.search(r"`systemd-analyze security`: (\d+\.\d) OK with\s+systemd (\d+)", readme)
+    assert match, "README no longer gives the unit's score and the systemd it was measured with"
+    version = subprocess.run([tool, "--version"], capture_output=True, text=True).stdout.split()
+    if version[1] != match.group(2):
+        pytest.skip(f"systemd {version[1]} here, README's figure is systemd {match.group(2)}'s")
+    done = subprocess.run(
+        [tool, "security", "--offline=true", str(UNIT)], capture_output=True, text=True, timeout=60
+    )
+    score = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", done.stdout)
+    assert score and score.group(1) == match.group(1), done.stdout[-300:]
 
 
 def test_shipped_car_config_asks_for_the_units_realtime_priority() -> None:
