@@ -18,6 +18,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+if __name__ == "__main__":  # python -m leafgate.cli: hold the stop signals before the imports
+    from leafgate.runtime.signals import hold
+
+    hold()
+
 try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line, as later
     from leafgate import __version__
     from leafgate.cliargs import (
@@ -41,6 +46,8 @@ except KeyboardInterrupt:
 log = logging.getLogger("leafgate")
 
 EXIT_ERROR = 1
+#: the commands that stop in a controlled way on SIGTERM and SIGHUP (runtime.signals)
+STOP_SIGNAL_COMMANDS = frozenset({"run", "sim-ecu"})
 EXIT_USAGE = 2
 ENGAGE_WAIT = 15.0  # s, how long `engage` waits for a starting gateway's inputs by default
 
@@ -1119,6 +1126,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args(["sim", *(argv or [])])
+    if args.command not in STOP_SIGNAL_COMMANDS:
+        from leafgate.runtime.signals import release
+
+        release()  # the default actions back (a signal held meanwhile acts now)
     if args.bench is not None:
         from leafgate.settings import BENCH_ENV
 

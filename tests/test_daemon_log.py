@@ -131,6 +131,9 @@ def test_systemd_watchdog_kicks_at_half_the_interval(monkeypatch: pytest.MonkeyP
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
     dog = SystemdWatchdog.from_environment()
     assert dog.interval == pytest.approx(1.0)
+    dog.kick(0.0)  # the first tick, before READY=1: no ping yet
+    assert sent == []
+    dog.start(0.0)  # READY=1 has gone out
     for k in range(151):  # 3 s of 20 ms ticks
         dog.kick(k * 0.02)
     assert sent == ["WATCHDOG=1"] * 4  # at 0, 1, 2 and 3 s

@@ -213,6 +213,52 @@ def test_startup_error_is_one_line(case: str, tmp_path: Path) -> None:
     assert expected in lines[0]
 
 
+@pytest.mark.skipif(not udp_multicast_works(), reason="python-can udp_multicast unavailable here")
+@pytest.mark.parametrize(
+    ("delay", "entry", "sig"),
+    [
+        (0.3, "leafgate", signal.SIGTERM),  # while Python imports leafgate
+        (0.8, "leafgate.cli", signal.SIGTERM),  # about when buses, Zenoh, recording open
+        (0.3, "leafgate.cli", signal.SIGHUP),
+        (1.5, "leafgate", signal.SIGHUP),
+    ],
+)
+def test_stop_signal_during_start_up_exits_cleanly(
+    tmp_path: Path, delay: float, entry: str, sig: signal.Signals
+) -> None:
+    """systemd stopping a unit still starting, a job killed at once: exit 0, nothing half-open
+    (the handlers were installed last; SIGTERM in the first second gave status 143)."""
+    cfg = yaml.safe_load((ROOT / "config" / "sim.yaml").read_text())
+    cfg["zenoh"]["listen"] = [f"tcp/127.0.0.1:{free_port()}"]
+    cfg["can"]["dbw"]["channel"] = f"239.74.{random.randint(164, 250)}.{random.randint(1, 250)}"
+    cfg["can"]["dbw"]["kwargs"] = {"port": free_port()}
+    rec = tmp_path / "rec"
+    cfg["recording"] = {"enabled": True, "directory": str(rec)}
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    log = tmp_path / "gw.log"
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", entry, "run", "--config", str(path)],
+        stdout=log.open("wb"),
+        stderr=subprocess.STDOUT,
+        cwd=ROOT,
+    )
+    try:
+        time.sleep(delay)
+        daemon.send_signal(sig)
+        assert daemon.wait(timeout=20) == 0, log.read_text()[-2000:]
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+    from leafgate.record.logs import FrameSource
+
+    for part in sorted(rec.glob("*.blf")) if rec.exists() else []:  # opened: closed with its end
+        source = FrameSource(part)
+        sum(1 for _ in source)
+        assert source.ended, f"{part.name} has no end-of-recording marker"
+
+
 def test_engage_without_gateway_fails_with_one_line(tmp_path: Path) -> None:
     path = tmp_path / "cfg.yaml"
     path.write_text(f"zenoh:\n  listen: ['tcp/127.0.0.1:{free_port()}']\n")

@@ -493,3 +493,16 @@ def test_earlier_diagnostics_keep_their_clamp_counts() -> None:
     later = rig.run(0.2).diagnostics
     assert first.clamps == counts
     assert later.clamps["jerk"] > counts["jerk"]
+
+
+def test_a_disengage_from_a_stop_signal_names_the_signal_not_the_operator() -> None:
+    """The daemon's shutdown ticks disengage with the signal as the reason (docs/state-machine.md)."""
+    rig = Rig()
+    rig.engage()
+    result = rig.step(OperatorRequest.DISENGAGE, request_reason="SIGTERM received")
+    assert rig.state == GatewayState.STANDBY
+    (transition,) = result.diagnostics.transitions
+    assert transition.reason == "SIGTERM received"
+    rig.engage()
+    (transition,) = rig.step(OperatorRequest.DISENGAGE).diagnostics.transitions
+    assert transition.reason == "operator disengage"

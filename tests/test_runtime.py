@@ -390,15 +390,92 @@ def test_frames_waiting_sees_unread_data_in_a_bus_socket() -> None:
 
 
 @pytest.mark.timeout(20)
-def test_a_signal_that_lands_while_the_loop_sleeps_on_stop_still_stops_it() -> None:
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_signal_that_lands_while_the_loop_sleeps_on_stop_still_stops_it(
+    sig: signal.Signals,
+) -> None:
     """The control loop sleeps in ``stop.wait``; a signal handled while that call holds the
     event's lock once made ``Event.set`` in the handler wait for the lock its own thread held:
-    the daemon ignored Ctrl-C for good (CI: "run × sigint: still running")."""
+    the daemon ignored Ctrl-C for good (CI: "run × sigint: still running"). SIGHUP (a closed
+    terminal) stops it as SIGTERM does; it killed the daemon while ENGAGED."""
     stop = threading.Event()
-    before = signal.getsignal(signal.SIGTERM)
-    with signals_set(stop):
+    before = signal.getsignal(sig)
+    with signals_set(stop) as request:
         with stop._cond:  # type: ignore[attr-defined]  # the lock stop.wait holds at times
-            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), sig)
             time.sleep(0.1)  # the handler runs here, on this thread, inside the lock
         assert stop.wait(timeout=10.0)
-    assert signal.getsignal(signal.SIGTERM) == before  # the handler is restored
+        assert request.reason == f"{sig.name} received"
+    assert signal.getsignal(sig) == before  # the handler is restored
+
+
+@pytest.mark.timeout(20)
+def test_a_stop_signal_held_from_the_commands_first_line_reaches_the_daemon() -> None:
+    """``leafgate`` holds SIGTERM and SIGHUP before its imports; the daemon's handlers take
+    over what came meanwhile, and leave the handlers from before the hold."""
+    from leafgate.runtime import signals
+
+    before = signal.getsignal(signal.SIGTERM)
+    signals.hold()
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)
+        stop = threading.Event()
+        with signals_set(stop) as request:
+            assert stop.wait(timeout=10.0)
+            assert request.reason == "SIGTERM received"
+    finally:
+        signals.release()
+    assert signal.getsignal(signal.SIGTERM) == before
+
+
+REPLY_FIELDS = {"accepted", "state", "reason", "changed", "already"}
+
+
+def test_engage_vetoed_by_the_shell_replies_in_the_format_and_after_the_fault() -> None:
+    """A failing required recording refuses engage in STANDBY with the reply format's five
+    fields; in FAULT the core's ``fault latched (…); reset first`` comes first (it was the
+    recording's reason, without ``changed``/``already``)."""
+    veto = "recording is required but failing: disk full"
+    now = [0.0]
+    ecu = CanCodec(profile="leafgate-dbw")
+    with can.Bus(interface="virtual", channel="rt-veto") as bus:
+        runtime, receiver = make_runtime(bus, lambda: now[0])
+        runtime.engage_veto = lambda: veto
+        for k in range(5):
+            now[0] = k * 0.02
+            feed_reports(receiver, ecu)
+            runtime.tick(now[0])
+        replies: list[dict] = []
+        asker = _asker(runtime.requests, OperatorRequest.ENGAGE, replies)
+        _wait_pending(runtime.requests, 1)
+        feed_reports(receiver, ecu)
+        runtime.tick(0.1)
+        asker.join(timeout=2)
+    assert replies[0] == {
+        "accepted": False,
+        "state": "STANDBY",
+        "reason": veto,
+        "changed": False,
+        "already": False,
+    }
+    assert runtime.gateway.state.name == "STANDBY"
+
+    failing = FailingBus()
+    runtime, receiver = make_runtime(failing, lambda: now[0])
+    runtime.engage_veto = lambda: veto
+    for k in range(5):
+        now[0] = k * 0.02
+        feed_reports(receiver, ecu)
+        runtime.tick(now[0])
+    assert runtime.gateway.state.name == "FAULT"
+    replies.clear()
+    asker = _asker(runtime.requests, OperatorRequest.ENGAGE, replies)
+    _wait_pending(runtime.requests, 1)
+    runtime.tick(0.1)
+    asker.join(timeout=2)
+    failing.shutdown()
+    assert set(replies[0]) == REPLY_FIELDS
+    assert (
+        replies[0]["reason"].startswith("fault latched (") and "reset first" in replies[0]["reason"]
+    )

@@ -17,6 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 UNIT = ROOT / "tools" / "leafgate.service"
 SYSUSERS = ROOT / "tools" / "leafgate.sysusers"
+README = ROOT / "README.md"
 INSTALLED = "/opt/leafgate/.venv/bin/leafgate"
 MAX_EXPOSURE = 3.0
 
@@ -56,6 +57,44 @@ def test_unit_has_watchdog_bindsto_and_no_process_wide_realtime() -> None:
     assert service["LimitRTPRIO"] == ["50"]
     assert service["CapabilityBoundingSet"] == [""] and service["AmbientCapabilities"] == [""]
     assert "RestrictRealtime" not in service  # the control thread needs SCHED_FIFO
+
+
+def test_unit_starts_again_when_its_buses_return() -> None:
+    """BindsTo= only stops the unit when can0 or can1 goes away, and Restart= does not undo
+    a stop a dependency caused: the device units' wants (WantedBy=) start it when they return.
+    The comment once promised that without anything doing it."""
+    unit = _unit()
+    bound = set(" ".join(unit["Unit"]["BindsTo"]).split())
+    wanted_by = set(" ".join(unit["Install"]["WantedBy"]).split())
+    assert bound <= wanted_by and "multi-user.target" in wanted_by
+    text = UNIT.read_text(encoding="utf-8")
+    assert "start again when they return" not in text
+
+
+def test_unit_names_no_score_of_its_own_and_its_readme_exists_where_it_says() -> None:
+    """One figure for ``systemd-analyze security``: README's (the unit said 2.x, README 1.6);
+    the Documentation= README is the clone's under the install the unit assumes."""
+    text = UNIT.read_text(encoding="utf-8")
+    assert not re.search(r"scores? (this unit )?\d", text)
+    (doc,) = _unit()["Unit"]["Documentation"]
+    clone = INSTALLED.removesuffix("/.venv/bin/leafgate")
+    assert doc == f"file://{clone}/README.md"
+    assert f"clone in\n`{clone}`" in README.read_text(encoding="utf-8")
+
+
+def test_readme_security_score_is_the_measured_one() -> None:
+    tool = _analyze()
+    readme = README.read_text(encoding="utf-8")
+    match = re.search(r"`systemd-analyze security`: (\d+\.\d) OK with\s+systemd (\d+)", readme)
+    assert match, "README no longer gives the unit's score and the systemd it was measured with"
+    version = subprocess.run([tool, "--version"], capture_output=True, text=True).stdout.split()
+    if version[1] != match.group(2):
+        pytest.skip(f"systemd {version[1]} here, README's figure is systemd {match.group(2)}'s")
+    done = subprocess.run(
+        [tool, "security", "--offline=true", str(UNIT)], capture_output=True, text=True, timeout=60
+    )
+    score = re.search(r"Overall exposure level for \S+: (\d+\.\d+)", done.stdout)
+    assert score and score.group(1) == match.group(1), done.stdout[-300:]
 
 
 def test_shipped_car_config_asks_for_the_units_realtime_priority() -> None:
@@ -137,3 +176,47 @@ def test_a_start_that_fails_on_the_bus_leaves_no_recording(tmp_path: Path) -> No
     with pytest.raises(LeafgateError):
         run_daemon(cfg)
     assert not rec.exists() or not any(rec.iterdir()), sorted(rec.iterdir())
+
+
+@pytest.mark.timeout(60)
+def test_ready_goes_out_before_the_first_watchdog_ping(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """systemd counts WatchdogSec from READY=1; the first tick's WATCHDOG=1 went out before it."""
+    import dataclasses
+    import os
+    import socket
+    import threading
+
+    from leafgate.config.can import BusConfig
+    from leafgate.runtime.daemon import run_daemon
+    from leafgate.settings import load_config
+    from tests.conftest import free_port
+
+    cfg = load_config(ROOT / "config" / "sim.yaml")
+    cfg = dataclasses.replace(
+        cfg,
+        can=dataclasses.replace(
+            cfg.can, dbw=BusConfig(interface="virtual", channel=f"notify-{os.getpid()}")
+        ),
+        zenoh=dataclasses.replace(cfg.zenoh, listen=(f"tcp/127.0.0.1:{free_port()}",)),
+    )
+    address = str(tmp_path / "notify")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as server:
+        server.bind(address)
+        server.settimeout(20.0)
+        monkeypatch.setenv("NOTIFY_SOCKET", address)
+        monkeypatch.setenv("WATCHDOG_USEC", "200000")  # a ping every 0.1 s
+        monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+        stop = threading.Event()
+        thread = threading.Thread(target=run_daemon, args=(cfg, stop))
+        thread.start()
+        sent: list[str] = []
+        try:
+            while sent.count("WATCHDOG=1") < 3:
+                sent.append(server.recv(64).decode())
+        finally:
+            stop.set()
+            thread.join(timeout=20)
+    assert not thread.is_alive()
+    assert sent[0] == "READY=1", sent

@@ -239,7 +239,14 @@ def test_engage_query_calls_the_handler_and_replies_json(
 ) -> None:
     # the CLI path: the client opens and closes its own session
     reply = client.request(configs[1], "engage", timeout=WAIT)
-    assert reply == {"accepted": True, "state": "ENGAGED", "reason": ""}
+    # the handler's three fields, and the two it left out (docs/state-machine.md's format)
+    assert reply == {
+        "accepted": True,
+        "state": "ENGAGED",
+        "reason": "",
+        "changed": False,
+        "already": False,
+    }
     assert handler.requests == [OperatorRequest.ENGAGE]
 
 
@@ -247,7 +254,13 @@ def test_refusal_and_disengage_come_back_as_replies(
     gateway: GatewayTransport, tool: zenoh.Session, configs: Any, handler: Handler
 ) -> None:
     reset = client.request(configs[1], OperatorRequest.RESET, WAIT, session=tool)
-    assert reset == {"accepted": False, "state": "STANDBY", "reason": "nothing to reset"}
+    assert reset == {
+        "accepted": False,
+        "state": "STANDBY",
+        "reason": "nothing to reset",
+        "changed": False,
+        "already": False,
+    }
     disengage = client.request(configs[1], "disengage", WAIT, session=tool)
     assert disengage["accepted"] is True
     assert handler.requests == [OperatorRequest.RESET, OperatorRequest.DISENGAGE]
@@ -259,7 +272,7 @@ def test_unknown_request_is_refused_without_calling_the_handler(
     reply = client.request(configs[1], "launch", WAIT, session=tool)
     assert reply["accepted"] is False
     assert "launch" in reply["reason"] and "engage" in reply["reason"]
-    assert set(reply) == {"accepted", "state", "reason"}
+    assert set(reply) == {"accepted", "state", "reason", "changed", "already"}
     assert handler.requests == []
 
 
@@ -310,12 +323,16 @@ def test_slow_engage_handler_does_not_hold_up_localization(
     finally:
         release.set()
         asker.join()
-    assert answered == [{"accepted": True, "state": "ENGAGED", "reason": ""}]
+    assert answered == [
+        {"accepted": True, "state": "ENGAGED", "reason": "", "changed": False, "already": False}
+    ]
 
 
 def test_request_without_a_gateway_raises_transport_error(configs: Any) -> None:
-    with pytest.raises(TransportError, match="no gateway answered on leaf/gateway/engage"):
-        client.request(configs[1], "engage", timeout=0.2)
+    # the time rounded: a remaining wait printed as "within 1.99744 s" said more than it knew
+    match = r"no gateway answered on leaf/gateway/engage within 0\.2 s$"
+    with pytest.raises(TransportError, match=match):
+        client.request(configs[1], "engage", timeout=0.2345)
 
 
 # --- liveliness -------------------------------------------------------------------------------
@@ -619,6 +636,15 @@ def test_requests_are_one_exact_word(
     (reply,) = _raw_get(tool, configs[1].key(keys.ENGAGE), payload)
     assert reply["accepted"] is False and "unknown request" in reply["reason"]
     assert handler.requests == [OperatorRequest.DISENGAGE]
+    # the reply format of every other reply (docs/state-machine.md), and the text as sent
+    assert reply == {
+        "accepted": False,
+        "state": "UNKNOWN",  # this gateway published no state yet
+        "reason": reply["reason"],
+        "changed": False,
+        "already": False,
+    }
+    assert f"'{payload.decode(errors='replace')}'" in reply["reason"]
 
 
 def test_wildcard_query_never_resets_or_engages(

@@ -189,7 +189,10 @@ def run_tasks(
             except (OSError, RuntimeError) as exc:  # ports, processes
                 raise BatchError(f"the local Dask cluster did not start: {exc}") from None
             with cluster, Client(cluster) as client:
-                run.workers, run.scheduler = n, f"local cluster ({n} worker processes)"
+                run.workers, run.scheduler = (
+                    n,
+                    f"local cluster ({n} worker process{'' if n == 1 else 'es'})",
+                )
                 _submit_and_wait(client, fn, tasks, timeout, progress, what, run, interrupt)
         else:
             try:

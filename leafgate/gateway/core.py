@@ -116,6 +116,8 @@ class GatewayInputs:
     bad_report_frames: int = 0  # report frames with bad CRC/counter/length since the last step
     report_error_cause: str = ""  # what the receiver makes of them (a second sender), or ""
     request: OperatorRequest | None = None  # pending operator request
+    # why the request came, when not from an operator ("SIGTERM received": the daemon stops)
+    request_reason: str = ""
     overrun: bool = False  # this tick started late (the period was exceeded)
     lateness: float = 0.0  # s this tick started after its deadline (a stall when long)
     bus_errors: int = 0  # command frames that could not be encoded or sent since the last step
@@ -588,7 +590,7 @@ class Gateway:
             return EngageReply.done(m.state, reason), False
         if request is OperatorRequest.DISENGAGE:
             if state in (GatewayState.ENGAGED, GatewayState.STOPPING):
-                m.fire(Event.DISENGAGE, now, "operator disengage")
+                m.fire(Event.DISENGAGE, now, inputs.request_reason or "operator disengage")
                 return EngageReply.done(m.state, "disengaged"), False
             if state == GatewayState.FAULT:
                 braking, self._fault_braking = self._fault_braking, False

@@ -315,6 +315,7 @@ def encode_inputs(inputs: GatewayInputs, trajectory: tuple[int, int] | None) -> 
         "good_report_frames": inputs.good_report_frames,
         "bad_report_frames": inputs.bad_report_frames,
         "request": None if inputs.request is None else inputs.request.name,
+        "request_reason": inputs.request_reason,
         "overrun": inputs.overrun,
         "lateness": inputs.lateness,
         "bus_errors": inputs.bus_errors,
@@ -346,6 +347,8 @@ def decode_inputs(
         good_report_frames=int(d["good_report_frames"]),
         bad_report_frames=int(d["bad_report_frames"]),
         request=None if d["request"] is None else enum_from_json(OperatorRequest, d["request"]),
+        # absent in sessions recorded before a signal's stop named itself
+        request_reason=str(d.get("request_reason", "")),
         overrun=bool(d["overrun"]),
         # absent in sessions recorded before the loop's stall was an input: a stall FAULT of
         # such a session is not reproduced (a re-run reports the divergence)
@@ -448,6 +451,7 @@ def _json_schemas() -> dict[str, tuple[str, dict[str, Any]]]:
         good_report_frames=integer,
         bad_report_frames=integer,
         request=_nullable(json_schema(OperatorRequest)),
+        request_reason=string,
         overrun=boolean,
         lateness=_NUMBER,
         bus_errors=integer,

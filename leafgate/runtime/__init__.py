@@ -5,5 +5,6 @@
 - :mod:`~leafgate.runtime.node` — the gateway's Zenoh node (input slots, publishers, engage)
 - :mod:`~leafgate.runtime.loop` — the fixed-rate loop around ``Gateway.step``
 - :mod:`~leafgate.runtime.daemon` — the daemon's composition root (``leafgate run``)
+- :mod:`~leafgate.runtime.signals` — SIGINT, SIGTERM and SIGHUP as the controlled stop
 - :mod:`~leafgate.runtime.systemd` — systemd notification
 """

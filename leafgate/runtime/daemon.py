@@ -1,8 +1,9 @@
 """``leafgate run``: the daemon on the in-vehicle computer.
 
 Assembles the parts from one config: the CAN codec (DBCs), the buses, the controller, the
-gateway core, the Zenoh transport and the runtime; installs SIGINT/SIGTERM handlers that
-disengage cleanly; tells systemd when the loop runs. Every start-up problem (bad config, bus
+gateway core, the Zenoh transport and the runtime; installs SIGINT/SIGTERM/SIGHUP handlers
+first, so that a stop at any moment disengages cleanly (during start-up: exits 0 with nothing
+left open); tells systemd when the loop runs. Every start-up problem (bad config, bus
 unavailable, DBC missing, Zenoh endpoint refused) raises a :class:`~leafgate.errors.LeafgateError`
 with one line naming it, before anything is sent.
 """
@@ -14,13 +15,11 @@ import functools
 import gc
 import logging
 import os
-import queue
-import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import ExitStack, contextmanager
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from typing import Any
 
 import can
@@ -36,9 +35,10 @@ from leafgate.control.reference import prebuild
 from leafgate.gateway.core import Gateway, StepResult
 from leafgate.gateway.watchdog import CHECK_ORDER, Check, Status
 from leafgate.journal import ERR, NOTICE, WARNING
-from leafgate.messages import GatewayState, OperatorRequest, Pose, Stamped, Trajectory
+from leafgate.messages import GatewayState, Pose, Stamped, Trajectory
 from leafgate.runtime.loop import InputSource, RequestBox, Runtime
 from leafgate.runtime.receiver import CanReceiver
+from leafgate.runtime.signals import StopRequest, signals_set
 from leafgate.runtime.systemd import sd_notify
 from leafgate.settings import LeafgateConfig
 
@@ -110,43 +110,6 @@ def build_gateway(
     if wrap_controller is not None:
         controller = wrap_controller(controller)
     return Gateway(cfg.gateway, cfg.vehicle, controller, cfg.long_mode)
-
-
-@contextmanager
-def signals_set(stop: threading.Event) -> Iterator[None]:
-    """SIGINT and SIGTERM set ``stop`` (main thread only; elsewhere a no-op).
-
-    The handler does not set ``stop`` itself. Python runs it on the main thread between two
-    bytecodes, and the main thread spends its time in ``stop.wait`` (the loop's sleep to the
-    next tick): caught while it holds the event's lock, ``Event.set`` in the handler waits for
-    that lock, held by the thread it runs on, for ever (a daemon that ignored Ctrl-C: once in
-    about 130 starts here). The handler only puts the signal on a :class:`queue.SimpleQueue`,
-    whose ``put`` is safe in a signal handler; a thread takes it from there, logs it and sets
-    ``stop``.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    signals: queue.SimpleQueue[int | None] = queue.SimpleQueue()
-
-    def relay() -> None:
-        while (signum := signals.get()) is not None:
-            log.info("%s received: disengaging and shutting down", signal.Signals(signum).name)
-            stop.set()
-
-    def handler(signum: int, _frame: Any) -> None:
-        signals.put(signum)
-
-    thread = threading.Thread(target=relay, name="leafgate-signals", daemon=True)
-    thread.start()
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
-        signals.put(None)
-        thread.join()
 
 
 SWITCH_INTERVAL = 0.001  # s, how long a thread may hold the GIL while another waits (default 5 ms)
@@ -307,12 +270,16 @@ class SystemdWatchdog:
     """Sends ``WATCHDOG=1`` from the control loop at half of systemd's ``WatchdogSec``.
 
     Kicked after every tick: a loop that stops ticking stops the kicks, and systemd restarts
-    the daemon. Outside systemd (no ``WATCHDOG_USEC``, or for another process) it does nothing.
+    the daemon. Silent until :meth:`start` (called right after ``READY=1``): the first tick's
+    kick comes before the ready call, and a ping before ``READY=1`` tells systemd the service
+    is alive before it has said it is up. Outside systemd (no ``WATCHDOG_USEC``, or for another
+    process) it does nothing.
     """
 
     def __init__(self, interval: float | None) -> None:
         self.interval = interval  # s between notifications; None: off
         self._last = -float("inf")
+        self._started = False
         self.sent = 0
 
     @classmethod
@@ -323,8 +290,13 @@ class SystemdWatchdog:
             return cls(None)
         return cls(int(usec) * 1e-6 / 2.0)
 
+    def start(self, now: float) -> None:
+        """READY=1 has gone out: kick from now on (this first kick at once)."""
+        self._started = True
+        self.kick(now)
+
     def kick(self, now: float) -> None:
-        if self.interval is None or now - self._last < self.interval:
+        if self.interval is None or not self._started or now - self._last < self.interval:
             return
         self._last = now
         if sd_notify("WATCHDOG=1"):
@@ -370,6 +342,27 @@ def run_daemon(
     :raises LeafgateError: on any start-up problem (one line, nothing sent yet)
     """
     stop = stop or threading.Event()
+    # The handlers first: a stop request during start-up ends it cleanly (exit 0, every part
+    # opened so far closed) instead of the default action's kill (status 143, or 129).
+    with signals_set(stop) as stopping:
+        return _run_daemon(cfg, stop, stopping, on_runtime, session)
+
+
+def _stopped_starting(stop: threading.Event, before: str) -> bool:
+    """Whether a stop came during start-up; logs that the daemon ends before ``before``."""
+    if stop.is_set():
+        log.info("stop requested during start-up: exiting before %s", before)
+    return stop.is_set()
+
+
+def _run_daemon(
+    cfg: LeafgateConfig,
+    stop: threading.Event,
+    stopping: StopRequest,
+    on_runtime: Callable[[Runtime], None] | None,
+    session: Any,
+) -> int:
+    """The body of :func:`run_daemon`, under its signal handlers."""
     clock = time.perf_counter
     codec = CanCodec.for_config(cfg)  # CanCodecError: a DBC missing/invalid
     # what `leafgate check-config` checks offline, checked the same way before anything opens
@@ -381,27 +374,21 @@ def run_daemon(
     from leafgate.record.recorder import open_recording
     from leafgate.runtime.node import GatewayTransport  # zenoh loads only where it is used
 
+    if _stopped_starting(stop, "opening the buses"):
+        return 0
     with ExitStack() as stack:
         buses = stack.enter_context(
             open_buses(cfg.can, codec.receive_ids("reports"), codec.receive_ids("car"))
         )
-
-        def answer(request: OperatorRequest) -> dict[str, Any]:
-            if request is OperatorRequest.ENGAGE:
-                refusal = recording_refusal(cfg, recording.fault)
-                if refusal is not None:
-                    return {
-                        "accepted": False,
-                        "state": runtime.gateway.state.name,
-                        "reason": refusal,
-                    }
-            return requests.submit(request)
-
+        if _stopped_starting(stop, "opening Zenoh"):
+            return 0
         if session is None:
-            transport = GatewayTransport.open(cfg.zenoh, answer, clock=clock)
+            transport = GatewayTransport.open(cfg.zenoh, requests.submit, clock=clock)
         else:
-            transport = GatewayTransport(session, cfg.zenoh, answer, clock=clock)
+            transport = GatewayTransport(session, cfg.zenoh, requests.submit, clock=clock)
         stack.enter_context(transport)
+        if _stopped_starting(stop, "opening the recording"):
+            return 0
         # Opened only now that the bus and Zenoh are up: a start that fails on either leaves
         # no empty recording behind (with Restart=on-failure they would pile up).
         # Recording never stops the loop: a file problem becomes a fault in diagnostics.
@@ -441,6 +428,8 @@ def run_daemon(
             requests=requests,
             clock=clock,
             on_tick=on_tick,
+            # on the control thread, after the state check: FAULT's reason comes first
+            engage_veto=lambda: recording_refusal(cfg, recording.fault),
             receive_buses=[buses.dbw] if buses.shared else [buses.dbw, buses.car],
             extra_diagnostics=lambda: {
                 "zenoh_decode_errors": transport.decode_errors,
@@ -471,12 +460,11 @@ def run_daemon(
         def ready() -> None:  # on the control thread, after its first tick
             set_rt_priority(cfg.gateway.rt_priority)
             sd_notify("READY=1")
-            watchdog.kick(clock())
+            watchdog.start(clock())  # WATCHDOG=1 only after READY=1
             log.info("control loop running")
 
         prepare_for_real_time()
-        with signals_set(stop):
-            runtime.run(stop, on_ready=ready)
+        runtime.run(stop, on_ready=ready, stop_reason=lambda: stopping.reason)
         sd_notify("STOPPING=1")
         summary = runtime.stats.summary()
         log.info(

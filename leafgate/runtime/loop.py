@@ -50,8 +50,10 @@ import numpy as np
 
 from leafgate.can.codec import CanCodec
 from leafgate.gateway.core import Gateway, GatewayInputs, StepResult
+from leafgate.gateway.state import EngageReply
 from leafgate.messages import (
     STOP_REQUESTS,
+    GatewayState,
     OperatorRequest,
     Pose,
     Stamped,
@@ -121,6 +123,8 @@ class TakenRequests:
                     "accepted": False,
                     "state": state,
                     "reason": f"{item.request.value} superseded by a disengage",
+                    "changed": False,
+                    "already": False,
                 }
             )
 
@@ -156,6 +160,8 @@ class RequestBox:
                 "accepted": False,
                 "state": "UNKNOWN",
                 "reason": f"busy: {waiting} requests already wait for the control loop",
+                "changed": False,
+                "already": False,
             }
         try:
             return item.future.result(timeout=timeout)
@@ -165,6 +171,8 @@ class RequestBox:
                     "accepted": False,
                     "state": "UNKNOWN",
                     "reason": "control loop did not answer in time (request withdrawn)",
+                    "changed": False,
+                    "already": False,
                 }
             return item.future.result()  # taken by this very tick: its answer comes at once
 
@@ -284,6 +292,7 @@ class Runtime:
         extra_diagnostics: Callable[[], dict[str, Any]] | None = None,
         watch_command_ids: bool = True,
         receive_buses: Sequence[can.BusABC] | None = None,
+        engage_veto: Callable[[], str | None] | None = None,
     ) -> None:
         self.gateway = gateway
         # the buses the Notifier reads (the dbw bus, and the car bus when separate)
@@ -298,6 +307,7 @@ class Runtime:
         self.clock = clock
         self.on_tick = on_tick
         self.extra_diagnostics = extra_diagnostics
+        self.engage_veto = engage_veto
         self.stats = LoopStats()
         self.last_result: StepResult | None = None
         self._pub_queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=64)
@@ -315,10 +325,17 @@ class Runtime:
         overrun: bool = False,
         request: OperatorRequest | None = None,
         lateness: float = 0.0,
+        request_reason: str = "",
     ) -> StepResult:
-        """Read the slots, step the gateway, send the frames. Never raises for bus problems."""
+        """Read the slots, step the gateway, send the frames. Never raises for bus problems.
+
+        :param request_reason: why ``request`` came when no operator sent it (the
+            transition's reason: ``SIGTERM received``)
+        """
         started = self.clock()
         pending = self.requests.take() if request is None else TakenRequests()
+        if pending.request is OperatorRequest.ENGAGE:
+            pending = self._vetoed(pending)
         good, bad = self.receiver.take_counts()
         foreign, foreign_names = self.receiver.take_foreign()
         bus_errors, self._bus_errors_pending = self._bus_errors_pending, 0
@@ -335,6 +352,7 @@ class Runtime:
             bad_report_frames=bad,
             report_error_cause=self.codec.second_senders() if bad else "",
             request=request if request is not None else pending.request,
+            request_reason=request_reason if request is not None else "",
             overrun=overrun,
             lateness=lateness,
             bus_errors=bus_errors,
@@ -350,7 +368,13 @@ class Runtime:
         pending.answer(
             reply.to_dict()
             if reply is not None
-            else {"accepted": False, "state": state, "reason": "no reply"},
+            else {
+                "accepted": False,
+                "state": state,
+                "reason": "no reply",
+                "changed": False,
+                "already": False,
+            },
             state,
         )
         frames = self._encode(result, now)
@@ -370,6 +394,22 @@ class Runtime:
         self.stats.compute.append(self.clock() - started)
         self._queue_publications(now, result)
         return result
+
+    def _vetoed(self, pending: TakenRequests) -> TakenRequests:
+        """An engage the shell refuses (``engage_veto``: the required recording fails) is
+        answered here, in the reply format of the core's refusals, and not executed.
+
+        Only in STANDBY: in any other state the core's answer (``fault latched (…); reset
+        first``, ``already engaged``, ``stopping; …``) comes first, as it names what to do.
+        """
+        state = self.gateway.state
+        if self.engage_veto is None or state is not GatewayState.STANDBY:
+            return pending
+        refusal = self.engage_veto()
+        if refusal is None:
+            return pending
+        pending.answer(EngageReply(False, state, refusal).to_dict(), state.name)
+        return TakenRequests()
 
     def _encode(self, result: StepResult, now: float) -> list[can.Message]:
         try:
@@ -435,8 +475,17 @@ class Runtime:
             except Exception as exc:  # a publication problem must not stop the publisher
                 log.warning("publish failed: %s", exc)
 
-    def run(self, stop: threading.Event, on_ready: Callable[[], None] | None = None) -> None:
-        """Tick until ``stop`` is set, then send ENABLE=0 frames for a few ticks and return."""
+    def run(
+        self,
+        stop: threading.Event,
+        on_ready: Callable[[], None] | None = None,
+        stop_reason: Callable[[], str] | None = None,
+    ) -> None:
+        """Tick until ``stop`` is set, then send ENABLE=0 frames for a few ticks and return.
+
+        :param stop_reason: why ``stop`` was set, read once it is (``SIGHUP received``): the
+            reason of the disengage the shutdown ticks make; "" or None: ``stop requested``
+        """
         pub_stop = threading.Event()
         if self.publisher is not None:
             self._pub_thread = threading.Thread(
@@ -474,8 +523,9 @@ class Runtime:
                 k += 1
             # Disengage cleanly: the ECU sees ENABLE=0 frames, not a silent bus (which it would
             # treat as a command timeout and brake hard).
+            why = (stop_reason() if stop_reason is not None else "") or "stop requested"
             for _ in range(SHUTDOWN_TICKS):
-                self.tick(self.clock(), request=OperatorRequest.DISENGAGE)
+                self.tick(self.clock(), request=OperatorRequest.DISENGAGE, request_reason=why)
                 time.sleep(period)
         finally:
             pub_stop.set()

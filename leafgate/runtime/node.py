@@ -176,12 +176,21 @@ class _QueryLanes:
             self.cond.notify_all()
 
 
-def _reply_json(reply: Mapping[str, Any]) -> dict[str, Any]:
-    """The engage reply with its three fields always present."""
+#: the state in a refusal made before the gateway published any (its first tick)
+STATE_UNKNOWN = "UNKNOWN"
+
+
+def _reply_json(reply: Mapping[str, Any], state: str = STATE_UNKNOWN) -> dict[str, Any]:
+    """The engage reply with its five fields always present (docs/state-machine.md).
+
+    :param state: the state to name when ``reply`` names none
+    """
     out = to_json(dict(reply))
     out["accepted"] = bool(out.get("accepted", False))
-    out.setdefault("state", None)
+    out["state"] = str(out.get("state") or state)
     out["reason"] = str(out.get("reason") or "")
+    out["changed"] = bool(out.get("changed", False))
+    out["already"] = bool(out.get("already", False))
     return out
 
 
@@ -209,9 +218,13 @@ def parse_request(query_payload: bytes | None, parameter: str | None) -> Operato
 
 
 def unknown_request(text: str) -> str:
-    """The refusal reason for text that is not a request word."""
+    """The refusal reason for text that is not a request word.
+
+    The text is quoted as it came, not as its ``repr``: the reply is JSON, which escapes a
+    newline itself; a ``repr`` had it escaped twice (``'engage\\\\n'`` on the screen).
+    """
     known = ", ".join(r.value for r in OperatorRequest)
-    return f"unknown request {text!r} (expected one of: {known})"
+    return f"unknown request '{text}' (expected one of: {known})"
 
 
 def _quotable(raw: bytes) -> str:
@@ -268,6 +281,9 @@ class GatewayTransport:
         self._codecs = codecs(cfg.encoding)
         self._publish_errors: dict[str, int] = {}
         self._handler_errors = 0
+        # the state the gateway last published: what a refusal made here names (one str,
+        # replaced whole by the publisher thread)
+        self._state = STATE_UNKNOWN
         # Called with (ROS topic name, raw payload, receive time, ROS type name or None for JSON)
         # for every input sample before it is decoded: the session recorder's tap (its channels
         # carry the ROS names, so they line up with rosbag2 recordings in either ROS mode).
@@ -576,7 +592,7 @@ class GatewayTransport:
     def _refuse(self, query: zenoh.Query, reason: str, service: bool = False) -> None:
         with self._lock:
             self._request_refusals += 1
-        reply = {"accepted": False, "state": None, "reason": reason}
+        reply = self._refusal(reason)
         if service:
             self._send_service_reply(query, reply)
         else:
@@ -644,14 +660,19 @@ class GatewayTransport:
         query open.
         """
         if not isinstance(request, OperatorRequest):
-            return {"accepted": False, "state": None, "reason": unknown_request(request)}
+            return self._refusal(unknown_request(request))
         try:
-            return _reply_json(self._handler(request))
+            return _reply_json(self._handler(request), self._state)
         except Exception as exc:  # the handler's bug must not kill Zenoh's thread
             with self._lock:
                 self._handler_errors += 1
             log.error("engage handler failed on %s: %r", request.value, exc)
-            return {"accepted": False, "state": None, "reason": f"handler failed: {exc}"}
+            return self._refusal(f"handler failed: {exc}")
+
+    def _refusal(self, reason: str) -> dict[str, Any]:
+        """A request refused here, before the control loop: changed nothing, in the state the
+        gateway last published (``UNKNOWN`` before its first tick)."""
+        return _reply_json({"accepted": False, "reason": reason}, self._state)
 
     # --- outputs --------------------------------------------------------------------------
 
@@ -721,6 +742,7 @@ class GatewayTransport:
             self.publish_gear(GearStatus(gear=long.gear, stamp=stamp))
         diagnostics = getattr(result, "diagnostics", None)
         if diagnostics is not None:
+            self._state = diagnostics.state.name
             mode = control_mode(diagnostics.state, diagnostics.ecu_state)
             self.publish_control_mode(ControlModeStatus(mode=mode, stamp=stamp))
             self.publish_lamps(stamp)

@@ -317,7 +317,8 @@ def run_sim_ecu(
         by the injection events and the ECU's counters as ``# {json}`` comment lines
     :param injections: faults armed at the ECU's first engagement
     """
-    from leafgate.runtime.daemon import signals_set, tool_view
+    from leafgate.runtime.daemon import tool_view
+    from leafgate.runtime.signals import signals_set
     from leafgate.transport.client import OdometryPublisher
     from leafgate.transport.session import open_session
 

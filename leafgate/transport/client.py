@@ -114,7 +114,7 @@ def request(
         try:
             # A query sent before the gateway's queryable is known goes nowhere: wait for it.
             if not _wait_matching(querier, deadline):
-                raise TransportError(f"no gateway answered on {key} within {wait:g} s")
+                raise TransportError(f"no gateway answered on {key} within {round(wait, 1):g} s")
             # Its token may reach us a moment after its queryable (a gateway just starting).
             gateways = gateway_ids(cfg, s, max(0.05, deadline - time.monotonic()))
             while not gateways and time.monotonic() < deadline:
@@ -145,7 +145,7 @@ def request(
             querier.undeclare()
     if not answers:
         raise TransportError(
-            f"no gateway answered on {key} within {wait:g} s"
+            f"no gateway answered on {key} within {round(wait, 1):g} s"
             + (
                 f" ({len(others)} reply(ies) from sessions without its token ignored)"
                 if others
