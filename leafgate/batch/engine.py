@@ -400,12 +400,15 @@ def _row(future: Any) -> dict[str, Any]:
     if exc is None:
         return failed(future.status)  # cancelled on the cluster by someone else
     if type(exc).__name__ == "KilledWorker":
+        # a task queued on a worker that another task kills counts as well: the scheduler
+        # cannot tell which of the tasks a worker held killed it
         allowed = getattr(exc, "allowed_failures", None)
+        attempts = None if allowed is None else allowed + 1
         row = failed(
-            f"KilledWorker: every worker that ran it died ({allowed} re-runs allowed by "
-            "distributed.scheduler.allowed-failures); see the workers' logs"
+            f"KilledWorker: {attempts} workers died while holding it ({allowed} re-runs allowed "
+            "by distributed.scheduler.allowed-failures); see the workers' logs"
         )
-        row["attempts"] = None if allowed is None else allowed + 1
+        row["attempts"] = attempts
         return row
     return failed(f"{type(exc).__name__}: {exc}")
 
