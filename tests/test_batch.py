@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shlex
+import signal
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from leafgate.batch.engine import run_tasks
+from leafgate.batch.engine import INTERRUPTED, NOT_RUN, EngineRun, run_tasks
 from leafgate.batch.results import read_table
 from leafgate.batch.sweep import expand, load_sweep
 from leafgate.cli import main
@@ -69,6 +71,17 @@ def sim_alone(command: str, out: Path) -> dict[str, Any]:
         ("routes: [missing.csv]\n", "routes: 'missing.csv': no such file"),
         ("routes: [straight]\nplants: [wobbly]\n", "plants: unknown 'wobbly'"),
         ("routes: [straight]\nsamples: 0\n", "samples: expected an integer >= 1"),
+        (
+            "routes: [straight, s-curve]\nsamples: 1000000000\n",
+            "samples: 1000000000 makes 2000000000 cases (2 routes × 1 plants × 1 controllers × "
+            "1000000000 samples), above the bound of 100000 (max_cases: raise it in the sweep file)",
+        ),
+        (
+            "routes: [straight]\nsamples: 3\nmax_cases: 2\n",
+            "samples: 3 makes 3 cases (1 routes × 1 plants × 1 controllers × 3 samples), above the "
+            "bound of 2",
+        ),
+        ("routes: [straight]\nmax_cases: 0\n", "max_cases: expected an integer >= 1"),
         (
             "routes: [straight]\ndisturbances:\n  sim.plant.nope: [0, 1]\n",
             "sim.plant.nope: unknown key",
@@ -235,7 +248,40 @@ def _task(kind: str) -> dict[str, Any]:
         raise RuntimeError("this case breaks")
     if kind == "hang":
         time.sleep(120.0)
+    if kind == "die":  # the worker process dies (as when killed, or out of memory)
+        os.kill(os.getpid(), signal.SIGKILL)
+    if kind.startswith("die-once:"):
+        marker = Path(kind.removeprefix("die-once:"))
+        if not marker.exists():
+            marker.touch()
+            os.kill(os.getpid(), signal.SIGKILL)
     return {"status": "ok", "error": None, "kind": kind}
+
+
+def test_a_sweep_may_raise_its_bound_of_cases(tmp_path: Path) -> None:
+    sweep = load_sweep(write(tmp_path, "routes: [straight]\nsamples: 3\nmax_cases: 3\n"))
+    assert len(expand(sweep)) == 3
+
+
+@pytest.mark.slow
+def test_a_case_whose_worker_dies_is_rerun_and_says_so(tmp_path: Path) -> None:
+    """Dask's scheduler gives the task of a worker that died to another worker (up to
+    distributed.scheduler.allowed-failures = 3 times), then fails it with KilledWorker. Before,
+    a re-run was silent: the row looked like that of a case that ran once."""
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(__import__(__name__))
+    run = run_tasks(_task, {"once": (f"die-once:{tmp_path / 'died'}",), "ok": ("ok",)}, workers=2)
+    assert [run.rows[k]["status"] for k in ("once", "ok")] == ["ok", "ok"]
+    assert run.rows["once"]["attempts"] == 2  # one worker died, once
+    # "ok" may have been queued on the worker that died: then it was re-run as well
+    assert run.rows["ok"]["attempts"] in (1, 2)
+    assert run.rerun == 1 + (run.rows["ok"]["attempts"] == 2)
+    # alone: a task that kills every worker would take the tasks queued beside it along
+    run = run_tasks(_task, {"always": ("die",)}, workers=1)
+    (row,) = run.rows.values()
+    assert (row["status"], row["attempts"]) == ("failed", 4)
+    assert row["error"].startswith("KilledWorker: 4 workers died while holding it (3 re-runs")
 
 
 @pytest.mark.slow
@@ -401,6 +447,26 @@ def test_batch_rerun_reproduces_and_shows_where_a_change_diverges(
     assert "DIVERGED at" in out
 
 
+@pytest.mark.slow
+def test_batch_rerun_shows_a_truncated_session_was_checked_only_up_to_the_cut(
+    recordings: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A session cut short (a crash before its footer) re-runs up to the cut: IDENTICAL there
+    says nothing of the rest of the drive. Before, its line read as a whole drive's."""
+    session = next(recordings.rglob("*.mcap"))
+    data = session.read_bytes()
+    cut = tmp_path / "in" / "cut.mcap"
+    cut.parent.mkdir()
+    cut.write_bytes(data[: len(data) * 6 // 10])
+    args = ["batch", "rerun", str(cut.parent), "--workers", "1"]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert f"{cut}: IDENTICAL up to the cut (truncated session): " in out
+    assert "1 sessions, 0 not reproduced, 1 reproduced only up to a cut (truncated)" in out
+    (row,) = read_table(tmp_path / "out" / "results.parquet")
+    assert row["truncated"] is True and row["identical"] is True
+
+
 # --- results ------------------------------------------------------------------------------------
 
 
@@ -487,7 +553,8 @@ def _alive(pid: int) -> bool:
 def test_ctrl_c_at_the_terminal_stops_the_batch_and_its_workers_in_one_line(
     tmp_path: Path,
 ) -> None:
-    """Ctrl-C reaches the batch and its worker processes (one process group): one line, 130.
+    """Ctrl-C reaches the batch and its worker processes (one process group): one line, 130,
+    and the results of the cases that finished, the others listed as not run.
 
     Before, each worker printed a KeyboardInterrupt traceback, or a heartbeat to a closed
     scheduler, or Dask's exit handler its own; a Ctrl-C during the cluster's start could end
@@ -533,6 +600,11 @@ def test_ctrl_c_at_the_terminal_stops_the_batch_and_its_workers_in_one_line(
     lines = [line for line in lines if not line.startswith("[")]  # the progress bar
     assert status == 130, text
     assert lines == ["leafgate: interrupted"], text
+    # what finished is kept, and what did not run is listed as such (before: no --out at all)
+    rows = read_table(tmp_path / "out" / "results.parquet")
+    assert len(rows) == 80
+    assert {r["status"] for r in rows} <= {"ok", "not run"}
+    assert any(r["status"] == "not run" for r in rows)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and any(_alive(p) for p in workers):
         time.sleep(0.2)
@@ -568,3 +640,99 @@ def test_batch_check_line_names_the_kinds_of_findings(
     assert "first: coverage: profile: no frame of profile leafgate-dbw" in line
     row = read_table(tmp_path / "out" / "results.parquet")[0]
     assert row["finding_kinds"] == "coverage 1, incomplete 1"
+    assert "; local cluster (1 worker process), 1 worker, " in out  # not "1 worker processes"
+    assert row["status"] == "ok"  # the check ran; its verdict (findings) is `ok`, False
+
+
+# --- a batch that stops early, or cannot write ---------------------------------------------------
+
+
+def _fake_engine(
+    monkeypatch: pytest.MonkeyPatch, rows: dict[str, dict[str, Any]], stopped: str | None = None
+) -> None:
+    """``run_tasks`` answering ``rows`` (by task key) at once, as the engine would have."""
+
+    def run_tasks(fn: Any, tasks: dict[str, Any], **_: Any) -> EngineRun:
+        assert set(tasks) == set(rows)
+        return EngineRun(rows=rows, wall_s=1.0, workers=2, scheduler="fake", stopped=stopped)
+
+    monkeypatch.setattr("leafgate.batch.cli.run_tasks", run_tasks)
+
+
+def _sim_row(error_m: float, attempts: int = 1) -> dict[str, Any]:
+    return {
+        "status": "ok",
+        "error": None,
+        "lateral_error_max_m": error_m,
+        "finished": True,
+        "attempts": attempts,
+    }
+
+
+def test_batch_sim_summary_names_the_cases_rerun_after_a_worker_died(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sweep = write(tmp_path, "routes: [straight]\nsamples: 2\nthresholds:\n  finished: true\n")
+    _fake_engine(monkeypatch, {"0000": _sim_row(0.1, attempts=2), "0001": _sim_row(0.1)})
+    assert main(["batch", "sim", str(sweep), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "2 cases, 0 failed, 1 re-run after a worker holding it died; fake, 2 workers" in out
+    assert "PASSED: every case ran (1 re-run after a worker died)" in out
+    info = json.loads((tmp_path / "out" / "batch.json").read_text())
+    assert info["rerun"] == 1
+    rows = read_table(tmp_path / "out" / "results.parquet")
+    assert [r["attempts"] for r in rows] == [2, 1]
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "- case 0000: 2 attempts" in report
+
+
+def test_interrupted_batch_sim_keeps_what_finished_and_lists_the_rest(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    sweep = write(tmp_path, "routes: [straight]\nsamples: 3\nthresholds:\n  finished: true\n")
+    not_run = {"status": NOT_RUN, "error": f"not run: {INTERRUPTED}"}
+    rows = {"0000": _sim_row(0.1), "0001": not_run, "0002": dict(not_run)}
+    _fake_engine(monkeypatch, rows, stopped=INTERRUPTED)
+    assert main(["batch", "sim", str(sweep), "--out", str(tmp_path / "out")]) == 130
+    captured = capsys.readouterr()
+    assert captured.err.strip() == "leafgate: interrupted"
+    assert "3 cases, 0 failed, 2 not run (interrupted (Ctrl-C))" in captured.out
+    table = read_table(tmp_path / "out" / "results.parquet")
+    assert [r["status"] for r in table] == ["ok", NOT_RUN, NOT_RUN]
+    info = json.loads((tmp_path / "out" / "batch.json").read_text())
+    assert (info["not_run"], info["stopped"]) == (2, INTERRUPTED)
+    assert "## Cases not run (interrupted (Ctrl-C))" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_batch_sim_on_a_full_disk_prints_the_summary_before_failing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The cases ran: their verdict is printed before the files that cannot be written."""
+    sweep = write(
+        tmp_path, "routes: [straight]\nsamples: 25\nthresholds:\n  lateral_error_max_m: 0.5\n"
+    )
+    _fake_engine(monkeypatch, {f"{i:04d}": _sim_row(1.0) for i in range(25)})
+
+    def full(*_: Any, **__: Any) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("leafgate.batch.cli.write_table", full)
+    assert main(["batch", "sim", str(sweep), "--out", str(tmp_path / "out")]) == 1
+    captured = capsys.readouterr()
+    assert "25 cases, 0 failed; fake, 2 workers" in captured.out
+    for i in range(25):  # all of them, not only the 20 shown when the report holds the rest
+        assert f"case {i:04d}: lateral_error_max_m = 1.0 above 0.5" in captured.out
+    err = captured.err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert "cannot write the results: No space left on device" in err
+
+
+def test_refused_inputs_leave_no_empty_output_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "empty").mkdir()
+    for job in ("check", "rerun"):
+        out = tmp_path / f"out-{job}"
+        assert main(["batch", job, str(tmp_path / "empty"), "--out", str(out)]) == 1
+        assert "files in it" in capsys.readouterr().err
+        assert not out.exists()

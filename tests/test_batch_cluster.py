@@ -45,9 +45,10 @@ def comparable(row: dict[str, Any]) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def dask_cluster(log_dir: Path) -> Iterator[str]:
+def dask_cluster(log_dir: Path, pids: list[int] | None = None) -> Iterator[str]:
     """``dask scheduler`` and two ``dask worker`` processes on loopback, free ports, no
-    dashboard; every process stopped after."""
+    dashboard; every process stopped after. ``pids``: filled with the scheduler's and the
+    workers' process ids, in that order."""
     port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
@@ -85,6 +86,8 @@ def dask_cluster(log_dir: Path) -> Iterator[str]:
                 f"w{i}",
             )
         _wait_for_workers(address, 2, timeout=120.0)
+        if pids is not None:
+            pids.extend(p.pid for p in procs)
         yield address
     finally:
         for p in reversed(procs):
@@ -186,3 +189,54 @@ def test_scheduler_without_workers_fails_in_one_line_after_the_stated_wait(
     assert f"{address}: no workers yet; waiting up to 3 s" in err[0]
     assert err[-1].endswith(f"--scheduler {address}: no workers joined in 3 s")
     assert "cases, " not in captured.out  # no summary: no case ran
+
+
+def _finished_tasks(address: str) -> int:
+    """Tasks whose results the scheduler holds (asked from a client of its own)."""
+    from distributed import Client
+
+    def count(dask_scheduler: Any = None) -> int:
+        return sum(ts.state == "memory" for ts in dask_scheduler.tasks.values())
+
+    with Client(address, timeout=30) as client:
+        return int(client.run_on_scheduler(count))
+
+
+def test_a_lost_scheduler_keeps_the_finished_cases_in_one_line(tmp_path: Path) -> None:
+    """The scheduler killed mid-batch: the cases received are written, the others listed as
+    not run, and stderr holds one line. Before: CancelledError tracebacks from the client, then
+    "Timed out trying to connect", exit 1, and no --out: the finished cases were lost."""
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP.replace("samples: 2", "samples: 30"), encoding="utf-8")
+    pids: list[int] = []
+    with dask_cluster(tmp_path, pids) as address:
+        argv = ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "o")]
+        with (tmp_path / "err").open("w+") as err, (tmp_path / "out").open("w+") as out:
+            batch = subprocess.Popen(
+                [str(BIN / "leafgate"), *argv], stdout=out, stderr=err, start_new_session=True
+            )
+            try:
+                deadline = time.monotonic() + 120
+                while _finished_tasks(address) < 3:
+                    assert batch.poll() is None and time.monotonic() < deadline
+                    time.sleep(0.2)
+                os.killpg(pids[0], signal.SIGKILL)  # the scheduler
+                status = batch.wait(timeout=120)
+            finally:
+                if batch.poll() is None:
+                    os.killpg(batch.pid, signal.SIGKILL)
+                    batch.wait()
+            err.seek(0)
+            out.seek(0)
+            stderr, stdout = err.read(), out.read()
+    assert status == 1, stderr
+    assert "Traceback" not in stderr + stdout and "CancelledError" not in stderr + stdout
+    lines = stderr.strip().splitlines()
+    assert lines, stdout  # before: cases recorded as "failed: cancelled", and nothing said
+    assert lines[-1].startswith(f"leafgate: error: lost the scheduler {address}: "), stderr
+    assert "not run; what finished is in" in lines[-1]
+    rows = read_table(tmp_path / "o" / "results.parquet")
+    assert len(rows) == 60
+    statuses = [r["status"] for r in rows]
+    assert statuses.count("ok") >= 3 and "not run" in statuses
+    assert set(statuses) <= {"ok", "not run"}

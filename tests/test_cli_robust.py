@@ -165,7 +165,8 @@ def _writes_output(name: str) -> bool:
         action = next(a for a in sub._actions if isinstance(a, argparse._SubParsersAction))
         sub = action.choices[word]
     dests = {a.dest for a in sub._actions}
-    return bool(dests & {*OUTPUT_FOLDERS, *OUTPUT_FILES})
+    # `batch`'s --out is `out_dir`: it creates the folder itself once its inputs are checked
+    return bool(dests & {*OUTPUT_FOLDERS, *OUTPUT_FILES, "out_dir"})
 
 
 def _check(name: str, condition: str, status: int | None, stderr: str) -> None:

@@ -103,6 +103,7 @@ inputs = st.builds(
     good_report_frames=st.integers(0, 1000),
     bad_report_frames=st.integers(0, 1000),
     request=st.none() | st.sampled_from(OperatorRequest),
+    request_reason=st.text(max_size=20),
     overrun=st.booleans(),
     # a stall FAULT is decided on it: old sessions lost it, and a re-run diverged from the
     # recorded FAULT (outside audit)

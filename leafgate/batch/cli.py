@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from leafgate.batch import sweep as sweep_module
-from leafgate.batch.engine import WORKERS_WAIT_S, BatchError, EngineRun, run_tasks
+from leafgate.batch.engine import NOT_RUN, WORKERS_WAIT_S, BatchError, EngineRun, run_tasks
 from leafgate.batch.results import crossings, make_out_dir, write_report, write_table
 from leafgate.cliargs import (
     add_overrides,
@@ -42,7 +44,10 @@ def _common(p: argparse.ArgumentParser, out: str) -> None:
         type=positive_int,
         help="worker processes of the local cluster (default: CPU count)",
     )
-    p.add_argument("--out", default=out, help=f"output folder (default: ./{out}/)")
+    # dest is not `out`: `leafgate` creates every `out` before a command runs, and a batch whose
+    # inputs are refused would leave an empty folder behind; make_out_dir creates it once they
+    # are checked, before any case runs
+    p.add_argument("--out", dest="out_dir", default=out, help=f"output folder (default: ./{out}/)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -85,7 +90,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _engine_text(run: EngineRun) -> str:
-    return f"{run.scheduler}, {run.workers} workers, {run.wall_s:.1f} s wall time"
+    workers = {0: "workers unknown", 1: "1 worker"}.get(run.workers, f"{run.workers} workers")
+    return f"{run.scheduler}, {workers}, {run.wall_s:.1f} s wall time"
+
+
+def _counts(rows: list[dict[str, Any]], run: EngineRun) -> str:
+    """``, 1 re-run after a worker holding it died, 20 not run (interrupted (Ctrl-C))``:
+    what the summary line adds when a task did not simply run once ("" when all did)."""
+    text = ""
+    if run.rerun:
+        text += f", {run.rerun} re-run after a worker holding it died"
+    not_run = sum(1 for r in rows if r.get("status") == NOT_RUN)
+    if not_run:
+        text += f", {not_run} not run ({run.stopped})"
+    return text
 
 
 def _files(directory: str, suffixes: tuple[str, ...], pattern: str | None = None) -> list[Path]:
@@ -100,6 +118,21 @@ def _files(directory: str, suffixes: tuple[str, ...], pattern: str | None = None
     return files
 
 
+@contextlib.contextmanager
+def _output(path: str) -> Iterator[Path]:
+    """The ``--out`` folder, created before the run; removed again if this batch created it
+    and ends with nothing in it (the scheduler unreachable, no workers)."""
+    existed = Path(path).exists()
+    out = make_out_dir(path)
+    try:
+        yield out
+    except BaseException:
+        if not existed:
+            with contextlib.suppress(OSError):  # not empty: it holds what the batch kept
+                out.rmdir()
+        raise
+
+
 def _save(out: Path, rows: list[dict[str, Any]], run: EngineRun, extra: dict[str, Any]) -> Path:
     table = write_table(rows, out)
     info = {
@@ -107,11 +140,38 @@ def _save(out: Path, rows: list[dict[str, Any]], run: EngineRun, extra: dict[str
         "workers": run.workers,
         "wall_time_s": run.wall_s,
         "cases": len(rows),
-        "failed": sum(1 for r in rows if r.get("status") != "ok"),
+        "failed": sum(1 for r in rows if r.get("status") == "failed"),
+        "not_run": sum(1 for r in rows if r.get("status") == NOT_RUN),
+        "rerun": run.rerun,
+        "stopped": run.stopped,
         **extra,
     }
     (out / "batch.json").write_text(json.dumps(info, indent=2) + "\n", encoding="utf-8")
     return table
+
+
+def _write(out: Path, write: Callable[[], str], unshown: list[str]) -> str:
+    """``write()`` (the files, named in the returned text); when the disk refuses, the lines
+    not printed yet go to stdout first, so that the summary is kept, then one error line."""
+    try:
+        return write()
+    except OSError as exc:
+        for line in unshown:
+            print(f"  {line}")
+        reason = exc.strerror or str(exc)
+        raise BatchError(
+            f"--out {out}: cannot write the results: {reason}; the lines above are all that is kept"
+        ) from None
+
+
+def _stopped(run: EngineRun, rows: list[dict[str, Any]], out: Path) -> None:
+    """After the rows are written: Ctrl-C as Ctrl-C (exit 130), a lost scheduler as one line."""
+    if run.stopped is None:
+        return
+    if run.interrupted:
+        raise KeyboardInterrupt
+    not_run = sum(1 for r in rows if r.get("status") == NOT_RUN)
+    raise BatchError(f"{run.stopped}: {not_run} of {len(rows)} not run; what finished is in {out}")
 
 
 def cmd_batch_sim(args: argparse.Namespace) -> int:
@@ -119,52 +179,59 @@ def cmd_batch_sim(args: argparse.Namespace) -> int:
 
     sweep = sweep_module.load_sweep(args.sweep)
     cases = sweep_module.expand(sweep)
-    out = make_out_dir(args.out)
     timeout = args.timeout if args.timeout is not None else sweep.timeout_s
-    print(f"{sweep.path}: {len(cases)} cases", flush=True)
-    run = run_tasks(
-        sim_case,
-        {c.case_id: (list(c.argv),) for c in cases},
-        scheduler=args.scheduler,
-        workers=args.workers,
-        timeout=timeout,
-        wait_workers=args.wait_workers,
-    )
-    rows = []
-    for c in cases:
-        rows.append(
-            {
-                "case_id": c.case_id,
-                "route": c.route,
-                **run.rows[c.case_id],
-                # the case's names win over metrics.json's (its controller is the kind)
-                "plant": c.plant,
-                "controller": c.controller,
-                "seed": c.seed,
-                "command": c.command,
-            }
+    with _output(args.out_dir) as out:
+        print(f"{sweep.path}: {len(cases)} cases", flush=True)
+        run = run_tasks(
+            sim_case,
+            {c.case_id: (list(c.argv),) for c in cases},
+            scheduler=args.scheduler,
+            workers=args.workers,
+            timeout=timeout,
+            wait_workers=args.wait_workers,
         )
-    rows = [_ordered(r) for r in rows]
-    crossed = crossings(rows, sweep.thresholds, sweep.path)
-    table = _save(out, rows, run, {"sweep": sweep.path, "crossings": len(crossed)})
-    md, png = write_report(
-        rows,
-        out,
-        title=f"Sweep {sweep.name} ({sweep.path})",
-        engine=_engine_text(run),
-        crossed=crossed,
-    )
-    failed = sum(1 for r in rows if r["status"] != "ok")
-    print(f"{len(rows)} cases, {failed} failed; {_engine_text(run)}")
-    for line in crossed[:SHOWN]:
-        print(f"  {line}")
-    if len(crossed) > SHOWN:
-        print(f"  … {len(crossed) - SHOWN} more in {md}")
-    print(f"wrote {table}, {md}" + (f", {png}" if png else ""))
+        rows = []
+        for c in cases:
+            rows.append(
+                {
+                    "case_id": c.case_id,
+                    "route": c.route,
+                    **run.rows[c.case_id],
+                    # the case's names win over metrics.json's (its controller is the kind)
+                    "plant": c.plant,
+                    "controller": c.controller,
+                    "seed": c.seed,
+                    "command": c.command,
+                }
+            )
+        rows = [_ordered(r) for r in rows]
+        crossed = crossings(rows, sweep.thresholds, sweep.path)
+        # the summary before the files: a disk that refuses them loses no verdict
+        failed = sum(1 for r in rows if r["status"] == "failed")
+        print(f"{len(rows)} cases, {failed} failed{_counts(rows, run)}; {_engine_text(run)}")
+        for line in crossed[:SHOWN]:
+            print(f"  {line}")
+
+        def write() -> str:
+            table = _save(out, rows, run, {"sweep": sweep.path, "crossings": len(crossed)})
+            md, png = write_report(
+                rows,
+                out,
+                title=f"Sweep {sweep.name} ({sweep.path})",
+                engine=_engine_text(run),
+                crossed=crossed,
+                stopped=run.stopped,
+            )
+            more = f"  … {len(crossed) - SHOWN} more in {md}\n" if len(crossed) > SHOWN else ""
+            return f"{more}wrote {table}, {md}" + (f", {png}" if png else "")
+
+        print(_write(out, write, crossed[SHOWN:]))
+        _stopped(run, rows, out)
     if crossed:
         print(f"FAILED: {len(crossed)} threshold crossings or failed cases")
         return 1
-    print(f"PASSED: every case ran and stayed within the thresholds of {sweep.path}")
+    rerun = f" ({run.rerun} re-run after a worker died)" if run.rerun else ""
+    print(f"PASSED: every case ran{rerun} and stayed within the thresholds of {sweep.path}")
     return 0
 
 
@@ -196,12 +263,15 @@ def _per_file(
     return run, [{"path": str(f), **run.rows[str(f)]} for f in files]
 
 
+def _not_run_line(row: dict[str, Any]) -> str:
+    return f"NOT RUN: {str(row['error']).removeprefix('not run: ')}"
+
+
 def cmd_batch_check(args: argparse.Namespace) -> int:
     from leafgate.batch.tasks import check_case
     from leafgate.record.logs import READABLE_SUFFIXES
 
     files = _files(args.dir, READABLE_SUFFIXES, args.glob)
-    out = make_out_dir(args.out)
     config = str(Path(args.config).resolve()) if args.config else None
     if config is not None:
         from leafgate.settings import load_config
@@ -211,38 +281,44 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
 
     # a rotated log's parts are one log, checked as one (as `replay check` does with them)
     logs = {parts.name: [str(f) for f in parts.paths] for parts in group_parts(files)}
-    run = run_tasks(
-        check_case,
-        {name: (paths, config, args.gap_periods, args.profile) for name, paths in logs.items()},
-        scheduler=args.scheduler,
-        workers=args.workers,
-        timeout=args.timeout,
-        what="logs",
-        wait_workers=args.wait_workers,
-    )
-    rows = [{"path": name, **run.rows[name]} for name in logs]
-    bad = 0
-    for r in rows:
-        if r["status"] != "ok":
-            verdict = f"FAILED: {r['error']}"
-        else:
-            counts = (
-                f"{r['frames']} frames, {r['violations']} limit violations, "
-                f"{r['e2e_errors']} E2E errors, {r['gaps']} gaps"
-            )
-            if r["ok"]:
-                verdict = f"OK: {counts}"
-            else:  # every kind of finding, not only the counted ones (coverage, incomplete …)
-                verdict = f"FINDINGS: {r.get('finding_kinds') or r['findings']}; {counts}"
-                first = json.loads(r["first_finding"]) if r.get("first_finding") else None
-                if first:
-                    verdict += f"; first: {first['kind']}: {first['name']}: {first['detail']}"
-        bad += r["status"] != "ok" or not r["ok"]
-        print(f"{r['path']}: {verdict}")
-    table = _save(out, rows, run, {"dir": args.dir})
-    print(
-        f"{len(rows)} logs, {bad} with findings or unreadable; {_engine_text(run)}; wrote {table}"
-    )
+    with _output(args.out_dir) as out:
+        run = run_tasks(
+            check_case,
+            {name: (paths, config, args.gap_periods, args.profile) for name, paths in logs.items()},
+            scheduler=args.scheduler,
+            workers=args.workers,
+            timeout=args.timeout,
+            what="logs",
+            wait_workers=args.wait_workers,
+        )
+        rows = [{"path": name, **run.rows[name]} for name in logs]
+        bad = 0
+        for r in rows:
+            if r["status"] == NOT_RUN:
+                verdict = _not_run_line(r)
+            elif r["status"] != "ok":
+                verdict = f"FAILED: {r['error']}"
+            else:
+                counts = (
+                    f"{r['frames']} frames, {r['violations']} limit violations, "
+                    f"{r['e2e_errors']} E2E errors, {r['gaps']} gaps"
+                )
+                if r["ok"]:
+                    verdict = f"OK: {counts}"
+                else:  # every kind of finding, not only the counted ones (coverage, incomplete …)
+                    verdict = f"FINDINGS: {r.get('finding_kinds') or r['findings']}; {counts}"
+                    first = json.loads(r["first_finding"]) if r.get("first_finding") else None
+                    if first:
+                        verdict += f"; first: {first['kind']}: {first['name']}: {first['detail']}"
+            bad += r["status"] == "failed" or (r["status"] == "ok" and not r["ok"])
+            print(f"{r['path']}: {verdict}")
+        print(
+            f"{len(rows)} logs, {bad} with findings or unreadable{_counts(rows, run)}; "
+            f"{_engine_text(run)}"
+        )
+        table = _write(out, lambda: f"wrote {_save(out, rows, run, {'dir': args.dir})}", [])
+        print(table)
+        _stopped(run, rows, out)
     return 1 if bad else 0
 
 
@@ -254,20 +330,37 @@ def cmd_batch_rerun(args: argparse.Namespace) -> int:
     overrides = parse_overrides(args.set)
     check_rerun_overrides(overrides)  # once, up front, not as a failure of every session
     files = _files(args.dir, (".mcap",))
-    out = make_out_dir(args.out)
-    run, rows = _per_file(args, rerun_case, files, (overrides,), "sessions")
-    differing = 0
-    for r in rows:
-        if r["status"] != "ok":
-            verdict = f"FAILED: {r['error']}"
-        elif r["identical"]:
-            verdict = f"IDENTICAL: {r['ticks']} ticks, every command reproduced"
-        else:
-            verdict = f"DIVERGED at {r['first_divergence_s']:.3f} s: {r['diverging_signals']}"
-        differing += r["status"] != "ok" or not r["identical"]
-        print(f"{r['path']}: {verdict}")
-    table = _save(out, rows, run, {"dir": args.dir, "overrides": overrides})
-    print(f"{len(rows)} sessions, {differing} not reproduced; {_engine_text(run)}; wrote {table}")
+    with _output(args.out_dir) as out:
+        run, rows = _per_file(args, rerun_case, files, (overrides,), "sessions")
+        differing = truncated = 0
+        for r in rows:
+            if r["status"] == NOT_RUN:
+                verdict = _not_run_line(r)
+            elif r["status"] != "ok":
+                verdict = f"FAILED: {r['error']}"
+            elif r["identical"] and r.get("truncated"):
+                # the session ends where its recording was cut: the rest of the drive is unchecked
+                verdict = (
+                    f"IDENTICAL up to the cut (truncated session): {r['ticks']} ticks, every "
+                    "recorded command reproduced"
+                )
+            elif r["identical"]:
+                verdict = f"IDENTICAL: {r['ticks']} ticks, every command reproduced"
+            else:
+                verdict = f"DIVERGED at {r['first_divergence_s']:.3f} s: {r['diverging_signals']}"
+                if r.get("truncated"):
+                    verdict += " (truncated session)"
+            differing += r["status"] == "failed" or (r["status"] == "ok" and not r["identical"])
+            truncated += r["status"] == "ok" and bool(r.get("identical") and r.get("truncated"))
+            print(f"{r['path']}: {verdict}")
+        cut = f", {truncated} reproduced only up to a cut (truncated)" if truncated else ""
+        print(
+            f"{len(rows)} sessions, {differing} not reproduced{cut}{_counts(rows, run)}; "
+            f"{_engine_text(run)}"
+        )
+        extra = {"dir": args.dir, "overrides": overrides}
+        print(_write(out, lambda: f"wrote {_save(out, rows, run, extra)}", []))
+        _stopped(run, rows, out)
     return 1 if differing else 0
 
 

@@ -1,9 +1,18 @@
 """Many independent tasks on Dask distributed: a local cluster by default, or an existing one.
 
 One task per case. A task function returns a row (a dict); the engine adds a failed row for a
-task that raised on its worker, whose worker died, or that ran longer than the timeout (its
-future is cancelled and, since a running Python call cannot be interrupted, its worker is
-restarted). Nothing a case does stops the batch.
+task that raised on its worker, or that ran longer than the timeout (its future is cancelled
+and, since a running Python call cannot be interrupted, its worker is restarted). Nothing a case
+does stops the batch.
+
+A worker that dies while it holds a task (killed, out of memory) is not a failure of the task:
+Dask's scheduler gives the task to another worker, up to ``distributed.scheduler.allowed-failures``
+times (3 by default), then fails it with ``KilledWorker``. The re-run is legitimate (a case is
+deterministic: the same numbers on any worker) but never silent: each row says in ``attempts``
+how often it was started, from the scheduler's count of the workers that died holding it.
+
+A batch that stops early (Ctrl-C, the scheduler lost) keeps what finished: the rows received,
+and a ``not run`` row for every other task, with ``EngineRun.stopped`` saying why.
 
 The local cluster runs worker *processes* with one thread each: the controllers hold the GIL.
 """
@@ -17,17 +26,21 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, TextIO
 
 from leafgate.errors import LeafgateError
 
-__all__ = ["BatchError", "EngineRun", "run_plain", "run_tasks"]
+__all__ = ["NOT_RUN", "BatchError", "EngineRun", "run_plain", "run_tasks"]
 
 POLL_S = 0.5  # s between looks at the futures (progress, timeouts)
 CONNECT_TIMEOUT_S = 10.0  # s to reach an existing scheduler
 WORKERS_WAIT_S = 60.0  # s an existing scheduler may take to get its first worker
+#: ``status`` of a task the batch never got a result for: it stopped first (Ctrl-C, scheduler lost)
+NOT_RUN = "not run"
+INTERRUPTED = "interrupted (Ctrl-C)"
 
 
 class BatchError(LeafgateError):
@@ -40,8 +53,20 @@ class EngineRun:
 
     rows: dict[str, dict[str, Any]] = field(default_factory=dict)
     wall_s: float = 0.0
-    workers: int = 0
+    workers: int = 0  # 0: not known (the scheduler was lost before it could be asked)
     scheduler: str = "local"
+    #: why the batch ended before every task had a row (:data:`INTERRUPTED`, the scheduler
+    #: lost); those tasks have a ``not run`` row. None: every task ran or failed on its own.
+    stopped: str | None = None
+
+    @property
+    def interrupted(self) -> bool:
+        return self.stopped == INTERRUPTED
+
+    @property
+    def rerun(self) -> int:
+        """Tasks started more than once: a worker died while it held them."""
+        return sum(1 for r in self.rows.values() if (r.get("attempts") or 1) > 1)
 
 
 def dask_setup(worker: object) -> None:
@@ -88,10 +113,49 @@ class _DeferredInterrupt:
         if self._set.is_set():
             raise KeyboardInterrupt
 
+    def clear(self) -> None:
+        """The Ctrl-C is handled (the batch stopped and keeps what finished): forget it."""
+        self._set.clear()
+
 
 def failed(error: str) -> dict[str, Any]:
     """The row of a task that produced no result."""
     return {"status": "failed", "error": " ".join(error.split())}
+
+
+def not_run(reason: str) -> dict[str, Any]:
+    """The row of a task the batch stopped before: not a failure of the case, and not a pass."""
+    return {"status": NOT_RUN, "error": f"not run: {reason}"}
+
+
+class _OneLineLogs(logging.Filter):
+    """Distributed's log records without their tracebacks, and without the empty ones.
+
+    A client whose scheduler goes away logs ``CancelledError`` tracebacks (an empty message
+    and a traceback) while it reconnects and closes; the batch says itself, in one line, that
+    it lost the scheduler. Records that carry a message keep it, on one line.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.name.startswith(("distributed", "tornado", "asyncio")):
+            return True  # leafgate's own records as they are
+        if record.exc_info is not None or record.exc_text:
+            record.exc_info, record.exc_text, record.stack_info = None, None, None
+        return bool(record.getMessage().strip())
+
+
+@contextmanager
+def _one_line_logs() -> Iterator[None]:
+    """:class:`_OneLineLogs` on the handlers distributed's records reach, for the batch."""
+    handlers = {*logging.getLogger("distributed").handlers, *logging.getLogger().handlers}
+    one_line = _OneLineLogs()
+    for handler in handlers:
+        handler.addFilter(one_line)
+    try:
+        yield
+    finally:
+        for handler in handlers:
+            handler.removeFilter(one_line)
 
 
 class Progress:
@@ -168,7 +232,7 @@ def run_tasks(
     run = EngineRun()
     t0 = time.perf_counter()
     logging.getLogger("distributed").setLevel(logging.WARNING)  # not every start and stop
-    with _DeferredInterrupt() as interrupt:
+    with _one_line_logs(), _DeferredInterrupt() as interrupt:
         if scheduler is None:
             n = max(1, workers or os.cpu_count() or 1)
             try:
@@ -189,10 +253,8 @@ def run_tasks(
             except (OSError, RuntimeError) as exc:  # ports, processes
                 raise BatchError(f"the local Dask cluster did not start: {exc}") from None
             with cluster, Client(cluster) as client:
-                run.workers, run.scheduler = (
-                    n,
-                    f"local cluster ({n} worker process{'' if n == 1 else 'es'})",
-                )
+                processes = "1 worker process" if n == 1 else f"{n} worker processes"
+                run.workers, run.scheduler = n, f"local cluster ({processes})"
                 _submit_and_wait(client, fn, tasks, timeout, progress, what, run, interrupt)
         else:
             try:
@@ -200,7 +262,7 @@ def run_tasks(
             except (OSError, TimeoutError, ValueError) as exc:
                 reason = " ".join(str(exc).split()) or type(exc).__name__
                 raise BatchError(f"--scheduler {scheduler}: cannot connect: {reason}") from None
-            with client:
+            with client, _quiet_if_lost(run):
                 run.scheduler = scheduler
                 _wait_for_workers(client, scheduler, wait_workers, progress, interrupt)
                 _submit_and_wait(
@@ -208,6 +270,18 @@ def run_tasks(
                 )
     run.wall_s = time.perf_counter() - t0
     return run
+
+
+@contextmanager
+def _quiet_if_lost(run: EngineRun) -> Iterator[None]:
+    """Closing a client whose scheduler is gone logs its own failed reconnects and
+    cancellations: nothing the batch has not said in one line. (The next batch sets the level
+    back.)"""
+    try:
+        yield
+    finally:
+        if run.stopped is not None and run.stopped != INTERRUPTED:
+            logging.getLogger("distributed").setLevel(logging.CRITICAL + 1)
 
 
 def _wait_for_workers(
@@ -252,7 +326,11 @@ def _submit_and_wait(
     count_workers: bool = False,
 ) -> None:
     """Submit one task per key and collect the rows; ``count_workers``: set ``run.workers``
-    to the workers that ran them (a running cluster's, whose size is not known before)."""
+    to the workers that ran them (a running cluster's, whose size is not known before).
+
+    Ctrl-C, or a scheduler that goes away, ends the wait: the rows received stay, every other
+    task gets a ``not run`` row and ``run.stopped`` says why.
+    """
     from distributed import as_completed
 
     if not tasks:
@@ -269,33 +347,100 @@ def _submit_and_wait(
     done = as_completed(futures)
     next_look = time.monotonic() + POLL_S
     try:
-        while pending:
+        while pending and run.stopped is None:
             interrupt.check()
             batch = done.next_batch(block=False) if done.has_ready() else []
             for future in batch:
                 key = pending.pop(future, None)
                 if key is None:  # timed out before, cancelled since
                     continue
-                if future.status == "finished":
-                    row = future.result()
-                else:
-                    exc = future.exception() if future.status == "error" else None
-                    row = failed(
-                        f"{type(exc).__name__}: {exc}" if exc is not None else future.status
-                    )
-                run.rows[key] = row
-                bar.add(row)
+                if future.status == "cancelled" and client.status != "running":
+                    # not cancelled by the batch (that was a time-out): the client lost the
+                    # scheduler, which took the task's state with it
+                    pending[future] = key
+                    run.stopped = _lost(client)
+                    break
+                run.rows[key] = _row(future)
+                bar.add(run.rows[key])
             if not batch:
                 time.sleep(0.05)
-            if time.monotonic() >= next_look:  # a look at timeouts, and the bar's clock
-                if timeout is not None and pending:
-                    _time_out(client, pending, started, timeout, run, bar)
+            if time.monotonic() >= next_look and run.stopped is None:
+                # not while reconnecting to a scheduler gone away: its calls would wait, then fail
+                if client.status == "running" and timeout is not None and pending:
+                    try:
+                        _time_out(client, pending, started, timeout, run, bar)
+                    except (OSError, TimeoutError):  # the scheduler went away during the look
+                        run.stopped = _lost(client)
                 bar.draw()
                 next_look = time.monotonic() + POLL_S
-        if count_workers:
-            run.workers = _workers_that_ran(client, futures, run.workers)
+    except KeyboardInterrupt:
+        run.stopped = INTERRUPTED
+        interrupt.clear()  # the caller writes what finished, then reports the interrupt
     finally:
         bar.close()
+    for key in pending.values():
+        run.rows[key] = not_run(run.stopped or "the batch stopped")
+    if run.stopped is not None and run.stopped != INTERRUPTED:
+        return  # the scheduler is gone: nothing more to ask it
+    _count_attempts(client, futures, names, run)
+    if count_workers:
+        run.workers = _workers_that_ran(client, futures, run.workers)
+
+
+def _lost(client: Any) -> str:
+    return f"lost the scheduler {client.scheduler.address}"
+
+
+def _row(future: Any) -> dict[str, Any]:
+    """A finished task's row, or the failed row of one that raised or whose workers died."""
+    if future.status == "finished":
+        row: dict[str, Any] = future.result()
+        return row
+    exc = future.exception() if future.status == "error" else None
+    if exc is None:
+        return failed(future.status)  # cancelled on the cluster by someone else
+    if type(exc).__name__ == "KilledWorker":
+        # a task queued on a worker that another task kills counts as well: the scheduler
+        # cannot tell which of the tasks a worker held killed it
+        allowed = getattr(exc, "allowed_failures", None)
+        attempts = None if allowed is None else allowed + 1
+        row = failed(
+            f"KilledWorker: {attempts} workers died while holding it ({allowed} re-runs allowed "
+            "by distributed.scheduler.allowed-failures); see the workers' logs"
+        )
+        row["attempts"] = attempts
+        return row
+    return failed(f"{type(exc).__name__}: {exc}")
+
+
+def _suspicious_on_scheduler() -> Callable[..., dict[str, int]]:
+    """A function run on the scheduler: each key's count of workers that died holding it.
+
+    Made here, not at module level, so that cloudpickle sends its code (by value): a
+    scheduler of your own need not have leafgate installed.
+    """
+
+    def suspicious(keys: list[str], dask_scheduler: Any = None) -> dict[str, int]:
+        tasks = dask_scheduler.tasks
+        return {k: tasks[k].suspicious for k in keys if k in tasks}
+
+    return suspicious
+
+
+def _count_attempts(client: Any, futures: list[Any], names: list[str], run: EngineRun) -> None:
+    """Set each row's ``attempts``: 1, plus one per worker that died while it held the task,
+    running or queued (the scheduler then gave it to another). Read before the futures are
+    released, while the scheduler still knows the tasks; None if it cannot be asked."""
+    keys = [f.key for f in futures]
+    try:
+        counts = client.run_on_scheduler(_suspicious_on_scheduler(), keys)
+    except Exception:  # a scheduler that refuses to run code: the rows say nothing of it
+        counts = None
+    for key, name in zip(keys, names, strict=True):
+        row = run.rows.get(name)
+        if row is None or row.get("status") == NOT_RUN or "attempts" in row:
+            continue
+        row["attempts"] = None if counts is None else 1 + int(counts.get(key, 0))
 
 
 def _workers_that_ran(client: Any, futures: list[Any], default: int) -> int:

@@ -9,7 +9,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from leafgate.batch.engine import BatchError
+from leafgate.batch.engine import NOT_RUN, BatchError
 
 __all__ = [
     "SIM_METRICS",
@@ -69,7 +69,9 @@ def make_out_dir(path: str | Path) -> Path:
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise BatchError(f"--out {out}: cannot create the folder: {exc.strerror or exc}") from None
+        raise BatchError(
+            f"--out {out}: cannot create the output folder: {exc.strerror or exc}"
+        ) from None
     return out
 
 
@@ -135,7 +137,8 @@ def crossings(
     rows: Sequence[Mapping[str, Any]], thresholds: Mapping[str, float | bool], source: str
 ) -> list[str]:
     """One line per case and threshold it crosses (a number is an upper bound, a bool the
-    required value); a failed case crosses them all.
+    required value); a failed case crosses them all. A case the batch stopped before (``not
+    run``) crosses none: it is counted apart, not as a verdict on the case.
 
     :raises BatchError: a threshold names no metric (names the file and the key); a sweep
         file's are checked when it is read (``load_sweep``), with the same names
@@ -146,6 +149,8 @@ def crossings(
     lines = []
     for row in rows:
         case = row.get("case_id", row.get("path"))
+        if row.get("status") == NOT_RUN:
+            continue
         if row.get("status") != "ok":
             lines.append(f"case {case}: failed: {row.get('error')}")
             continue
@@ -182,18 +187,26 @@ def write_report(
     title: str,
     engine: str,
     crossed: Sequence[str],
+    stopped: str | None = None,
 ) -> tuple[Path, Path | None]:
     """``report.md`` and ``errors.png``: error distributions per controller and plant, the
-    worst cases with the command line that runs each alone, the failures and crossings."""
+    worst cases with the command line that runs each alone, the failures and crossings, and
+    the cases not run when the batch stopped early (``stopped``: why) or re-run after a worker
+    died."""
     ok_rows = [r for r in rows if r.get("status") == "ok"]
-    failed_rows = [r for r in rows if r.get("status") != "ok"]
+    failed_rows = [r for r in rows if r.get("status") == "failed"]
+    not_run = [r for r in rows if r.get("status") == NOT_RUN]
+    rerun = [r for r in rows if (r.get("attempts") or 1) > 1]
     groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
     for r in ok_rows:
         groups.setdefault((str(r["controller"]), str(r["plant"])), []).append(r)
     lines = [
         f"# {title}",
         "",
-        f"{len(rows)} cases: {len(ok_rows)} ran, {len(failed_rows)} failed; {engine}.",
+        f"{len(rows)} cases: {len(ok_rows)} ran, {len(failed_rows)} failed"
+        + (f", {len(not_run)} not run ({stopped})" if not_run else "")
+        + (f", {len(rerun)} re-run after a worker died" if rerun else "")
+        + f"; {engine}.",
         "",
     ]
     png: Path | None = None
@@ -235,6 +248,14 @@ def write_report(
         lines += ["## Failed cases", ""]
         for r in failed_rows:
             lines.append(f"- case {r.get('case_id')}: {r.get('error')}  \n  `{r.get('command')}`")
+        lines.append("")
+    if rerun:
+        lines += ["## Cases re-run after a worker died while running them", ""]
+        lines += [f"- case {r.get('case_id')}: {r.get('attempts')} attempts" for r in rerun]
+        lines.append("")
+    if not_run:
+        lines += [f"## Cases not run ({stopped})", ""]
+        lines += [f"- case {r.get('case_id')}  \n  `{r.get('command')}`" for r in not_run]
         lines.append("")
     lines += ["## Thresholds", ""]
     lines += [f"- {c}" for c in crossed] if crossed else ["No case crosses a threshold."]

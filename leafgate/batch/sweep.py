@@ -19,6 +19,7 @@ A sweep file is YAML (``config/sweep.yaml`` is the example)::
       lateral_error_max_m: 0.5
       finished: true
     timeout_s: 300           # a case running longer is recorded as failed
+    max_cases: 100000        # the most cases the sweep may expand to (default 100,000)
 
 Each case becomes one ``leafgate sim`` command line: ``--scenario`` (or ``--trajectory``),
 ``--controller``, ``--plant``, ``--seed`` and one ``--set`` per setting and drawn disturbance.
@@ -57,7 +58,13 @@ _KEYS = (
     "disturbances",
     "thresholds",
     "timeout_s",
+    "max_cases",
 )
+#: The most cases a sweep expands to unless its ``max_cases`` says more: a typo such as
+#: ``samples: 1000000000`` is refused when the file is read, not found after minutes of
+#: expanding (each case holds its command line: about 1 kB). 100,000 is the size of run the
+#: README's cluster estimate is for.
+MAX_CASES = 100_000
 #: Disturbances that move the start pose: they must stay inside the gateway's engage envelope.
 _ENVELOPE = {
     "sim.start_lateral_offset": ("max_distance", "m"),
@@ -98,6 +105,7 @@ class Sweep:
     disturbances: dict[str, tuple[float, float]] = field(default_factory=dict)
     thresholds: dict[str, float | bool] = field(default_factory=dict)
     timeout_s: float | None = None
+    max_cases: int = MAX_CASES
 
     @property
     def size(self) -> int:
@@ -225,6 +233,16 @@ def load_sweep(path: str | Path) -> Sweep:
     timeout = data.get("timeout_s")
     if timeout is not None and not _number(where, "timeout_s", timeout) > 0:
         raise ConfigError(f"{where}: timeout_s: expected a positive number of seconds")
+    max_cases = data.get("max_cases", MAX_CASES)
+    if isinstance(max_cases, bool) or not isinstance(max_cases, int) or max_cases < 1:
+        raise ConfigError(f"{where}: max_cases: expected an integer >= 1, got {max_cases!r}")
+    size = len(routes) * len(plants) * len(controllers) * samples
+    if size > max_cases:  # before any case is made: expanding would take minutes and memory
+        raise ConfigError(
+            f"{where}: samples: {samples} makes {size} cases ({len(routes)} routes × "
+            f"{len(plants)} plants × {len(controllers)} controllers × {samples} samples), "
+            f"above the bound of {max_cases} (max_cases: raise it in the sweep file)"
+        )
     sweep = Sweep(
         path=where,
         name=name,
@@ -238,6 +256,7 @@ def load_sweep(path: str | Path) -> Sweep:
         disturbances=disturbances,
         thresholds=thresholds,
         timeout_s=None if timeout is None else float(timeout),
+        max_cases=max_cases,
     )
     _check_keys(sweep)
     return sweep

@@ -1,7 +1,10 @@
 """The functions a worker runs: one case of ``batch sim``, ``batch check`` or ``batch rerun``.
 
 Each returns a row (a flat dict) and never raises: an error becomes ``status: failed`` with the
-error's one-line text.
+error's one-line text. ``status: ok`` says that the task ran and the row holds its result, not
+that the result is good: a checked log with findings is ``ok`` with ``ok: False``, a re-run
+that diverged ``ok`` with ``identical: False``. (The engine adds ``not run`` for a task the
+batch stopped before, and ``attempts``.)
 """
 
 from __future__ import annotations
