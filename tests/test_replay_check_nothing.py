@@ -299,3 +299,18 @@ def test_batch_check_checks_a_rotated_log_as_one(
     whole = check_log(drive.log, profile=PROFILE)
     assert f"({len(drive.parts)} parts): OK: {whole.frames} frames" in out, out
     assert "1 logs, 0 with findings" in out
+
+
+def test_batch_check_line_of_a_finding_without_a_name_has_no_empty_field(
+    drive: Drive, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A log that stops without its end marker: the finding names no frame. Old code printed
+    ``first: incomplete: : no end-of-recording marker``."""
+    logs = tmp_path / "in"
+    logs.mkdir()
+    frames = [m for m in can.BLFReader(str(drive.log)) if not is_end_marker(m)]
+    _write_blf(logs / "open.blf", frames)
+    argv = ["batch", "check", str(logs), "--profile", PROFILE, "--workers", "1"]
+    assert cli.main([*argv, "--out", str(tmp_path / "out")]) == 1
+    out = capsys.readouterr().out
+    assert "first: incomplete: no end-of-recording marker" in out, out

@@ -309,7 +309,8 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
                     verdict = f"FINDINGS: {r.get('finding_kinds') or r['findings']}; {counts}"
                     first = json.loads(r["first_finding"]) if r.get("first_finding") else None
                     if first:
-                        verdict += f"; first: {first['kind']}: {first['name']}: {first['detail']}"
+                        where = ": ".join(str(v) for v in (first["kind"], first["name"]) if v)
+                        verdict += f"; first: {where}: {first['detail']}"
             bad += r["status"] == "failed" or (r["status"] == "ok" and not r["ok"])
             print(f"{r['path']}: {verdict}")
         print(
