@@ -17,6 +17,9 @@ How a block runs:
   network); a line that only installs is left out, and the report says so;
 - with ``LEAFGATE_BENCH`` set to a bench whose ports are free, so the hardware-in-the-loop
   block gets its own multicast and Zenoh ports (``config/sim.yaml``'s ``bench:``);
+- where it can (root, ``unshare`` and ``ip``; not with ``--install``), in a private network
+  namespace of its own, so a block's fixed ports (the Dask cluster's 8786) are its own too;
+  the JSON's ``isolation`` says whether it could (``netns``) or not (``none``);
 - background jobs (``cmd &``) still running when the block ends are killed, and waited for.
 
 An HTML comment right before a block steers the check; each is printed with its reason:
@@ -170,11 +173,37 @@ def copy_repo(dest: Path) -> None:
             shutil.copy2(source, dest / rel)
 
 
-def run_block(block: Block, cwd: Path, env: dict[str, str], install: bool) -> dict[str, Any]:
+# A private network namespace with its loopback up and multicast routed to it: the blocks' fixed
+# ports (the cluster's 8786) and multicast groups are then the block's own, whoever else runs on
+# this host (another check, a test session, a real cluster).
+_NETNS_SETUP = (
+    "ip link set lo up && ip link set lo multicast on && ip route add 224.0.0.0/4 dev lo"
+    ' && exec bash -c "$1"'
+)
+
+
+def isolation(install: bool) -> str:
+    """``netns`` when each block can run in a private network namespace (root, ``unshare`` and
+    ``ip`` present, and the install steps, which need the network, not run); else ``none``,
+    and the blocks share this host's ports."""
+    if install or os.geteuid() != 0 or not (shutil.which("unshare") and shutil.which("ip")):
+        return "none"
+    probe = subprocess.run(
+        ["unshare", "-n", "bash", "-c", _NETNS_SETUP, "_", "true"], capture_output=True
+    )
+    return "netns" if probe.returncode == 0 else "none"
+
+
+def run_block(
+    block: Block, cwd: Path, env: dict[str, str], install: bool, netns: bool = False
+) -> dict[str, Any]:
     text, notes = script(block, install)
     t0 = time.monotonic()
+    argv = ["bash", "-c", text]
+    if netns:
+        argv = ["unshare", "-n", "bash", "-c", _NETNS_SETUP, "_", text]
     process = subprocess.Popen(
-        ["bash", "-c", text],
+        argv,
         cwd=cwd,
         env=env,
         stdout=subprocess.PIPE,
@@ -211,7 +240,9 @@ def run_block(block: Block, cwd: Path, env: dict[str, str], install: bool) -> di
     return record
 
 
-def check_once(install: bool, run_slow: bool, log: Any) -> list[dict[str, Any]]:
+def check_once(
+    install: bool, run_slow: bool, log: Any, netns: bool = False
+) -> list[dict[str, Any]]:
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     results = []
     with tempfile.TemporaryDirectory(prefix="readme-check-") as tmp:
@@ -240,7 +271,7 @@ def check_once(install: bool, run_slow: bool, log: Any) -> list[dict[str, Any]]:
                     }
                 )
             else:
-                results.append(run_block(block, cwd, env, install))
+                results.append(run_block(block, cwd, env, install, netns))
             r = results[-1]
             print(
                 f"README.md:{r['line']} ({r['heading']}): {r['verdict']}"
@@ -273,15 +304,18 @@ def main(argv: list[str] | None = None) -> int:
             print(f"README.md:{block.line} ({block.heading}): {what}")
         return 0
     runs = []
+    isolated = isolation(args.install)
     for k in range(args.repeat):
         print(f"run {k + 1}/{args.repeat}", file=sys.stderr, flush=True)
-        runs.append(check_once(args.install, args.all, sys.stderr))
+        runs.append(check_once(args.install, args.all, sys.stderr, isolated == "netns"))
     failed_runs = sum(any(r["verdict"] == "failed" for r in run) for run in runs)
     print(
         json.dumps(
             {
                 "runs": args.repeat,
                 "runs_passed": args.repeat - failed_runs,
+                # netns: each block in a private network namespace; none: on this host's ports
+                "isolation": isolated,
                 "blocks_run": sum(r["verdict"] != "skipped" for r in runs[0]) if runs else 0,
                 "blocks_skipped": [
                     {"line": r["line"], "reason": r["reason"]}
