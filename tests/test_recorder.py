@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import errno
+import itertools
 import os
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -345,3 +349,158 @@ def test_engage_refused_while_a_required_recording_fails() -> None:
     off = from_mapping(LeafgateConfig, {"recording": {"required": True}}, "test.yaml")
     assert recording_refusal(off, "") is not None
     assert recording_refusal(LeafgateConfig(), "any fault") is None  # not required
+
+
+# --- a full disk is a fault while it lasts ---------------------------------------------------------
+
+
+class Disk:
+    """A disk whose free space the test sets: a write beyond it fails with ENOSPC, as on a
+    full tmpfs (files opened for writing under ``root`` only)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.free = 10**9  # bytes
+
+    def install(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        real_open = Path.open
+        disk = self
+
+        def open_(path: Path, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
+            file = real_open(path, mode, *args, **kwargs)
+            if mode[0] in "wa" and path.is_relative_to(disk.root):
+                return _DiskFile(file, disk)
+            return file
+
+        monkeypatch.setattr(Path, "open", open_)
+
+
+class _DiskFile:
+    def __init__(self, file: Any, disk: Disk) -> None:
+        self._file = file
+        self._disk = disk
+
+    def write(self, data: Any) -> int:
+        if len(data) > self._disk.free:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self._disk.free -= len(data)
+        n: int = self._file.write(data)
+        return n
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._file, name)
+
+    def __iter__(self) -> Any:
+        return iter(self._file)
+
+
+def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
+def test_a_full_disk_is_a_session_fault_while_it_lasts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Old code: the file was given up for good; the fault (and a required recording's engage
+    refusal) lasted until the daemon restarted, long after the space was freed."""
+    disk = Disk(tmp_path)
+    disk.install(monkeypatch)
+    path = tmp_path / "s.mcap"
+    rec = SessionRecorder(path, LeafgateConfig(), flush_period=0.05, retry_period=0.2)
+    record_ticks(rec, 20)
+    assert rec.flush() and rec.fault == ""
+    disk.free = 0
+    record_ticks(rec, 20, start=1.0)
+    rec.flush()
+    assert "No space left" in rec.fault
+    time.sleep(0.5)  # attempts at a new file while the disk is full fail, and leave none
+    record_ticks(rec, 5, start=2.0)
+    assert "No space left" in rec.fault
+    assert not (tmp_path / "s.3.mcap").exists()  # no trail of empty files
+    disk.free = 10**9  # space freed
+    assert wait_for(lambda: record_ticks(rec, 1, start=5.0) or rec.fault == ""), rec.fault
+    record_ticks(rec, 20, start=10.0)
+    rec.close()
+    d = rec.diagnostics()
+    assert d["recoveries"] == 1 and d["lost"] >= 50 and "No space left" in d["last_fault"]
+    assert [p.name for p in rec.files] == ["s.mcap", "s.2.mcap"]
+    assert any("resumed" in r.getMessage() and "dropped" in r.getMessage() for r in caplog.records)
+    # the broken file ends without footer or end marker; the new one is a whole session
+    broken = FrameSource(path, markers=True)
+    frames = list(broken)
+    assert broken.truncated and not broken.ended and len(frames) == 20
+    times, reader = read_ticks(tmp_path / "s.2.mcap")
+    assert not reader.truncated and times[-20:] == [10.0 + 0.02 * k for k in range(20)]
+    assert reader.metadata["leafgate.session"]["resumes"] == "s.mcap"
+    resumed = FrameSource(tmp_path / "s.2.mcap", markers=True)
+    list(resumed)
+    assert resumed.ended
+
+
+T0 = 1_700_000_000.0  # s, Unix time (BLF and ASC store a calendar start)
+
+
+@pytest.mark.parametrize("suffix", FORMATS)
+def test_a_full_disk_is_a_can_log_fault_while_it_lasts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, suffix: str
+) -> None:
+    disk = Disk(tmp_path)
+    disk.install(monkeypatch)
+    rec = CanLogRecorder(tmp_path / f"can{suffix}", flush_period=0.05, retry_period=0.2)
+    for k in range(50):
+        rec.on_can_frame(frame(T0 + 0.01 * k), "rx")
+    assert rec.flush() and rec.fault == ""
+    disk.free = 0
+    for k in range(50):
+        rec.on_can_frame(frame(T0 + 1.0 + 0.01 * k), "rx")
+    rec.flush()
+    assert "No space left" in rec.fault
+    time.sleep(0.5)
+    assert "No space left" in rec.fault and len(rec.files) <= 2  # no trail of empty parts
+    disk.free = 10**9
+    assert wait_for(lambda: rec.on_can_frame(frame(T0 + 5.0), "rx") or rec.fault == "")
+    for k in range(50):
+        rec.on_can_frame(frame(T0 + 10.0 + 0.01 * k), "rx")
+    rec.close()
+    assert [p.name for p in rec.files] == [f"can_000{suffix}", f"can_001{suffix}"]
+    assert rec.diagnostics()["recoveries"] == 1 and rec.diagnostics()["lost"] >= 1
+    first = FrameSource(rec.files[0], markers=True)
+    assert len(list(first)) >= 50 and not first.ended  # given up as it was: no end marker
+    second = FrameSource(rec.files[1], markers=True)
+    frames = list(second)
+    # frames held back in the reorder window when the part failed go on in the next
+    assert second.ended and T0 + 1.0 <= frames[0].timestamp <= T0 + 5.002
+    assert all(a.timestamp <= b.timestamp + 2e-3 for a, b in itertools.pairwise(frames))
+    assert frames[-2].timestamp == pytest.approx(T0 + 10.49, abs=2e-3)
+
+
+def test_a_session_fed_from_two_threads_is_written_in_time_order(tmp_path: Path) -> None:
+    """Old code wrote items as they arrived: a frame received during a tick (bus thread,
+    stamped then) came before the tick and the frames it sent (control thread, stamped at
+    the tick's start), so every daemon session went backwards by up to a tick."""
+    now = [0.0]
+    path = tmp_path / "s.mcap"
+    rec = SessionRecorder(path, LeafgateConfig(), clock=lambda: now[0], epoch=T0)
+    for t, inputs, result in ticks(100):
+        now[0] = t + 0.012  # the tick took 12 ms; a frame arrived meanwhile
+        rec.on_can_frame(frame(t + 0.012), "rx")
+        rec.on_tick(t, inputs, result, [frame(t, 0x0A0, rx=False)])
+        rec.on_zenoh_input("/localization/kinematic_state", b"{}", t + 0.001)
+    # a tick beyond the reorder window: logged at the last time written, and counted
+    rec.on_tick(0.505, *next(iter(ticks(1)))[1:], [])
+    rec.close()
+    with SessionReader(path) as reader:
+        records = list(reader.records())
+    times = [r.log_time for r in records]
+    assert times == sorted(times)
+    source = FrameSource(path)
+    stamps = [m.timestamp for m in source]
+    assert len(stamps) == 200 and stamps == sorted(stamps)
+    (late_tick,) = [r for r in records if r.topic == TOPIC_TICK and r.json()["now"] == 0.505]
+    assert late_tick.log_time > (T0 + 1.7) * 1e9  # logged late; its own time kept exact
+    assert rec.diagnostics()["late"] == 1

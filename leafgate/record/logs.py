@@ -37,7 +37,7 @@ import can
 
 from leafgate.can.profile import PROFILE_NAMES, Profile, load_profile
 from leafgate.errors import ConfigError, ReplayError
-from leafgate.record.session import TOPIC_CAN, SessionReader, frame_from_record
+from leafgate.record.session import TOPIC_CAN, SessionDamaged, SessionReader, frame_from_record
 from leafgate.settings import LeafgateConfig, load_config, with_profile
 
 __all__ = [
@@ -203,6 +203,10 @@ class FrameSource:
                 self.continues = self.ended and bytes(msg.data) == PART_MARKER_DATA
                 if self.markers or not self.ended:
                     yield msg
+        except SessionDamaged as exc:
+            raise ReplayError(
+                f"{self.path}: unreadable after {self.frames} frames: {exc.reason}"
+            ) from None
         except ReplayError:
             raise
         except Exception as exc:  # each reader has its own errors (ValueError, BLFParseError …)

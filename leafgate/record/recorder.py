@@ -12,8 +12,12 @@ is compressed and written and the BLF header updated, text formats are flushed. 
 :meth:`close` finishes every file properly (MCAP summary and footer, BLF header).
 
 Disk full, an unwritable directory, any write error: the recorder's :attr:`fault` says what
-and where and its counters grow; the file is given up (later items are dropped and counted);
-nothing is raised into the caller's thread — the control loop keeps running.
+and where and its counters grow; nothing is raised into the caller's thread — the control loop
+keeps running. The failed file is given up as it is (no end marker: ``replay check`` calls it
+incomplete; nothing is appended after a broken tail) and items are dropped and counted. Every
+``retry_period`` the writer starts a new file (the CAN log's next part, the session's
+``<name>.2.mcap`` …); once that works the fault clears, and a warning says how many items the
+outage lost. A full disk is a fault while it lasts, not until the daemon restarts.
 
 Wiring (daemon)::
 
@@ -70,6 +74,7 @@ _STOP: Final = object()
 _ROTATE_CHECK_EVERY: Final = 256  # frames between file-size checks (tell() is not free)
 DEFAULT_REORDER_WINDOW: Final = 0.25  # s, twice the worst disorder measured under load
 _ITEM_OVERHEAD: Final = 200  # bytes counted per queued item besides its payloads
+DEFAULT_RETRY_PERIOD: Final = 2.0  # s between attempts at a new file after a write failure
 
 
 def _item_bytes(item: Any) -> int:
@@ -127,6 +132,10 @@ class _BackgroundWriter:
     :param write: called on the thread for each item
     :param flush: makes everything written so far durable in the file
     :param close: finishes the file
+    :param reopen: gives the failed file up (no end marker) and starts a new one; raises when
+        it cannot. None: a failure is final
+    :param abandon: closes the failed file without finishing it (on :meth:`close`)
+    :param retry_period: s between attempts at :param:`reopen` while failing
     """
 
     def __init__(
@@ -139,8 +148,27 @@ class _BackgroundWriter:
         queue_size: int,
         drain: Callable[[], None] | None = None,
         queue_bytes: int = 64 * 1024 * 1024,
+        reopen: Callable[[], None] | None = None,
+        abandon: Callable[[], None] | None = None,
+        retry_period: float = DEFAULT_RETRY_PERIOD,
     ) -> None:
         self.name = name
+        self._reopen = reopen
+        self._abandon = abandon
+        self.retry_period = retry_period
+        self._retry_at = 0.0  # monotonic s of the next attempt at a new file
+        self._failed_since = 0.0  # monotonic s
+        self._dropped_at_failure = 0
+        self.recoveries = 0  # new files started after a failure
+        # items lost to the failures recovered from: dropped during the outage, and those
+        # written since the last flush before it (the failed file may not hold them)
+        self.lost = 0
+        self._unflushed = 0  # items written since the last flush
+        self._lost_unflushed = 0  # … when the failure came
+        self._outage_fault = ""  # the fault that began the outage
+        # from a failure until a new file has flushed what was written to it: the fault holds
+        self._outage = False
+        self.last_fault = ""  # the last fault, kept after it cleared
         self.queue_bytes = queue_bytes
         self._bytes = 0  # bytes of the items queued now (approximate, _item_bytes)
         self._write = write
@@ -184,9 +212,21 @@ class _BackgroundWriter:
         """Record a fault; an OSError (disk full, permissions …) gives the file up."""
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         self.fault = f"{self.name}: {what}: {reason or type(exc).__name__}"
+        self.last_fault = self.fault
         self.errors += 1
         if isinstance(exc, OSError):
-            self.failed = True
+            now = time.monotonic()
+            if not self._outage:  # a new outage (a new file failing before its first flush
+                self._outage = True  # goes on with the one that made it)
+                self._failed_since = now
+                self._dropped_at_failure = self.dropped
+                self._lost_unflushed = 0
+                self._outage_fault = self.fault
+            if not self.failed:
+                self.failed = True
+                self._lost_unflushed += self._unflushed
+                self._unflushed = 0
+                self._retry_at = now + self.retry_period
             log.warning("recording failed, the file is given up: %s", self.fault)
         else:
             log.warning("recording problem: %s", self.fault)
@@ -218,8 +258,7 @@ class _BackgroundWriter:
                 if self._drain is not None:
                     self._guarded("write", self._drain)
                 if dirty:
-                    self._guarded("flush", self._flush)
-                    self.flushes += 1
+                    self._flushed()
                     dirty = False
                 item.set()
                 continue
@@ -230,17 +269,65 @@ class _BackgroundWriter:
                     try:
                         self._write(item)
                         self.written += 1
+                        self._unflushed += 1
                         dirty = True
                     except Exception as exc:
                         self.fail("write", exc)
             now = time.monotonic()
             if now >= next_flush:
                 if dirty:
-                    self._guarded("flush", self._flush)
-                    self.flushes += 1
+                    self._flushed()
                     dirty = False
                 next_flush = now + period
+            if self.failed and self._reopen is not None and now >= self._retry_at:
+                self._retry(now)
+        if self.failed and self._abandon is not None:
+            try:
+                self._abandon()
+            except Exception as exc:  # the failed file is given up anyway
+                log.debug("closing a failed recording: %s", exc)
         self._guarded("close", self._close)
+
+    def _flushed(self) -> None:
+        self._guarded("flush", self._flush)
+        self.flushes += 1
+        if not self.failed:
+            self._unflushed = 0
+            if self._outage:
+                self._recovered()
+
+    def _retry(self, now: float) -> None:
+        """One attempt at a new file after a failure (bounded to one per retry period)."""
+        assert self._reopen is not None
+        self._retry_at = now + self.retry_period
+        try:
+            self._reopen()
+        except Exception as exc:
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            self.fault = f"{self.name}: new file: {reason or type(exc).__name__}"
+            self.last_fault = self.fault
+            self.errors += 1
+            return
+        # the fault holds until items written to the new file have been flushed: a header
+        # may fit on a disk where the data does not
+        self.failed = False
+
+    def _recovered(self) -> None:
+        """Writing works again: clear the fault and say what the outage lost."""
+        now = time.monotonic()
+        self._outage = False
+        dropped = self.dropped - self._dropped_at_failure
+        self.lost += dropped + self._lost_unflushed
+        self.recoveries += 1
+        log.warning(
+            "recording resumed in a new file after %.1f s: %d items dropped, and up to %d "
+            "written before the failure may be missing from the failed file (%s)",
+            now - self._failed_since,
+            dropped,
+            self._lost_unflushed,
+            self._outage_fault,
+        )
+        self.fault = ""
 
     def flush(self, timeout: float = 5.0) -> bool:
         """Wait until everything queued so far is written and flushed (for tests and tools)."""
@@ -271,6 +358,9 @@ class _BackgroundWriter:
             "queued_bytes": self._bytes,
             "dropped_bytes": self.dropped_bytes,
             "fault": self.fault,
+            "recoveries": self.recoveries,
+            "lost": self.lost,
+            "last_fault": self.last_fault,
         }
 
 
@@ -321,6 +411,16 @@ def _tx_copy(msg: can.Message, timestamp: float, channel: str) -> can.Message:
         channel=msg.channel if msg.channel is not None else channel,
         is_rx=False,
     )
+
+
+def _close_quietly(file: IO[Any] | None) -> None:
+    """Close a file given up after a write error; closing flushes, which fails again."""
+    if file is None:
+        return
+    try:
+        file.close()
+    except Exception as exc:  # the descriptor is closed even when the flush fails
+        log.debug("closing a failed recording file: %s", exc)
 
 
 class _ClosedOnExit:
@@ -397,6 +497,7 @@ class CanLogRecorder(_FileRecorder):
         reorder_window: float = DEFAULT_REORDER_WINDOW,
         time_offset: float = 0.0,
         queue_bytes: int = 64 * 1024 * 1024,
+        retry_period: float = DEFAULT_RETRY_PERIOD,
     ) -> None:
         self.path = Path(path)
         # s added to every frame's own timestamp (a simulated drive: simulated time → Unix time,
@@ -416,6 +517,7 @@ class CanLogRecorder(_FileRecorder):
         self._newest = -math.inf  # s, the newest timestamp handed to the writer
         self._last_written = -math.inf  # s
         self._writer: can.io.generic.FileIOMessageWriter[Any] | None = None
+        self._part_frames = 0
         self._since_check = 0
         self._bg = _BackgroundWriter(
             f"can-log {self.path.name}",
@@ -426,6 +528,9 @@ class CanLogRecorder(_FileRecorder):
             queue_size,
             drain=self._drain,
             queue_bytes=queue_bytes,
+            reopen=self._reopen,
+            abandon=self._abandon,
+            retry_period=retry_period,
         )
         try:
             self._rotate()
@@ -472,6 +577,37 @@ class CanLogRecorder(_FileRecorder):
         name = self._next_name()
         name.parent.mkdir(parents=True, exist_ok=True)
         self._writer = _open_can_writer(name, self.channel)
+        self._part_frames = 0  # frames written to the current part
+        self.files.append(name)
+
+    def _abandon(self) -> None:
+        """Close the failed part as it is: no end marker, nothing more after its broken tail."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            _close_quietly(writer.file)
+
+    def _reopen(self) -> None:
+        """Give the failed part up and start the next one (the frames held back go there)."""
+        self._abandon()
+        if self.files and self._part_frames == 0:
+            # a part opened by an earlier attempt that failed before a frame: it holds nothing
+            # of the drive, and its number is reused (no trail of empty parts in an outage)
+            self.files.pop().unlink(missing_ok=True)
+        name = self._next_name()
+        name.parent.mkdir(parents=True, exist_ok=True)
+        writer = _open_can_writer(name, self.channel)
+        try:
+            # the header must reach the disk now: a disk still full fails here, not later
+            if isinstance(writer, _BlfWriter):
+                writer.flush()
+            else:
+                writer.file.flush()
+        except BaseException:
+            _close_quietly(writer.file)
+            name.unlink(missing_ok=True)  # nothing of the drive in it: the next try reuses it
+            raise
+        self._writer = writer
+        self._part_frames = 0
         self.files.append(name)
 
     def _write(self, msg: can.Message) -> None:
@@ -501,6 +637,7 @@ class CanLogRecorder(_FileRecorder):
         if self._writer is None:
             raise OSError(0, "no open log file")
         self._writer.on_message_received(msg)
+        self._part_frames += 1
         self._since_check += 1
         if self.max_bytes and self._since_check >= _ROTATE_CHECK_EVERY:
             self._since_check = 0
@@ -543,6 +680,18 @@ class CanLogRecorder(_FileRecorder):
 class SessionRecorder(_FileRecorder):
     """The whole session in one MCAP file (see :mod:`leafgate.record.session`).
 
+    Records are written in time order of their MCAP log time, as the CAN log's frames are
+    (:class:`CanLogRecorder`): received frames (the bus thread), Zenoh inputs (Zenoh threads)
+    and ticks with their sent frames (the control thread) arrive out of order by up to the
+    length of a tick, so the writer holds each item back until one ``reorder_window`` newer has
+    arrived. An item later than that is logged at the last time written (its JSON keeps its
+    exact times) and counted as ``late``. A flush request and :meth:`close` write everything
+    held back; the periodic flush does not.
+
+    After a write failure the session goes on in a new file, ``<name>.2.mcap`` … (see the
+    module's text), each a session of its own with the configuration and the metadata
+    ``resumes`` naming the file before.
+
     :param path: the ``.mcap`` file; its directory is created
     :param config: the configuration the gateway runs with (recorded as metadata; a re-run
         rebuilds the gateway from it)
@@ -552,6 +701,8 @@ class SessionRecorder(_FileRecorder):
     :param diagnostics: also record ``Diagnostics.to_dict()`` every tick
     :param channel: the channel name written for sent frames, which carry none (None: none)
     :param one_bus: every frame is on one bus: every frame is written under ``channel``
+    :param reorder_window: s, how long an item is held back to be written in time order
+    :param retry_period: s between attempts at a new file while the file fails
     """
 
     def __init__(
@@ -570,17 +721,28 @@ class SessionRecorder(_FileRecorder):
         one_bus: bool = False,
         epoch: float | None = None,
         queue_bytes: int = 64 * 1024 * 1024,
+        reorder_window: float = DEFAULT_REORDER_WINDOW,
+        retry_period: float = DEFAULT_RETRY_PERIOD,
     ) -> None:
         self.path = Path(path)
+        self.files: list[Path] = []  # the session's files: path, then those after failures
         self.clock = clock
         self.channel = channel  # written for sent frames (they carry none); see CanLogRecorder
         self.one_bus = one_bus
         self.tap = tap
         self.record_diagnostics = diagnostics
+        self.reorder_window = reorder_window
         self.ticks = 0
-        self._last_t = 0.0  # s, time of the last item written (for the end marker)
+        self.late = 0  # items that arrived after the reorder window (logged at the last time)
+        self._pending: list[tuple[float, int, tuple[Any, ...]]] = []  # a heap, by log time
+        self._arrivals = 0
+        self._newest = -math.inf  # s, the newest log time handed to the writer
+        self._last_t = -math.inf  # s, log time of the last item written (for the end marker)
         self._file: IO[bytes] | None = None
         self._writer: SessionWriter | None = None
+        self._file_items = 0
+        self._config = config
+        self._compression = compression
         self._bg = _BackgroundWriter(
             f"session {self.path.name}",
             self._write,
@@ -588,19 +750,22 @@ class SessionRecorder(_FileRecorder):
             self._finish,
             flush_period,
             queue_size,
+            drain=self._drain,
             queue_bytes=queue_bytes,
+            reopen=self._reopen,
+            abandon=self._abandon,
+            retry_period=retry_period,
         )
         meta = {"clock": "gateway" if clock is not None else "frame timestamps"}
         meta["started"] = datetime.now().astimezone().isoformat(timespec="seconds")
         meta.update(session or {})
+        self._meta = meta
+        # Unix-epoch MCAP times: the gateway clock's offset now, or for the simulator (frames
+        # stamped with simulated time from 0) the wall-clock time of its start; one offset for
+        # every file of the session
+        self._epoch = epoch_offset(clock) if epoch is None else epoch
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = self.path.open("wb")
-            # Unix-epoch MCAP times: the gateway clock's offset now, or for the simulator
-            # (frames stamped with simulated time from 0) the wall-clock time of its start.
-            offset = epoch_offset(clock) if epoch is None else epoch
-            self._writer = SessionWriter(self._file, config, compression, meta, offset)
-            self._file.flush()
+            self._open(self.path, meta)
         except Exception as exc:
             self._bg.fail(f"cannot open {self.path}", exc)
 
@@ -614,7 +779,7 @@ class SessionRecorder(_FileRecorder):
         self, key: str, payload: bytes, received: float, typename: str | None = None
     ) -> None:
         """A raw Zenoh input sample with its receive time (gateway clock)."""
-        self._bg.put(("zenoh", key, bytes(payload), received, typename))
+        self._bg.put(("zenoh", received, key, bytes(payload), typename))
 
     def on_tick(
         self, now: float, inputs: GatewayInputs, result: StepResult, frames: Sequence[can.Message]
@@ -637,27 +802,83 @@ class SessionRecorder(_FileRecorder):
 
     # -- writer thread --
 
+    def _open(self, path: Path, meta: dict[str, str]) -> None:
+        """Start a session file: header, configuration and metadata, on disk before it returns
+        (a disk still full fails here)."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        file = path.open("wb")
+        try:
+            writer = SessionWriter(file, self._config, self._compression, meta, self._epoch)
+            file.flush()
+        except BaseException:
+            _close_quietly(file)
+            raise
+        self._file, self._writer = file, writer
+        self._file_items = 0  # items written to the current file
+        self.files.append(path)
+
+    def _abandon(self) -> None:
+        """Close the failed file as it is: no end marker, no summary, nothing after its tail."""
+        file, self._file, self._writer = self._file, None, None
+        _close_quietly(file)
+
+    def _reopen(self) -> None:
+        """Give the failed file up and go on in the next (the items held back go there)."""
+        self._abandon()
+        if len(self.files) > 1 and self._file_items == 0:
+            # a file opened by an earlier attempt that failed before an item: it holds nothing
+            # of the drive, and its name is reused (no trail of empty files in an outage)
+            self.files.pop().unlink(missing_ok=True)
+        previous = self.files[-1].name if self.files else ""
+        path = self.path.with_name(f"{self.path.stem}.{len(self.files) + 1}{self.path.suffix}")
+        try:
+            self._open(path, {**self._meta, "resumes": previous})
+        except BaseException:
+            path.unlink(missing_ok=True)  # nothing of the drive in it: the next try reuses it
+            raise
+
     def _write(self, item: tuple[Any, ...]) -> None:
+        """Hold the item back in time order; write those older than the window."""
+        t = item[1]
+        heapq.heappush(self._pending, (t, self._arrivals, item))
+        self._arrivals += 1
+        self._newest = max(self._newest, t)
+        self._release(self._newest - self.reorder_window)
+
+    def _drain(self) -> None:
+        self._release(math.inf)
+
+    def _release(self, until: float) -> None:
+        pending = self._pending
+        while pending and pending[0][0] <= until:
+            t, _, item = heapq.heappop(pending)
+            if t < self._last_t:  # beyond the window: keep the file in time order
+                self.late += 1
+                t = self._last_t
+            self._emit(t, item)
+            self._last_t = t
+
+    def _emit(self, t: float, item: tuple[Any, ...]) -> None:
+        """Write one item at log time ``t`` (s, gateway clock)."""
         writer = self._writer
         if writer is None:
             raise OSError(0, "no open session file")
+        self._file_items += 1
         kind = item[0]
         if kind == "can":
-            _, t, msg, rx = item
+            _, _, msg, rx = item
             if self.channel is not None and (
                 msg.channel is None or (self.one_bus and msg.channel != self.channel)
             ):
                 msg = copy_frame(msg, channel=self.channel)  # one bus, one channel name
             writer.can_frame(t, msg, rx)
-            self._last_t = t
         elif kind == "tick":
             _, now, inputs, result, xy = item
-            self._last_t = now
-            writer.tick(now, inputs, result, xy, self.record_diagnostics)
+            writer.tick(now, inputs, result, xy, self.record_diagnostics, log_time=t)
             self.ticks += 1
         else:
-            _, key, payload, received, typename = item
-            writer.zenoh_input(key, payload, received, typename)
+            _, received, key, payload, typename = item
+            writer.zenoh_input(key, payload, received, typename, log_time=t)
 
     def _flush(self) -> None:
         if self._writer is not None and self._file is not None:
@@ -667,7 +888,11 @@ class SessionRecorder(_FileRecorder):
     def _finish(self) -> None:
         try:
             if self._writer is not None:
+                self._drain()
                 t = self.clock() if self.clock is not None else self._last_t
+                t = max(t, self._last_t)  # never before the last record
+                if not math.isfinite(t):
+                    t = 0.0  # nothing was recorded and no clock: the marker at time 0
                 self._writer.can_frame(t, end_marker(t), False)
                 self._writer.finish()
         finally:
@@ -677,7 +902,13 @@ class SessionRecorder(_FileRecorder):
     # -- control (fault, flush, close: _FileRecorder) --
 
     def diagnostics(self) -> dict[str, Any]:
-        return {"file": str(self.path), "ticks": self.ticks, **self._bg.counters()}
+        return {
+            "file": str(self.files[-1] if self.files else self.path),
+            "files": [str(f) for f in self.files],
+            "ticks": self.ticks,
+            "late": self.late,
+            **self._bg.counters(),
+        }
 
 
 _AnyRecorder = CanLogRecorder | SessionRecorder

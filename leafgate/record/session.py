@@ -45,9 +45,11 @@ import enum
 import hashlib
 import json
 import math
+import os
 import time
 import types
 import typing
+import zlib
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,8 +58,10 @@ from typing import IO, Any, Final, get_type_hints
 import can
 import numpy as np
 import yaml
-from mcap.records import Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
+from mcap.opcode import Opcode
+from mcap.records import Channel, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.writer import CompressionType, Writer
 
 from leafgate.config import apply_overrides, from_mapping, safe_load_yaml, yaml_error_text
@@ -87,6 +91,7 @@ __all__ = [
     "TOPIC_DIAGNOSTICS",
     "TOPIC_TICK",
     "TOPIC_TRAJECTORY",
+    "SessionDamaged",
     "SessionReader",
     "SessionRecord",
     "SessionWriter",
@@ -114,6 +119,8 @@ TOPIC_DIAGNOSTICS: Final = "/leafgate/diagnostics"
 META_CONFIG: Final = "leafgate.config"
 META_SESSION: Final = "leafgate.session"
 _CDR_HEADERS: Final = (b"\x00\x00", b"\x00\x01")  # CDR encapsulation: big / little endian
+_MAGIC: Final = b"\x89MCAP0\r\n"
+_FOOTER_LENGTH: Final = 8 + 8 + 4  # bytes: summary start, summary offset start, summary CRC
 _CHUNK_SIZE: Final = 4 * 1024 * 1024  # bytes; chunks are closed by flush() long before this
 
 
@@ -538,7 +545,15 @@ class SessionWriter:
         session: Mapping[str, str] | None = None,
         epoch_offset: float = 0.0,
     ) -> None:
-        self._writer = Writer(stream, chunk_size=_CHUNK_SIZE, compression=_COMPRESSION[compression])
+        # the data-section CRC (checked at the end of a finished file) also covers the message
+        # indexes between the chunks, which no chunk CRC does: one flipped byte anywhere in a
+        # finished session is found
+        self._writer = Writer(
+            stream,
+            chunk_size=_CHUNK_SIZE,
+            compression=_COMPRESSION[compression],
+            enable_data_crcs=True,
+        )
         self._writer.start(profile=PROFILE, library="leafgate")
         self._writer.add_metadata(META_CONFIG, {"yaml": config_to_yaml(config)})
         self._offset_ns = round(epoch_offset * 1e9)
@@ -578,9 +593,20 @@ class SessionWriter:
             self._channels[TOPIC_CAN], to_ns(log_time), _dumps(frame_record(msg.timestamp, msg, rx))
         )
 
-    def zenoh_input(self, key: str, payload: bytes, received: float, typename: str | None) -> None:
+    def zenoh_input(
+        self,
+        key: str,
+        payload: bytes,
+        received: float,
+        typename: str | None,
+        log_time: float | None = None,
+    ) -> None:
         """A raw Zenoh payload as received on topic ``key`` (the ROS name the gateway passes,
-        e.g. ``/localization/kinematic_state``); CDR payloads get a ``ros2msg`` schema channel."""
+        e.g. ``/localization/kinematic_state``); CDR payloads get a ``ros2msg`` schema channel.
+
+        :param log_time: s, the time it is logged at when not ``received`` (a recorder keeping
+            the file in time order logs a late sample at the last time written)
+        """
         cdr = typename is not None and payload[:2] in _CDR_HEADERS
         encoding = "cdr" if cdr else "json"
         channel_id = self._zenoh.get((key, encoding))
@@ -600,7 +626,7 @@ class SessionWriter:
                 topic, encoding, schema_id, {"zenoh_key": key, "type": typename or ""}
             )
             self._zenoh[(key, encoding)] = channel_id
-        self._add(channel_id, to_ns(received), bytes(payload))
+        self._add(channel_id, to_ns(received if log_time is None else log_time), bytes(payload))
 
     def tick(
         self,
@@ -609,13 +635,16 @@ class SessionWriter:
         result: StepResult,
         predicted_xy: FloatArray | None = None,
         diagnostics: bool = True,
+        log_time: float | None = None,
     ) -> None:
         """One control tick: inputs, commands, state, and (optionally) the diagnostics.
 
         :param predicted_xy: the controller's predicted positions of this tick, (Np, 2) m,
             when a :class:`~leafgate.record.recorder.ControllerTap` caught them
+        :param log_time: s, the MCAP log time when not ``now`` (``now`` in the record stays
+            exact; see :meth:`zenoh_input`)
         """
-        t = to_ns(now)
+        t = to_ns(now if log_time is None else log_time)
         ref: tuple[int, int] | None = None
         if inputs.trajectory is not None:
             r, obj, new = self._trajectories.refer(inputs.trajectory.value)
@@ -653,6 +682,63 @@ class SessionWriter:
 # --- reading ------------------------------------------------------------------------------------
 
 
+class SessionDamaged(ReplayError):
+    """A session file that cannot be read on: damaged, not cut short by a crash.
+
+    :param offset: where the record that does not read begins, in bytes from the file's start
+    :param messages: messages read before it
+    """
+
+    def __init__(self, path: Path, offset: int, messages: int, reason: str) -> None:
+        self.path = path
+        self.offset = offset
+        self.messages = messages
+        where = "" if f"offset {offset}" in reason else f" at offset {offset}"
+        self.reason = f"{reason}{where}"
+        super().__init__(f"{path}: unreadable after {messages} messages: {self.reason}")
+
+
+def _ends_with_footer(file: IO[bytes], size: int) -> bool:
+    """The file's last bytes are an MCAP footer record and the closing magic: it was finished,
+    so a record that cannot be read in it is damage, not a crash's cut."""
+    tail = 1 + 8 + _FOOTER_LENGTH + len(_MAGIC)
+    if size < tail + len(_MAGIC):
+        return False
+    here = file.tell()
+    try:
+        file.seek(size - tail)
+        data = file.read(tail)
+    finally:
+        file.seek(here)
+    return (
+        data[0] == Opcode.FOOTER
+        and int.from_bytes(data[1:9], "little") == _FOOTER_LENGTH
+        and data.endswith(_MAGIC)
+    )
+
+
+def _summary_damage(file: IO[bytes], footer: Footer) -> str:
+    """Why the summary section (read just before ``footer``) is damaged, "" when it is not.
+
+    The stream reader checks chunk and data-section CRCs but not the summary's, which the
+    footer carries: the bytes from the summary's start through the footer's second field.
+    """
+    if footer.summary_crc == 0 or footer.summary_start == 0:
+        return ""  # written without a summary CRC
+    here = file.tell()  # just after the footer record
+    covered = here - 4 - footer.summary_start  # up to, not including, the CRC field
+    if covered <= 0:
+        return f"the footer's summary start {footer.summary_start} is past the footer"
+    try:
+        file.seek(footer.summary_start)
+        data = file.read(covered)
+    finally:
+        file.seek(here)
+    if zlib.crc32(data) != footer.summary_crc:
+        return "the summary section's CRC does not match (indexes, statistics)"
+    return ""
+
+
 @dataclass(frozen=True, slots=True)
 class SessionRecord:
     """One message of a session file."""
@@ -687,13 +773,14 @@ class SessionReader:
             raise ReplayError(f"{self.path}: no such file") from None
         except OSError as exc:
             raise ReplayError(f"{self.path}: cannot read: {exc.strerror}") from None
-        if self._file.read(8) != b"\x89MCAP0\r\n":
+        if self._file.read(8) != _MAGIC:
             self._file.close()
             raise ReplayError(f"{self.path}: not an MCAP file")
         self._file.seek(0)
         self.metadata: dict[str, dict[str, str]] = {}
         self.truncated = False  # the file ends before its footer (a crash)
         self.error = ""  # what stopped the reading early, if anything
+        self.messages = 0  # messages read so far (every topic)
 
     @property
     def config_yaml(self) -> str | None:
@@ -725,40 +812,88 @@ class SessionReader:
     def records(self, topics: frozenset[str] | None = None) -> Iterator[SessionRecord]:
         """Messages in file order (metadata is collected on the way).
 
+        A file that stops before its footer is a crash's truncation: the records up to there,
+        then :attr:`truncated`. Anything else that stops the reading — a CRC or parse error, a
+        record reaching past the end of a file that does end with a footer, bytes after the
+        footer (two sessions concatenated) — is damage, and a silent "truncated" or "empty"
+        would hide it: :class:`SessionDamaged` says where.
+
         :param topics: only these topics (None: all)
+        :raises SessionDamaged: the file is damaged (names the offset and the reason)
         """
         self.truncated = False
         self.error = ""
+        self.messages = 0
         schemas: dict[int, str] = {}
         channels: dict[int, tuple[str, str, str]] = {}
-        reader = StreamReader(self._file, validate_crcs=True)
-        try:
-            for record in reader.records:
-                if isinstance(record, Message):
-                    topic, encoding, schema = channels.get(record.channel_id, ("?", "", ""))
-                    if topics is not None and topic not in topics:
-                        continue
-                    yield SessionRecord(
-                        topic, record.log_time, record.publish_time, record.data, encoding, schema
-                    )
-                elif isinstance(record, Schema):
-                    schemas[record.id] = record.name
-                elif isinstance(record, Channel):
-                    channels[record.id] = (
-                        record.topic,
-                        record.message_encoding,
-                        schemas.get(record.schema_id, ""),
-                    )
-                elif isinstance(record, Metadata):
-                    self.metadata[record.name] = dict(record.metadata)
-                elif isinstance(record, Footer):
+        # no record of a file can be longer than the file: a damaged length field is a
+        # clear error rather than a read of gigabytes
+        size = os.fstat(self._file.fileno()).st_size
+        reader = StreamReader(self._file, validate_crcs=True, record_size_limit=size)
+        stream = iter(reader.records)
+        footer = False
+        while True:
+            # where the record being read begins (chunks are read whole; the opening magic was
+            # checked on opening)
+            start = max(self._file.tell(), len(_MAGIC))
+            try:
+                record = next(stream)
+            except StopIteration:
+                break
+            except Exception as exc:  # EndOfFile, CRC, zstd, struct, UnicodeDecodeError …
+                reason = " ".join((str(exc) or type(exc).__name__).split())
+                # the read ran into the end of the file (a short read fails in struct), or a
+                # record is longer than what is left of it
+                cut = isinstance(exc, (EndOfFile, RecordLengthLimitExceeded))
+                cut = cut or self._file.tell() >= size
+                if cut and not _ends_with_footer(self._file, size):
+                    self.truncated = True  # a crash: the file stops inside a record
+                    self.error = reason or "cut record"
                     return
-        except Exception as exc:  # a cut record: EndOfFile, struct.error, CRC or zstd errors …
-            self.truncated = True
-            self.error = " ".join((str(exc) or type(exc).__name__).split())
+                if cut:
+                    reason = "a record reaches past the end of the file"
+                elif isinstance(exc, CRCValidationError) and isinstance(exc.record, DataEnd):
+                    reason = f"the data section's CRC does not match: damaged before offset {start}"
+                elif isinstance(exc, CRCValidationError):
+                    reason = (
+                        f"a {type(exc.record).__name__.lower()}'s CRC does not match its content"
+                    )
+                raise SessionDamaged(self.path, start, self.messages, reason) from None
+            if isinstance(record, Message):
+                self.messages += 1
+                topic, encoding, schema = channels.get(record.channel_id, ("?", "", ""))
+                if topics is not None and topic not in topics:
+                    continue
+                yield SessionRecord(
+                    topic, record.log_time, record.publish_time, record.data, encoding, schema
+                )
+            elif isinstance(record, Schema):
+                schemas[record.id] = record.name
+            elif isinstance(record, Channel):
+                channels[record.id] = (
+                    record.topic,
+                    record.message_encoding,
+                    schemas.get(record.schema_id, ""),
+                )
+            elif isinstance(record, Metadata):
+                self.metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Footer):
+                footer = True  # the stream reader reads the closing magic and stops
+                summary = _summary_damage(self._file, record)
+                if summary:
+                    raise SessionDamaged(self.path, record.summary_start, self.messages, summary)
+        if not footer:
+            self.truncated = True  # ended between records, without a footer
+            self.error = "no footer"
             return
-        self.truncated = True  # ended without a footer
-        self.error = "no footer"
+        end = self._file.tell()
+        if end < size:
+            raise SessionDamaged(
+                self.path,
+                end,
+                self.messages,
+                f"{size - end} bytes after the session's end at offset {end}: not read",
+            )
 
     def close(self) -> None:
         self._file.close()
