@@ -41,7 +41,7 @@ import time
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import IO, Any, Final, Literal, Protocol, Self
+from typing import IO, Any, Final, Generic, Literal, Protocol, Self, TypeVar
 
 import can
 import numpy as np
@@ -456,6 +456,44 @@ class _FileRecorder(_ClosedOnExit):
         self._bg.close()
 
 
+T = TypeVar("T")
+
+
+class _ReorderWindow(Generic[T]):
+    """Items held back until one ``window`` s newer has arrived, then released in time order
+    (equal times in arrival order): the one time order of the CAN log and the session, whose
+    items come from several threads. An item older than the last one released is released at
+    that time and counted in :attr:`late`."""
+
+    def __init__(self, window: float) -> None:
+        self.window = window
+        self.late = 0
+        self.last = -math.inf  # s, time of the last item released
+        self._heap: list[tuple[float, int, T]] = []
+        self._arrivals = 0
+        self._newest = -math.inf  # s, the newest time pushed
+
+    def push(self, t: float, item: T) -> list[tuple[float, T]]:
+        """Hold ``item`` (at time ``t``, s); the items now older than the window, in order."""
+        heapq.heappush(self._heap, (t, self._arrivals, item))
+        self._arrivals += 1
+        self._newest = max(self._newest, t)
+        return self.release(self._newest - self.window)
+
+    def release(self, until: float = math.inf) -> list[tuple[float, T]]:
+        """The items held with a time up to ``until``, each with the time to write it at."""
+        out = []
+        heap = self._heap
+        while heap and heap[0][0] <= until:
+            t, _, item = heapq.heappop(heap)
+            if t < self.last:  # beyond the window: kept in order at the last time
+                self.late += 1
+                t = self.last
+            self.last = t
+            out.append((t, item))
+        return out
+
+
 class CanLogRecorder(_FileRecorder):
     """Every CAN frame in and out, in a python-can log file with size rotation.
 
@@ -511,11 +549,8 @@ class CanLogRecorder(_FileRecorder):
         self.one_bus = one_bus
         self.reorder_window = reorder_window
         self.files: list[Path] = []
-        self.late = 0  # frames that arrived after the reorder window (written re-stamped)
-        self._pending: list[tuple[float, int, can.Message]] = []  # a heap, by timestamp
-        self._arrivals = 0
-        self._newest = -math.inf  # s, the newest timestamp handed to the writer
-        self._last_written = -math.inf  # s
+        # frames in time order; those that came after the window are written re-stamped
+        self._order: _ReorderWindow[can.Message] = _ReorderWindow(reorder_window)
         self._writer: can.io.generic.FileIOMessageWriter[Any] | None = None
         self._part_frames = 0
         self._since_check = 0
@@ -610,28 +645,23 @@ class CanLogRecorder(_FileRecorder):
         self._part_frames = 0
         self.files.append(name)
 
+    @property
+    def late(self) -> int:
+        """Frames that arrived after the reorder window (written re-stamped)."""
+        return self._order.late
+
     def _write(self, msg: can.Message) -> None:
         """Hold the frame back in time order; write those older than the window."""
-        stamp = msg.timestamp
-        if stamp < self._last_written:  # beyond the window: keep the log monotonic
-            self.late += 1
-            msg = copy_frame(msg, timestamp=self._last_written)
         if self.one_bus and msg.channel != self.channel:
             msg = copy_frame(msg, channel=self.channel)
-        heapq.heappush(self._pending, (msg.timestamp, self._arrivals, msg))
-        self._arrivals += 1
-        self._newest = max(self._newest, stamp)
-        self._release(self._newest - self.reorder_window)
+        self._emit_all(self._order.push(msg.timestamp, msg))
 
     def _drain(self) -> None:
-        self._release(math.inf)
+        self._emit_all(self._order.release())
 
-    def _release(self, until: float) -> None:
-        pending = self._pending
-        while pending and pending[0][0] <= until:
-            msg = heapq.heappop(pending)[2]
-            self._last_written = msg.timestamp
-            self._emit(msg)
+    def _emit_all(self, frames: list[tuple[float, can.Message]]) -> None:
+        for t, msg in frames:
+            self._emit(msg if msg.timestamp == t else copy_frame(msg, timestamp=t))
 
     def _emit(self, msg: can.Message) -> None:
         if self._writer is None:
@@ -659,7 +689,7 @@ class CanLogRecorder(_FileRecorder):
     ) -> None:
         stamp = self.tx_clock() if self.tx_clock is not None else time.time()
         # never before the last frame: a simulated drive's clock runs ahead of the wall clock
-        marker = end_marker(max(stamp, self._last_written), self.channel, continues)
+        marker = end_marker(max(stamp, self._order.last), self.channel, continues)
         writer.on_message_received(marker)
 
     def _finish(self) -> None:
@@ -733,11 +763,8 @@ class SessionRecorder(_FileRecorder):
         self.record_diagnostics = diagnostics
         self.reorder_window = reorder_window
         self.ticks = 0
-        self.late = 0  # items that arrived after the reorder window (logged at the last time)
-        self._pending: list[tuple[float, int, tuple[Any, ...]]] = []  # a heap, by log time
-        self._arrivals = 0
-        self._newest = -math.inf  # s, the newest log time handed to the writer
-        self._last_t = -math.inf  # s, log time of the last item written (for the end marker)
+        # items in log-time order; those that came after the window are logged at the last time
+        self._order: _ReorderWindow[tuple[Any, ...]] = _ReorderWindow(reorder_window)
         self._file: IO[bytes] | None = None
         self._writer: SessionWriter | None = None
         self._file_items = 0
@@ -837,26 +864,19 @@ class SessionRecorder(_FileRecorder):
             path.unlink(missing_ok=True)  # nothing of the drive in it: the next try reuses it
             raise
 
+    @property
+    def late(self) -> int:
+        """Items that arrived after the reorder window (logged at the last time)."""
+        return self._order.late
+
     def _write(self, item: tuple[Any, ...]) -> None:
         """Hold the item back in time order; write those older than the window."""
-        t = item[1]
-        heapq.heappush(self._pending, (t, self._arrivals, item))
-        self._arrivals += 1
-        self._newest = max(self._newest, t)
-        self._release(self._newest - self.reorder_window)
+        for t, held in self._order.push(item[1], item):
+            self._emit(t, held)
 
     def _drain(self) -> None:
-        self._release(math.inf)
-
-    def _release(self, until: float) -> None:
-        pending = self._pending
-        while pending and pending[0][0] <= until:
-            t, _, item = heapq.heappop(pending)
-            if t < self._last_t:  # beyond the window: keep the file in time order
-                self.late += 1
-                t = self._last_t
-            self._emit(t, item)
-            self._last_t = t
+        for t, held in self._order.release():
+            self._emit(t, held)
 
     def _emit(self, t: float, item: tuple[Any, ...]) -> None:
         """Write one item at log time ``t`` (s, gateway clock)."""
@@ -889,8 +909,8 @@ class SessionRecorder(_FileRecorder):
         try:
             if self._writer is not None:
                 self._drain()
-                t = self.clock() if self.clock is not None else self._last_t
-                t = max(t, self._last_t)  # never before the last record
+                t = self.clock() if self.clock is not None else self._order.last
+                t = max(t, self._order.last)  # never before the last record
                 if not math.isfinite(t):
                     t = 0.0  # nothing was recorded and no clock: the marker at time 0
                 self._writer.can_frame(t, end_marker(t), False)
