@@ -73,6 +73,7 @@ from leafgate.can.codec import CanCodec, Decoded, EncodableMessage
 from leafgate.config.transport import ZenohConfig
 from leafgate.control.reference import load_trajectory
 from leafgate.errors import ConfigError, LeafgateError, TrajectoryError
+from leafgate.gateway.state import EngageReply
 from leafgate.messages import (
     EcuState,
     GatewayState,
@@ -749,6 +750,10 @@ class ZenohTarget(Target):
         return f"{case.key} {case.kind}: {case.payload!r}"
 
 
+#: every engage reply's fields (docs/state-machine.md), as the gateway's reply type has them
+REPLY_FIELDS = {f.name for f in fields(EngageReply)}
+
+
 class EngageRequestTarget(Target):
     """Query payloads and ``request=`` parameters through the engage queryable's answer."""
 
@@ -777,7 +782,7 @@ class EngageRequestTarget(Target):
     def feed(self, case: tuple[bytes | None, str | None]) -> bool:
         request = parse_request(*case)
         reply = self.transport.answer(request)
-        if set(reply) != {"accepted", "state", "reason"}:
+        if set(reply) != REPLY_FIELDS:
             raise Failure(f"reply {reply!r}")
         json.dumps(reply, allow_nan=False)  # the reply goes out as JSON
         if not isinstance(request, OperatorRequest):

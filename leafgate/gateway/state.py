@@ -139,6 +139,16 @@ class EngageReply:
         }
 
 
+#: the state a refusal names before the gateway's first tick published one
+STATE_UNKNOWN = "UNKNOWN"
+
+
+def refusal(state: str, reason: str) -> dict[str, Any]:
+    """A refusal in the reply format of :meth:`EngageReply.to_dict`, made where no
+    :class:`GatewayState` is at hand (:data:`STATE_UNKNOWN` before the gateway's first tick)."""
+    return {"accepted": False, "state": state, "reason": reason, "changed": False, "already": False}
+
+
 def path_deviation(
     pose: Pose, trajectory: Trajectory, within: float | None = None
 ) -> tuple[float, float]:

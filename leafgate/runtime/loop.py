@@ -50,7 +50,7 @@ import numpy as np
 
 from leafgate.can.codec import CanCodec
 from leafgate.gateway.core import Gateway, GatewayInputs, StepResult
-from leafgate.gateway.state import EngageReply
+from leafgate.gateway.state import STATE_UNKNOWN, EngageReply, refusal
 from leafgate.messages import (
     STOP_REQUESTS,
     GatewayState,
@@ -119,13 +119,7 @@ class TakenRequests:
             item.future.set_result(dict(reply))
         for item in self.superseded:
             item.future.set_result(
-                {
-                    "accepted": False,
-                    "state": state,
-                    "reason": f"{item.request.value} superseded by a disengage",
-                    "changed": False,
-                    "already": False,
-                }
+                refusal(state, f"{item.request.value} superseded by a disengage")
             )
 
 
@@ -156,24 +150,16 @@ class RequestBox:
             if waiting < self._length:
                 self._items.append(item)
         if waiting >= self._length:
-            return {
-                "accepted": False,
-                "state": "UNKNOWN",
-                "reason": f"busy: {waiting} requests already wait for the control loop",
-                "changed": False,
-                "already": False,
-            }
+            return refusal(
+                STATE_UNKNOWN, f"busy: {waiting} requests already wait for the control loop"
+            )
         try:
             return item.future.result(timeout=timeout)
         except FutureTimeout:
             if item.future.cancel():
-                return {
-                    "accepted": False,
-                    "state": "UNKNOWN",
-                    "reason": "control loop did not answer in time (request withdrawn)",
-                    "changed": False,
-                    "already": False,
-                }
+                return refusal(
+                    STATE_UNKNOWN, "control loop did not answer in time (request withdrawn)"
+                )
             return item.future.result()  # taken by this very tick: its answer comes at once
 
     def __len__(self) -> int:
@@ -366,15 +352,7 @@ class Runtime:
         state = self.gateway.state.name
         reply = result.reply
         pending.answer(
-            reply.to_dict()
-            if reply is not None
-            else {
-                "accepted": False,
-                "state": state,
-                "reason": "no reply",
-                "changed": False,
-                "already": False,
-            },
+            reply.to_dict() if reply is not None else refusal(state, "no reply"),
             state,
         )
         frames = self._encode(result, now)

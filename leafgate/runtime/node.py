@@ -25,6 +25,7 @@ import zenoh
 
 from leafgate.config.transport import ZenohConfig
 from leafgate.errors import TransportError
+from leafgate.gateway.state import STATE_UNKNOWN
 from leafgate.gateway.watchdog import pose_is_valid, trajectory_is_valid
 from leafgate.jsonconv import to_json
 from leafgate.messages import (
@@ -174,10 +175,6 @@ class _QueryLanes:
         with self.cond:
             self.closed = True
             self.cond.notify_all()
-
-
-#: the state in a refusal made before the gateway published any (its first tick)
-STATE_UNKNOWN = "UNKNOWN"
 
 
 def _reply_json(reply: Mapping[str, Any], state: str = STATE_UNKNOWN) -> dict[str, Any]:
