@@ -236,13 +236,6 @@ def load_sweep(path: str | Path) -> Sweep:
     max_cases = data.get("max_cases", MAX_CASES)
     if isinstance(max_cases, bool) or not isinstance(max_cases, int) or max_cases < 1:
         raise ConfigError(f"{where}: max_cases: expected an integer >= 1, got {max_cases!r}")
-    size = len(routes) * len(plants) * len(controllers) * samples
-    if size > max_cases:  # before any case is made: expanding would take minutes and memory
-        raise ConfigError(
-            f"{where}: samples: {samples} makes {size} cases ({len(routes)} routes × "
-            f"{len(plants)} plants × {len(controllers)} controllers × {samples} samples), "
-            f"above the bound of {max_cases} (max_cases: raise it in the sweep file)"
-        )
     sweep = Sweep(
         path=where,
         name=name,
@@ -258,6 +251,12 @@ def load_sweep(path: str | Path) -> Sweep:
         timeout_s=None if timeout is None else float(timeout),
         max_cases=max_cases,
     )
+    if sweep.size > max_cases:  # before any case is made: expanding would take minutes and memory
+        raise ConfigError(
+            f"{where}: samples: {samples} makes {sweep.size} cases ({len(sweep.routes)} routes × "
+            f"{len(sweep.plants)} plants × {len(sweep.controllers)} controllers × {samples} "
+            f"samples), above the bound of {max_cases} (max_cases: raise it in the sweep file)"
+        )
     _check_keys(sweep)
     return sweep
 
