@@ -360,7 +360,13 @@ def _submit_and_wait(
                     pending[future] = key
                     run.stopped = _lost(client)
                     break
-                run.rows[key] = _row(future)
+                try:
+                    row = _row(future)
+                except OSError:  # CommClosedError: the scheduler went away while it sent this
+                    pending[future] = key
+                    run.stopped = _lost(client)
+                    break
+                run.rows[key] = row
                 bar.add(run.rows[key])
             if not batch:
                 time.sleep(0.05)
