@@ -160,10 +160,13 @@ def _realtime_starved(cfg: LeafgateConfig, metrics: dict[str, Any]) -> str:
     and its reports reach the gateway late, which the report watchdog takes, as it must, for a
     late ECU. Said, with the figure, so the fault is not read as the gateway's.
     """
+    watchdog = cfg.gateway.watchdog
+    # s: later than this, the ECU missed a slot of its fastest report
+    slot = min(watchdog.steer_report_period, watchdog.long_report_period)
     late = metrics.get("ecu_loop_max_lateness_s")
-    if not (isinstance(late, float) and late > 0.010) or "report" not in metrics["final_reason"]:
+    if not (isinstance(late, float) and late > slot) or "report" not in metrics["final_reason"]:
         return ""
-    periods = cfg.gateway.watchdog.report_timeout_periods
+    periods = watchdog.report_timeout_periods
     return (
         f"; the simulated ECU's own loop woke up to {late * 1000:.0f} ms late on this machine "
         f"(load), so its reports were late: the gateway keeps the car's timeout "

@@ -317,6 +317,27 @@ def test_horizon_is_sample_of_horizon_arclength_and_reference_speed() -> None:
             np.testing.assert_array_equal(speed, path.reference_speed(s_ref))
 
 
+def test_speed_and_slope_is_the_reference_speed_and_its_chord_slope() -> None:
+    """The baselines' speed lookup is the reference speed (one interpolation), held to the
+    segment, with the slope of the chord it lies on, signed along the direction of travel."""
+    path = ReferencePath(_parking_like(), creep_speed=0.3)
+    rng = np.random.default_rng(3)
+    for seg in path.segments:
+        lo, hi = float(path.s[seg.start]), float(path.s[seg.end])
+        for s in rng.uniform(lo, hi, 60):
+            speed, slope = path.speed_and_slope(seg, float(s))
+            ref = seg.direction * float(path.reference_speed(np.array([s]))[0])
+            assert speed == pytest.approx(max(ref, 0.0), abs=1e-12)
+            h = 1e-6
+            a, b = max(s - h, lo), min(s + h, hi)
+            fd = seg.direction * float(np.diff(path.reference_speed(np.array([a, b])))[0]) / (b - a)
+            assert slope == pytest.approx(fd, abs=1e-5)
+        # held to the segment: beyond its end it is the end's speed
+        assert path.speed_and_slope(seg, hi + 5.0)[0] == pytest.approx(
+            max(seg.direction * float(path.speed[seg.end]), 0.0)
+        )
+
+
 def test_scalar_interpolation_is_numpys_bit_for_bit() -> None:
     """The per-tick scalar lookup gives np.interp's exact value: inside, on and beyond knots."""
     rng = np.random.default_rng(11)

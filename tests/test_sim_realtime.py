@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -50,3 +51,9 @@ def test_a_report_fault_after_a_late_simulator_says_the_simulator_was_late() -> 
     assert _realtime_starved(cfg, {**fault, "ecu_loop_max_lateness_s": 0.004}) == ""
     other = {**fault, "final_reason": "localization age 0.6 s > 0.5 s"}
     assert _realtime_starved(cfg, other) == ""
+    # "late" is against the fastest report's period, the one in the config (10 ms by default)
+    assert _realtime_starved(cfg, {**fault, "ecu_loop_max_lateness_s": 0.015}) != ""
+    watchdog = replace(cfg.gateway.watchdog, steer_report_period=0.05, long_report_period=0.05)
+    slow = replace(cfg, gateway=replace(cfg.gateway, watchdog=watchdog))
+    assert _realtime_starved(slow, {**fault, "ecu_loop_max_lateness_s": 0.015}) == ""
+    assert _realtime_starved(slow, {**fault, "ecu_loop_max_lateness_s": 0.060}) != ""

@@ -258,7 +258,7 @@ class _Tracker:
         end = path.stops.get(seg, float(path.s[seg.end]))  # m, where the plan stops the car
         remaining = end - s - speed * cfg.stop_reaction_time  # m
         stop_curve = math.sqrt(2.0 * cfg.stop_decel * max(remaining, 0.0))  # m/s
-        planned, slope = _planned_speed(path, seg, s)
+        planned, slope = path.speed_and_slope(seg, s)
         if stop_curve < max(planned, cfg.creep_speed):
             # on the curve v² = 2 b (d − v t_r): dv/dt = −b v / (v + b t_r), −b without reserve
             reserve = cfg.stop_decel * cfg.stop_reaction_time  # m/s
@@ -329,21 +329,6 @@ class _Tracker:
             solve_time=time.perf_counter() - t0,
             **self._where(),
         )
-
-
-def _planned_speed(path: ReferencePath, seg: Segment, s: float) -> tuple[float, float]:
-    """The planned speed magnitude at arc length ``s`` on ``seg`` (m/s) and its slope along the
-    direction of travel, d|v|/ds (1/s): the reference is linear in ``s`` between waypoints, so
-    the slope is that of the chord the car is on (the one ahead, on a waypoint)."""
-    xs = path.s
-    j = int(np.searchsorted(xs, s, side="right")) - 1
-    j = min(max(j, seg.start), seg.end - 1)
-    s_j, s_k = float(xs[j]), float(xs[j + 1])
-    v_j = seg.direction * float(path.speed[j])
-    v_k = seg.direction * float(path.speed[j + 1])
-    slope = (v_k - v_j) / (s_k - s_j) if s_k > s_j else 0.0
-    t = min(max(s - s_j, 0.0), s_k - s_j)
-    return max(v_j + slope * t, 0.0), slope
 
 
 def point_on_path(path: ReferencePath, seg: Segment, s: float) -> tuple[float, float, float]:

@@ -835,6 +835,23 @@ class ReferencePath:
         """Signed reference speed at arc lengths ``s_query`` (linear in s)."""
         return np.interp(s_query, self.s, self.speed)
 
+    def speed_and_slope(self, seg: Segment, s: float) -> tuple[float, float]:
+        """The planned speed magnitude at arc length ``s`` on ``seg`` (m/s), as
+        :meth:`reference_speed` gives it, and its slope along the direction of travel,
+        d|v|/ds (1/s).
+
+        The speed is linear in ``s`` between waypoints, so the slope is that of the chord the
+        car is on (the one ahead, on a waypoint), and ``s`` is held to the segment.
+        """
+        j = int(np.searchsorted(self.s, s, side="right")) - 1
+        j = min(max(j, seg.start), seg.end - 1)
+        s_j, s_k = float(self.s[j]), float(self.s[j + 1])
+        v_j = seg.direction * float(self.speed[j])
+        v_k = seg.direction * float(self.speed[j + 1])
+        slope = (v_k - v_j) / (s_k - s_j) if s_k > s_j else 0.0
+        t = min(max(s - s_j, 0.0), s_k - s_j)
+        return max(v_j + slope * t, 0.0), slope
+
     def horizon_arclength(self, seg: Segment, s0: float, steps: FloatArray) -> FloatArray:
         """Arc lengths reached at times ``steps`` (s) after ``s0`` along the planned profile.
 

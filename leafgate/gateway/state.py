@@ -130,13 +130,18 @@ class EngageReply:
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON reply ``{accepted, state, reason, changed, already}``."""
-        return {
-            "accepted": self.accepted,
-            "state": self.state.name,
-            "reason": self.reason,
-            "changed": self.changed,
-            "already": self.already,
-        }
+        return _reply(self.accepted, self.state.name, self.reason, self.changed, self.already)
+
+
+def _reply(accepted: bool, state: str, reason: str, changed: bool, already: bool) -> dict[str, Any]:
+    """The one spelling of a reply's five fields (:class:`EngageReply` and :func:`refusal`)."""
+    return {
+        "accepted": accepted,
+        "state": state,
+        "reason": reason,
+        "changed": changed,
+        "already": already,
+    }
 
 
 #: the state a refusal names before the gateway's first tick published one
@@ -146,7 +151,7 @@ STATE_UNKNOWN = "UNKNOWN"
 def refusal(state: str, reason: str) -> dict[str, Any]:
     """A refusal in the reply format of :meth:`EngageReply.to_dict`, made where no
     :class:`GatewayState` is at hand (:data:`STATE_UNKNOWN` before the gateway's first tick)."""
-    return {"accepted": False, "state": state, "reason": reason, "changed": False, "already": False}
+    return _reply(False, state, reason, changed=False, already=False)
 
 
 def path_deviation(
