@@ -30,7 +30,8 @@ echoes). Any other python-can interface is opened by name with ``kwargs`` passed
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from types import TracebackType
 from typing import Any
 
@@ -39,7 +40,7 @@ import can
 from leafgate.config.can import BusConfig, CanConfig
 from leafgate.errors import BusError
 
-__all__ = ["Buses", "copy_frame", "filters_for", "open_bus", "open_buses"]
+__all__ = ["Buses", "copy_frame", "discard_queued", "filters_for", "open_bus", "open_buses"]
 
 _STANDARD_MASK = 0x7FF  # all 11 bits of a standard ID must match
 # A standard-ID filter on bit 11, which no standard ID has: it delivers nothing.
@@ -112,6 +113,36 @@ def open_bus(cfg: BusConfig, receive_ids: Iterable[int] | None = None) -> can.Bu
         raise BusError(
             f"cannot open CAN interface {cfg.interface!r} channel {cfg.channel!r}: {_reason(exc)}"
         ) from exc
+
+
+DISCARD_BUDGET = 0.2  # s, the longest the queued frames are read away (a flooded bus never empties)
+
+
+def discard_queued(
+    bus: can.BusABC, budget: float = DISCARD_BUDGET, clock: Callable[[], float] = time.monotonic
+) -> int:
+    """Read away the frames queued on ``bus`` since it was opened; return how many.
+
+    Between opening a bus and starting to read it the daemon opens Zenoh and its recording,
+    which takes a second on a loaded machine. The socket's queue holds what the ECU sent
+    meanwhile, until it overflows and drops frames. Read late, those frames come as a burst
+    stamped at the time they were read, with counter skips where the queue dropped some:
+    the recording showed six E2E errors at every start. They are history from before the
+    gateway listened, so they are neither acted on nor recorded.
+
+    A bus that fails to read ends the discarding; the receiver meets the same error.
+    """
+    count = 0
+    end = clock() + budget
+    while clock() < end:
+        try:
+            msg = bus.recv(timeout=0.0)
+        except (can.CanError, OSError):
+            break
+        if msg is None:
+            break
+        count += 1
+    return count
 
 
 def _reason(exc: BaseException) -> str:

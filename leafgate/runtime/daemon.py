@@ -25,7 +25,7 @@ from typing import Any
 import can
 import numpy as np
 
-from leafgate.can.bus import open_buses
+from leafgate.can.bus import discard_queued, open_buses
 from leafgate.can.codec import CanCodec
 from leafgate.can.profile import Profile
 from leafgate.config.transport import ZenohConfig
@@ -401,9 +401,12 @@ def _run_daemon(
         transport.on_plan = functools.partial(prebuild, rules=rules)
         receiver = CanReceiver(codec, clock)
         receiver.on_frame = lambda msg, _decoded: recording.on_can_frame(msg, "rx")
-        notifier = can.Notifier(
-            [buses.dbw] if buses.shared else [buses.dbw, buses.car], [receiver], timeout=0.1
-        )
+        receive_buses = [buses.dbw] if buses.shared else [buses.dbw, buses.car]
+        # what queued while Zenoh and the recording opened: stale, and cut by the queue's drops
+        queued_at_start = sum(discard_queued(bus) for bus in receive_buses)
+        if queued_at_start:
+            log.info("discarded %d CAN frames queued during start-up", queued_at_start)
+        notifier = can.Notifier(receive_buses, [receiver], timeout=0.1)
         stack.callback(notifier.stop)
         state_log = StateLog()
         vehicle = VehicleView()
@@ -430,7 +433,7 @@ def _run_daemon(
             on_tick=on_tick,
             # on the control thread, after the state check: FAULT's reason comes first
             engage_veto=lambda: recording_refusal(cfg, recording.fault),
-            receive_buses=[buses.dbw] if buses.shared else [buses.dbw, buses.car],
+            receive_buses=receive_buses,
             extra_diagnostics=lambda: {
                 "zenoh_decode_errors": transport.decode_errors,
                 "zenoh_last_errors": transport.last_errors,
@@ -439,6 +442,7 @@ def _run_daemon(
                 "zenoh_input_sources": transport.input_sources,
                 # counter skips after a receive stall: lost frames, not report errors
                 "can_stall_skips": receiver.stall_skips,
+                "can_discarded_at_start": queued_at_start,
                 "recording": recording.diagnostics(),
                 "vehicle": vehicle.latest,
             },
