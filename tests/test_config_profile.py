@@ -99,3 +99,24 @@ def test_run_names_the_file_in_a_cross_section_config_error(
     monkeypatch.setattr("leafgate.runtime.daemon.run_daemon", run_daemon)
     assert cli.main(["run", "--config", str(path)]) == cli.EXIT_USAGE
     assert f"leafgate: error: {path}: controller.mpc.horizon" in capsys.readouterr().err
+
+
+def test_a_profile_file_whose_dbc_is_not_beside_it_says_the_packaged_one_is_used(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A copied profile decoded with leafgate's own DBC of the same name, and said nothing."""
+    import shutil
+    from importlib import resources
+
+    data = resources.files("leafgate") / "data"
+    prof = tmp_path / "prof"
+    prof.mkdir()
+    shutil.copy(str(data / "profiles" / "leafgate-dbw.yaml"), prof / "mycar.yaml")
+    shutil.copy(str(data / "dbc" / "leafgate_dbw.dbc"), prof / "leafgate_dbw.dbc")
+    path = write(tmp_path, "vehicle:\n  profile: prof/mycar.yaml\n")
+    assert cli.main(["check-config", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert "names the DBC leaf_aze0_car.dbc, which is not beside it" in err
+    assert "leafgate_dbw.dbc" not in err  # the one beside it is used, and not named
+    assert load_config(path).profile.dbc_from_package == ("leaf_aze0_car.dbc",)
+    assert load_config(None).profile.dbc_from_package == ()  # packaged: nothing to say

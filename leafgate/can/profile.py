@@ -240,6 +240,8 @@ class Profile:
     derived: Mapping[str, tuple[tuple[str, str, float], ...]] = dataclasses.field(
         default_factory=dict
     )
+    # the DBCs a profile *file* names that were not beside it: leafgate's packaged ones are used
+    dbc_from_package: tuple[str, ...] = ()
 
     def frame(self, name: str) -> FrameSpec:
         """The frame spec of a DBC message name.
@@ -343,7 +345,8 @@ def _load_packaged(name: str, vehicle: VehicleConfig) -> Profile:
 def _load_profile(name_or_path: str, vehicle: VehicleConfig) -> Profile:
     """Load and check a profile: a packaged name (``sze-hlc``) or a path to a YAML file.
 
-    DBC files are found next to the profile file, then in the packaged ``dbc`` directory.
+    DBC files are found next to the profile file, then in the packaged ``dbc`` directory
+    (:attr:`Profile.dbc_from_package` names those, for start-up and ``check-config`` to say).
     Every signal and message named must exist in the DBCs; every error names the file and key.
 
     :param vehicle: the vehicle numbers named scales refer to (``steering_ratio``)
@@ -381,6 +384,11 @@ def _load_profile(name_or_path: str, vehicle: VehicleConfig) -> Profile:
         raise r.fail("dbc", "expected a list of DBC files")
     dbc = tuple(
         _resolve_dbc(r, str(item), base_dir, f"dbc[{i}]") for i, item in enumerate(dbc_list)
+    )
+    from_package = tuple(
+        str(item)
+        for item, found in zip(dbc_list, dbc, strict=True)
+        if base_dir is not None and Path(found).parent != base_dir
     )
     caps_raw = r.mapping(doc.get("capabilities", {}), "capabilities")
     r.keys(caps_raw, "capabilities", tuple(f.name for f in dataclasses.fields(Capabilities)))
@@ -421,6 +429,7 @@ def _load_profile(name_or_path: str, vehicle: VehicleConfig) -> Profile:
         defaults=defaults,
         steer_rate=steer_rate,
         derived=derived,
+        dbc_from_package=from_package,
     )
     return profile
 

@@ -59,6 +59,12 @@ def offline_checks(cfg: LeafgateConfig, *, zenoh: bool = True) -> OfflineReport:
         _check_bus(source, key, bus, report)
     if zenoh:
         _check_zenoh(cfg, report)
+    profile = cfg.profile
+    for name in profile.dbc_from_package:
+        report.warnings.append(
+            f"{source}: vehicle.profile: {profile.where} names the DBC {name}, which is not "
+            "beside it: leafgate's packaged one of that name is used"
+        )
     if cfg.recording.enabled:
         problem = recording_directory_problem(cfg.recording.directory)
         if problem is not None:
