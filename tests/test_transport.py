@@ -752,3 +752,33 @@ def test_old_header_stamp_ages_the_pose_and_a_future_one_invalidates_it(
         assert wait_until(lambda: gateway.pose.received == 2)
     sample = gateway.latest_pose()
     assert sample is not None and not sample.valid
+
+
+def test_a_peer_whose_connect_endpoints_do_not_answer_is_named(
+    configs: tuple[ZenohConfig, ZenohConfig],
+) -> None:
+    """A peer opens whether or not its ``connect`` endpoints answer (the README said start-up
+    stops on a refused endpoint; only client mode does): start-up names the silent ones."""
+    from leafgate.transport.session import unanswered_connect
+
+    nobody = ZenohConfig(
+        connect=(f"tcp/127.0.0.1:{free_port()}",), listen=(f"tcp/127.0.0.1:{free_port()}",)
+    )
+    lonely = open_session(nobody)
+    try:
+        assert unanswered_connect(lonely, nobody, wait=0.3) == nobody.connect
+    finally:
+        lonely.close()
+    listener = open_session(configs[0])
+    try:
+        peer = open_session(configs[1])
+        try:  # a connect endpoint that answers: nothing to say
+            assert unanswered_connect(peer, configs[1], wait=WAIT) == ()
+        finally:
+            peer.close()
+    finally:
+        listener.close()
+    # no connect endpoints, or a client (whose open fails instead): nothing judged
+    assert unanswered_connect(SimpleNamespace(), configs[0]) == ()  # type: ignore[arg-type]
+    client_cfg = ZenohConfig(mode="client", connect=nobody.connect)
+    assert unanswered_connect(SimpleNamespace(), client_cfg) == ()  # type: ignore[arg-type]

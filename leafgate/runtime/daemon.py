@@ -373,6 +373,7 @@ def _run_daemon(
     requests = RequestBox()
     from leafgate.record.recorder import open_recording
     from leafgate.runtime.node import GatewayTransport  # zenoh loads only where it is used
+    from leafgate.transport.session import CONNECT_WAIT, unanswered_connect
 
     if _stopped_starting(stop, "opening the buses"):
         return 0
@@ -387,6 +388,13 @@ def _run_daemon(
         else:
             transport = GatewayTransport(session, cfg.zenoh, requests.submit, clock=clock)
         stack.enter_context(transport)
+        if session is None and (unanswered := unanswered_connect(transport.session, cfg.zenoh)):
+            log.warning(
+                "zenoh: no answer from %s within %.0f s: no localization or plan until one "
+                "answers (Zenoh goes on trying); is the router (rmw_zenohd, the bridge) running?",
+                ", ".join(unanswered),
+                CONNECT_WAIT,
+            )
         if _stopped_starting(stop, "opening the recording"):
             return 0
         # Opened only now that the bus and Zenoh are up: a start that fails on either leaves

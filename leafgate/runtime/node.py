@@ -477,6 +477,11 @@ class GatewayTransport:
         return self.trajectory.get()
 
     @property
+    def session(self) -> zenoh.Session:
+        """The Zenoh session the gateway is declared on."""
+        return self._session
+
+    @property
     def decode_errors(self) -> dict[str, int]:
         """Dropped payloads per input key."""
         return {self.pose.key: self.pose.errors, self.trajectory.key: self.trajectory.errors}

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import re
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -215,6 +217,34 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
             else "no endpoints"
         )
         raise TransportError(f"cannot open Zenoh session ({where}): {zenoh_message(exc)}") from None
+
+
+CONNECT_WAIT = 1.0  # s, how long start-up waits for a ``connect`` endpoint to answer
+
+
+def unanswered_connect(
+    session: zenoh.Session,
+    cfg: ZenohConfig,
+    wait: float = CONNECT_WAIT,
+    clock: Callable[[], float] = time.monotonic,
+) -> tuple[str, ...]:
+    """The ``connect`` endpoints, when none of them answered within ``wait``; else ``()``.
+
+    In client mode an unreachable router fails :func:`open_session`. A peer or a router opens
+    anyway and goes on trying in the background (an ``rmw_zenohd`` started after the
+    gateway is found then), so its start-up must say that it is, for now, cut off: no
+    localization and no plan will come. Only the endpoints leafgate configured are judged;
+    with ``zenoh.config_file`` the file decides, and ``()`` is returned.
+    """
+    if cfg.mode == "client" or not cfg.connect or cfg.config_file:
+        return ()
+    end = clock() + wait
+    while True:
+        if list(session.info.peers_zid()) or list(session.info.routers_zid()):
+            return ()
+        if clock() >= end:
+            return tuple(cfg.connect)
+        time.sleep(0.02)
 
 
 def _insert(config: zenoh.Config, key: str, value: str, what: str) -> None:
