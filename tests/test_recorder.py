@@ -335,6 +335,9 @@ def test_check_reports_a_log_without_its_end_marker_as_incomplete(tmp_path: Path
     (finding,) = [f for f in report.findings if f.kind == "incomplete"]
     assert "stops after frame 3" in finding.detail
     assert finding.time == pytest.approx(1_700_000_000.02)
+    # the verdict says why it failed: it read "FAILED: … 0 E2E errors, 0 gaps, …" and no more
+    verdict = report.format()[-1]
+    assert verdict.startswith("FAILED:") and verdict.endswith(", 1 incomplete"), verdict
 
 
 def test_engage_refused_while_a_required_recording_fails() -> None:

@@ -284,9 +284,23 @@ class CheckReport:
             f"violations, {self.count('e2e')} E2E errors, {self.count('gap')} gaps, "
             f"{self.count('silence')} bus silences, {self.count('period')} period findings"
             + (f", {self.count('coverage')} coverage findings" if self.count("coverage") else "")
+            + "".join(f", {n} {kind}" for kind, n in self._other_findings().items())
             + (f"; {self.authentication}" if self.authentication else "")
         )
         return lines
+
+    def _other_findings(self) -> dict[str, int]:
+        """Findings of the kinds the verdict has no fixed count for (``incomplete``, ``report``):
+        a FAILED verdict names every kind that failed it."""
+        counts: dict[str, int] = {}
+        for f in self.findings:
+            if f.kind not in _VERDICT_KINDS:
+                counts[f.kind] = counts.get(f.kind, 0) + 1
+        return counts
+
+
+#: the finding kinds the verdict line always counts
+_VERDICT_KINDS = frozenset({"limit", "e2e", "gap", "silence", "period", "coverage"})
 
 
 def _num(value: float | None) -> float | None:
