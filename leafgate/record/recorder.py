@@ -129,7 +129,8 @@ class _BackgroundWriter:
     """A bounded queue drained by one thread that writes, flushes on time and closes.
 
     :param name: thread name and the start of every fault message
-    :param write: called on the thread for each item
+    :param write: called on the thread for each item; returns how many items it wrote to the
+        file (a writer that holds items back to order them writes them later)
     :param flush: makes everything written so far durable in the file
     :param close: finishes the file
     :param reopen: gives the failed file up (no end marker) and starts a new one; raises when
@@ -141,12 +142,12 @@ class _BackgroundWriter:
     def __init__(
         self,
         name: str,
-        write: Callable[[Any], None],
+        write: Callable[[Any], int],
         flush: Callable[[], None],
         close: Callable[[], None],
         flush_period: float,
         queue_size: int,
-        drain: Callable[[], None] | None = None,
+        drain: Callable[[], int] | None = None,
         queue_bytes: int = 64 * 1024 * 1024,
         reopen: Callable[[], None] | None = None,
         abandon: Callable[[], None] | None = None,
@@ -163,7 +164,7 @@ class _BackgroundWriter:
         # items lost to the failures recovered from: dropped during the outage, and those
         # written since the last flush before it (the failed file may not hold them)
         self.lost = 0
-        self._unflushed = 0  # items written since the last flush
+        self._unflushed = 0  # items written to the file since the last flush
         self._lost_unflushed = 0  # … when the failure came
         self._outage_fault = ""  # the fault that began the outage
         # from a failure until a new file has flushed what was written to it: the fault holds
@@ -231,13 +232,14 @@ class _BackgroundWriter:
         else:
             log.warning("recording problem: %s", self.fault)
 
-    def _guarded(self, what: str, fn: Callable[[], None]) -> None:
+    def _guarded(self, what: str, fn: Callable[[], Any]) -> Any:
         if self.failed:
-            return
+            return None
         try:
-            fn()
+            return fn()
         except Exception as exc:  # nothing may escape into (or kill) the writer thread
             self.fail(what, exc)
+            return None
 
     def _run(self) -> None:
         period = self._period
@@ -256,7 +258,7 @@ class _BackgroundWriter:
                     self._bytes -= _item_bytes(item)
             if isinstance(item, threading.Event):  # a flush request
                 if self._drain is not None:
-                    self._guarded("write", self._drain)
+                    self._unflushed += self._guarded("write", self._drain) or 0
                 if dirty:
                     self._flushed()
                     dirty = False
@@ -267,9 +269,8 @@ class _BackgroundWriter:
                     self.dropped += 1
                 else:
                     try:
-                        self._write(item)
+                        self._unflushed += self._write(item)
                         self.written += 1
-                        self._unflushed += 1
                         dirty = True
                     except Exception as exc:
                         self.fail("write", exc)
@@ -480,6 +481,15 @@ class _ReorderWindow(Generic[T]):
         self._newest = max(self._newest, t)
         return self.release(self._newest - self.window)
 
+    def discard(self) -> int:
+        """Drop every item held (how many): those held when a file failed. Written to the next
+        file they would be an island from before the outage, and the outage a hole inside that
+        file, which no reader can tell from a silent bus; dropped, the recording's one hole is
+        between the failed file and the next."""
+        held = len(self._heap)
+        self._heap.clear()
+        return held
+
     def release(self, until: float = math.inf) -> list[tuple[float, T]]:
         """The items held with a time up to ``until``, each with the time to write it at."""
         out = []
@@ -622,8 +632,10 @@ class CanLogRecorder(_FileRecorder):
             _close_quietly(writer.file)
 
     def _reopen(self) -> None:
-        """Give the failed part up and start the next one (the frames held back go there)."""
+        """Give the failed part up and start the next one, with the first frame after the
+        outage (:meth:`_ReorderWindow.discard`: one stretch lost, between the two parts)."""
         self._abandon()
+        self._bg.dropped += self._order.discard()
         if self.files and self._part_frames == 0:
             # a part opened by an earlier attempt that failed before a frame: it holds nothing
             # of the drive, and its number is reused (no trail of empty parts in an outage)
@@ -650,18 +662,19 @@ class CanLogRecorder(_FileRecorder):
         """Frames that arrived after the reorder window (written re-stamped)."""
         return self._order.late
 
-    def _write(self, msg: can.Message) -> None:
-        """Hold the frame back in time order; write those older than the window."""
+    def _write(self, msg: can.Message) -> int:
+        """Hold the frame back in time order; write those older than the window (how many)."""
         if self.one_bus and msg.channel != self.channel:
             msg = copy_frame(msg, channel=self.channel)
-        self._emit_all(self._order.push(msg.timestamp, msg))
+        return self._emit_all(self._order.push(msg.timestamp, msg))
 
-    def _drain(self) -> None:
-        self._emit_all(self._order.release())
+    def _drain(self) -> int:
+        return self._emit_all(self._order.release())
 
-    def _emit_all(self, frames: list[tuple[float, can.Message]]) -> None:
+    def _emit_all(self, frames: list[tuple[float, can.Message]]) -> int:
         for t, msg in frames:
             self._emit(msg if msg.timestamp == t else copy_frame(msg, timestamp=t))
+        return len(frames)
 
     def _emit(self, msg: can.Message) -> None:
         if self._writer is None:
@@ -850,8 +863,10 @@ class SessionRecorder(_FileRecorder):
         _close_quietly(file)
 
     def _reopen(self) -> None:
-        """Give the failed file up and go on in the next (the items held back go there)."""
+        """Give the failed file up and go on in the next, with the first item after the
+        outage (:meth:`_ReorderWindow.discard`: one stretch lost, between the two files)."""
         self._abandon()
+        self._bg.dropped += self._order.discard()
         if len(self.files) > 1 and self._file_items == 0:
             # a file opened by an earlier attempt that failed before an item: it holds nothing
             # of the drive, and its name is reused (no trail of empty files in an outage)
@@ -869,14 +884,18 @@ class SessionRecorder(_FileRecorder):
         """Items that arrived after the reorder window (logged at the last time)."""
         return self._order.late
 
-    def _write(self, item: tuple[Any, ...]) -> None:
-        """Hold the item back in time order; write those older than the window."""
-        for t, held in self._order.push(item[1], item):
+    def _write(self, item: tuple[Any, ...]) -> int:
+        """Hold the item back in time order; write those older than the window (how many)."""
+        released = self._order.push(item[1], item)
+        for t, held in released:
             self._emit(t, held)
+        return len(released)
 
-    def _drain(self) -> None:
-        for t, held in self._order.release():
+    def _drain(self) -> int:
+        released = self._order.release()
+        for t, held in released:
             self._emit(t, held)
+        return len(released)
 
     def _emit(self, t: float, item: tuple[Any, ...]) -> None:
         """Write one item at log time ``t`` (s, gateway clock)."""
