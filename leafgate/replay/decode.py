@@ -177,8 +177,14 @@ def _incomplete_note(parts: LogParts, source: ChainedSource) -> str:
         notes.append(" (truncated session)" if source.session is not None else " (cut short)")
     if source.frames and not source.ended:
         notes.append("; no end-of-recording marker: the recording stops early")
+    lost = {loss.before for loss in source.losses}
+    for loss in source.losses:
+        notes.append(
+            f"; part {loss.before.name} has no end-of-recording marker: the recorder lost "
+            f"{loss.end - loss.start:.3f} s before {loss.after.name}"
+        )
     for span_path, _, _, ended in source.spans[:-1]:
-        if not ended:
+        if not ended and span_path not in lost:
             notes.append(f"; part {span_path.name} has no end-of-recording marker")
     after = unread_next_part(parts, source.continues)
     if after is not None:
