@@ -8,6 +8,7 @@ import time
 from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -132,6 +133,49 @@ def test_frames_round_trip_through_each_format(
     ]
     tol = tolerance(suffix)
     assert all(abs(a.timestamp - b.timestamp) < tol for a, b in zip(back, frames, strict=True))
+
+
+def _channels(path: Path) -> list[object]:
+    return [m.channel for m in FrameSource(path)]
+
+
+@pytest.mark.parametrize("suffix", [*FORMATS, ".mcap"])
+def test_every_format_names_a_frames_bus_by_one_rule(tmp_path: Path, suffix: str) -> None:
+    """One rule (README, "Recording and replay"): a name format (candump, MCAP) writes the
+    configured channel name of the frame's bus, a numbered one (BLF, ASC) the bus's number,
+    CAN 1 for the drive-by-wire bus and CAN 2 for CAR-CAN (python-can reads them 0-based).
+    Old code: BLF and ASC numbered a channel by the digits its name ends in: the multicast
+    group 239.74.163.1 read back as 1, and the buses vcan0 and can0 were one channel, 0."""
+    path = tmp_path / f"c{suffix}"
+    one = {"channel": "239.74.163.1", "one_bus": True}
+    two = {"channel": "vcan0", "car_channel": "can0"}
+    frames = [
+        frame(T0, 0x0B0),  # received on the dbw bus (its interface's own name for it)
+        can.Message(timestamp=T0 + 0.01, arbitration_id=0x0A0, channel=None, is_rx=False),
+    ]
+    car = frame(T0 + 0.02, 0x284)
+    if suffix == ".mcap":
+        one_rec: Any = SessionRecorder(path, LeafgateConfig(), **one)
+        # a session stores names: a received frame keeps its bus's
+        two_rec: Any = SessionRecorder(tmp_path / "two.mcap", LeafgateConfig(), channel="vcan0")
+    else:
+        one_rec = CanLogRecorder(path, **one)
+        two_rec = CanLogRecorder(tmp_path / f"two{suffix}", **two)
+    with one_rec, two_rec:
+        for msg in [*frames, car]:
+            one_rec.on_can_frame(msg, "rx" if msg.is_rx else "tx")
+        frames[0].channel = "vcan0"
+        car.channel = "can0"
+        for msg in [*frames, car]:
+            two_rec.on_can_frame(msg, "rx" if msg.is_rx else "tx")
+    one_path = one_rec.files[0]
+    two_path = two_rec.files[0]
+    if suffix in (".blf", ".asc"):
+        assert _channels(one_path) == [0, 0, 0]
+        assert _channels(two_path) == [0, 0, 1]
+    else:
+        assert _channels(one_path) == ["239.74.163.1"] * 3
+        assert _channels(two_path) == ["vcan0", "vcan0", "can0"]
 
 
 @pytest.mark.parametrize("suffix", FORMATS)

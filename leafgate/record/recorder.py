@@ -395,9 +395,14 @@ class _AscWriter(can.ASCWriter):
     FORMAT_DATE = "%a %b %d %H:%M:%S.{:03d} %Y"
 
 
+#: Suffixes of the CAN log formats that store a channel number, not a name (python-can's
+#: writers hold an integer: a name's trailing digits, + 1 in the file).
+_NUMBERED_FORMATS: Final = (".blf", ".asc")
+
+
 def _open_can_writer(path: Path, channel: str) -> can.io.generic.FileIOMessageWriter[Any]:
     """The writer for the suffix; ``channel`` names frames without one in ``.log`` files
-    (BLF and ASC number their channels and use python-can's default, 1)."""
+    (BLF and ASC are given each frame's bus number: :meth:`CanLogRecorder._numbered`)."""
     if path.suffix.lower() == ".blf":
         return _BlfWriter(path)
     if path.suffix.lower() == ".log":
@@ -518,9 +523,16 @@ class CanLogRecorder(_FileRecorder):
     :param queue_size: frames waiting for the writer thread before frames are dropped
     :param tx_clock: stamps sent frames when given (the daemon passes ``time.time`` so sent
         frames share the clock of received ones); None keeps each frame's own timestamp
-    :param channel: channel written for frames that carry none (sent frames)
+    :param channel: the drive-by-wire bus's channel name (``can.dbw.channel``), written for
+        frames that carry none (sent frames)
+    :param car_channel: CAR-CAN's channel name (``can.car.channel``), None without one
     :param one_bus: every frame is on one bus (the drive-by-wire and car frames share it):
         every frame is written under ``channel``, so one bus has one name in the log
+
+    Channels (README, "Recording and replay"): ``.log`` (candump) writes a frame's bus by its
+    configured name; BLF and ASC store a number, CAN 1 for the drive-by-wire bus (``channel``),
+    CAN 2 for CAR-CAN (``car_channel``) and 3, 4 … for any other name a frame carries, in the
+    order they appear (python-can reads them back 0-based: 0, 1 …).
     :param reorder_window: s; frames are written in time order: the writer holds each frame
         back until a frame this much newer has arrived (sent and received frames reach the
         recorder from different threads, up to ~0.12 s apart under load). A frame that
@@ -541,6 +553,7 @@ class CanLogRecorder(_FileRecorder):
         queue_size: int = 20_000,
         tx_clock: Callable[[], float] | None = None,
         channel: str = "can0",
+        car_channel: str | None = None,
         one_bus: bool = False,
         reorder_window: float = DEFAULT_REORDER_WINDOW,
         time_offset: float = 0.0,
@@ -557,6 +570,11 @@ class CanLogRecorder(_FileRecorder):
         self.tx_clock = tx_clock
         self.channel = channel
         self.one_bus = one_bus
+        # the numbers BLF and ASC store, 0-based as python-can's writers take them
+        self._numbers: dict[object, int] = {channel: 0, None: 0}  # none: the dbw bus
+        if car_channel is not None and not one_bus:
+            self._numbers.setdefault(car_channel, 1)
+        self._numbered = self.path.suffix.lower() in _NUMBERED_FORMATS
         self.reorder_window = reorder_window
         self.files: list[Path] = []
         # frames in time order; those that came after the window are written re-stamped
@@ -676,10 +694,20 @@ class CanLogRecorder(_FileRecorder):
             self._emit(msg if msg.timestamp == t else copy_frame(msg, timestamp=t))
         return len(frames)
 
+    def _for_file(self, msg: can.Message) -> can.Message:
+        """The frame as the format stores its channel: BLF and ASC a number (the class's
+        notes), the text formats the name."""
+        if not self._numbered:
+            return msg
+        number = self._numbers.get(msg.channel)
+        if number is None:  # a name beside the configured ones: the next number
+            number = self._numbers[msg.channel] = max(self._numbers.values()) + 1
+        return copy_frame(msg, channel=number)
+
     def _emit(self, msg: can.Message) -> None:
         if self._writer is None:
             raise OSError(0, "no open log file")
-        self._writer.on_message_received(msg)
+        self._writer.on_message_received(self._for_file(msg))
         self._part_frames += 1
         self._since_check += 1
         if self.max_bytes and self._since_check >= _ROTATE_CHECK_EVERY:
@@ -703,7 +731,7 @@ class CanLogRecorder(_FileRecorder):
         stamp = self.tx_clock() if self.tx_clock is not None else time.time()
         # never before the last frame: a simulated drive's clock runs ahead of the wall clock
         marker = end_marker(max(stamp, self._order.last), self.channel, continues)
-        writer.on_message_received(marker)
+        writer.on_message_received(self._for_file(marker))
 
     def _finish(self) -> None:
         if self._writer is not None:
@@ -1041,6 +1069,7 @@ def open_recording(
                 queue_bytes=cfg.queue_bytes,
                 tx_clock=wall_clock,
                 channel=config.can.dbw.channel,
+                car_channel=None if config.can.car is None else config.can.car.channel,
                 one_bus=config.can.car is None,
                 time_offset=sim_epoch or 0.0,
             )
