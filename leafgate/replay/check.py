@@ -112,6 +112,7 @@ from leafgate.record.logs import (
 from leafgate.replay.decode import authentication_summary
 from leafgate.replay.report import write_report
 from leafgate.settings import LeafgateConfig
+from leafgate.text import plural
 
 __all__ = [
     "MAX_GAP_PERIODS",
@@ -259,7 +260,7 @@ class CheckReport:
     def format(self) -> list[str]:
         """The summary table, the findings, and one verdict line."""
         lines = [
-            f"{self.path}: {self.frames} frames, {self.end - self.start:.3f} s, profile "
+            f"{self.path}: {plural(self.frames, 'frame')}, {self.end - self.start:.3f} s, profile "
             f"{self.profile}" + (" (truncated session)" if self.truncated else ""),
             f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
             f"{'gaps':>5} {'crc':>5} {'cnt':>5} {'len':>5}",
@@ -267,7 +268,7 @@ class CheckReport:
         if self.backwards:
             lines.insert(
                 1,
-                f"warning: the log goes backwards in time at {self.backwards} frames "
+                f"warning: the log goes backwards in time at {plural(self.backwards, 'frame')} "
                 f"(by up to {self.worst_backwards * 1e3:.1f} ms)",
             )
         for s in self.ids:
@@ -287,11 +288,17 @@ class CheckReport:
             f"{v} {k.replace('_', ' ')}" for k, v in self.not_checkable.items() if v
         )
         lines.append(
-            f"{'OK' if self.ok else 'FAILED'}: {self.engaged_frames} engaged command frames "
-            f"checked (not checkable: {not_checkable or 'none'}), {self.count('limit')} limit "
-            f"violations, {self.count('e2e')} E2E errors, {self.count('gap')} gaps, "
-            f"{self.count('silence')} bus silences, {self.count('period')} period findings"
-            + (f", {self.count('coverage')} coverage findings" if self.count("coverage") else "")
+            f"{'OK' if self.ok else 'FAILED'}: "
+            f"{plural(self.engaged_frames, 'engaged command frame')} checked (not checkable: "
+            f"{not_checkable or 'none'}), {plural(self.count('limit'), 'limit violation')}, "
+            f"{plural(self.count('e2e'), 'E2E error')}, {plural(self.count('gap'), 'gap')}, "
+            f"{plural(self.count('silence'), 'bus silence')}, "
+            f"{plural(self.count('period'), 'period finding')}"
+            + (
+                f", {plural(self.count('coverage'), 'coverage finding')}"
+                if self.count("coverage")
+                else ""
+            )
             + (f"; {self.authentication}" if self.authentication else "")
         )
         return lines
@@ -1177,7 +1184,8 @@ def main_check(
         if report.backwards:
             err.write(
                 f"leafgate: warning: {report.path}: timestamps go backwards at "
-                f"{report.backwards} frames (by up to {report.worst_backwards * 1e3:.1f} ms)\n"
+                f"{plural(report.backwards, 'frame')} (by up to "
+                f"{report.worst_backwards * 1e3:.1f} ms)\n"
             )
         reports.append(report)
         if not report.ok:
@@ -1191,9 +1199,9 @@ def main_check(
             out.write("\n")
         elif failed:
             out.write(
-                f"FAILED: {len(failed)} of {len(groups)} logs failed the check: "
+                f"FAILED: {len(failed)} of {plural(len(groups), 'log')} failed the check: "
                 f"{', '.join(failed)}\n"
             )
         else:
-            out.write(f"OK: all {len(groups)} logs checked without a finding\n")
+            out.write(f"OK: all {plural(len(groups), 'log')} checked without a finding\n")
     return 1 if failed else 0

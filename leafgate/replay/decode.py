@@ -42,6 +42,7 @@ import can
 from leafgate.can.codec import CanCodec, Decoded, FrameStats
 from leafgate.can.profile import Profile
 from leafgate.record.logs import ChainedSource, LogParts, group_parts, unread_next_part
+from leafgate.text import plural
 
 __all__ = ["authentication_summary", "decode_log", "format_frame", "format_summary"]
 
@@ -241,7 +242,7 @@ def _decode_parts(
         out.write(line + "\n")
     if backwards:
         err.write(
-            f"leafgate: warning: {path}: timestamps go backwards at {backwards} frames "
+            f"leafgate: warning: {path}: timestamps go backwards at {plural(backwards, 'frame')} "
             f"(by up to {worst * 1e3:.1f} ms)\n"
         )
     note = _incomplete_note(parts, source)
@@ -256,7 +257,7 @@ def _decode_parts(
                     merged[frame_id] = merged.get(frame_id, FrameStats()) + s
                     names[frame_id] = codec.name_of(frame_id)
         out.write(
-            f"# {path.name}: {sum(s.frames for s in merged.values())} frames, "
+            f"# {path.name}: {plural(sum(s.frames for s in merged.values()), 'frame')}, "
             f"profile {template.profile.name}{note}\n"
         )
         for line in format_summary(merged, names):

@@ -54,6 +54,7 @@ from leafgate.record.session import (
     gateway_mode,
 )
 from leafgate.replay.report import write_report
+from leafgate.text import plural
 
 __all__ = [
     "RERUN_SECTIONS",
@@ -197,7 +198,7 @@ class RerunReport:
 
     def format(self) -> list[str]:
         lines = [
-            f"{self.path}: {self.ticks} ticks re-run"
+            f"{self.path}: {plural(self.ticks, 'tick')} re-run"
             + (
                 f" with {', '.join(f'{k}={v}' for k, v in self.overrides.items())}"
                 if self.overrides
@@ -213,7 +214,7 @@ class RerunReport:
             )
         if self.identical and self.truncated:
             lines.append(
-                f"IDENTICAL up to the cut: the {self.ticks} ticks the truncated session holds "
+                f"IDENTICAL up to the cut: the {plural(self.ticks, 'tick')} the truncated session holds "
                 "reproduced bit for bit; the drive after the cut was not recorded, not re-run"
             )
         elif self.identical:
