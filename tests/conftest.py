@@ -6,11 +6,15 @@ runs (and a daemon on the defaults) never meet.
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 import random
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from importlib import resources
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import can
 import pytest
@@ -97,3 +101,55 @@ def router() -> Iterator[str]:
     session = zenoh.open(config)
     yield endpoint
     session.close()
+
+
+# --- a disk that fills up -----------------------------------------------------------------------
+
+
+class Disk:
+    """A disk whose free space the test sets: a write beyond it fails with ENOSPC, as on a
+    full tmpfs (files opened for writing under ``root`` only)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.free = 10**9  # bytes
+
+    def install(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        real_open = Path.open
+        disk = self
+
+        def open_(path: Path, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
+            file = real_open(path, mode, *args, **kwargs)
+            if mode[0] in "wa" and path.is_relative_to(disk.root):
+                return _DiskFile(file, disk)
+            return file
+
+        monkeypatch.setattr(Path, "open", open_)
+
+
+class _DiskFile:
+    def __init__(self, file: Any, disk: Disk) -> None:
+        self._file = file
+        self._disk = disk
+
+    def write(self, data: Any) -> int:
+        if len(data) > self._disk.free:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self._disk.free -= len(data)
+        n: int = self._file.write(data)
+        return n
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._file, name)
+
+    def __iter__(self) -> Any:
+        return iter(self._file)
+
+
+def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True

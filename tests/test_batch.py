@@ -462,7 +462,7 @@ def test_batch_rerun_shows_a_truncated_session_was_checked_only_up_to_the_cut(
     assert main([*args, "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert f"{cut}: IDENTICAL up to the cut (truncated session): " in out
-    assert "1 sessions, 0 not reproduced, 1 reproduced only up to a cut (truncated)" in out
+    assert "1 session, 0 not reproduced, 1 reproduced only up to a cut (truncated)" in out
     (row,) = read_table(tmp_path / "out" / "results.parquet")
     assert row["truncated"] is True and row["identical"] is True
 

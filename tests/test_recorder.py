@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import errno
 import itertools
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from leafgate.record.session import TOPIC_CAN, TOPIC_TICK, SessionReader
 from leafgate.settings import LeafgateConfig
 from leafgate.transport import cdr
 from leafgate.transport.payloads import odometry_to_pose, pose_to_odometry
+from tests.conftest import Disk, wait_for
 
 FORMATS = (".blf", ".log", ".asc")
 
@@ -133,6 +133,49 @@ def test_frames_round_trip_through_each_format(
     ]
     tol = tolerance(suffix)
     assert all(abs(a.timestamp - b.timestamp) < tol for a, b in zip(back, frames, strict=True))
+
+
+def _channels(path: Path) -> list[object]:
+    return [m.channel for m in FrameSource(path)]
+
+
+@pytest.mark.parametrize("suffix", [*FORMATS, ".mcap"])
+def test_every_format_names_a_frames_bus_by_one_rule(tmp_path: Path, suffix: str) -> None:
+    """One rule (README, "Recording and replay"): a name format (candump, MCAP) writes the
+    configured channel name of the frame's bus, a numbered one (BLF, ASC) the bus's number,
+    CAN 1 for the drive-by-wire bus and CAN 2 for CAR-CAN (python-can reads them 0-based).
+    Old code: BLF and ASC numbered a channel by the digits its name ends in: the multicast
+    group 239.74.163.1 read back as 1, and the buses vcan0 and can0 were one channel, 0."""
+    path = tmp_path / f"c{suffix}"
+    one = {"channel": "239.74.163.1", "one_bus": True}
+    two = {"channel": "vcan0", "car_channel": "can0"}
+    frames = [
+        frame(T0, 0x0B0),  # received on the dbw bus (its interface's own name for it)
+        can.Message(timestamp=T0 + 0.01, arbitration_id=0x0A0, channel=None, is_rx=False),
+    ]
+    car = frame(T0 + 0.02, 0x284)
+    if suffix == ".mcap":
+        one_rec: Any = SessionRecorder(path, LeafgateConfig(), **one)
+        # a session stores names: a received frame keeps its bus's
+        two_rec: Any = SessionRecorder(tmp_path / "two.mcap", LeafgateConfig(), channel="vcan0")
+    else:
+        one_rec = CanLogRecorder(path, **one)
+        two_rec = CanLogRecorder(tmp_path / f"two{suffix}", **two)
+    with one_rec, two_rec:
+        for msg in [*frames, car]:
+            one_rec.on_can_frame(msg, "rx" if msg.is_rx else "tx")
+        frames[0].channel = "vcan0"
+        car.channel = "can0"
+        for msg in [*frames, car]:
+            two_rec.on_can_frame(msg, "rx" if msg.is_rx else "tx")
+    one_path = one_rec.files[0]
+    two_path = two_rec.files[0]
+    if suffix in (".blf", ".asc"):
+        assert _channels(one_path) == [0, 0, 0]
+        assert _channels(two_path) == [0, 0, 1]
+    else:
+        assert _channels(one_path) == ["239.74.163.1"] * 3
+        assert _channels(two_path) == ["vcan0", "vcan0", "can0"]
 
 
 @pytest.mark.parametrize("suffix", FORMATS)
@@ -337,7 +380,7 @@ def test_check_reports_a_log_without_its_end_marker_as_incomplete(tmp_path: Path
     assert finding.time == pytest.approx(1_700_000_000.02)
     # the verdict says why it failed: it read "FAILED: … 0 E2E errors, 0 gaps, …" and no more
     verdict = report.format()[-1]
-    assert verdict.startswith("FAILED:") and verdict.endswith(", 1 incomplete"), verdict
+    assert verdict.startswith("FAILED:") and verdict.endswith(", 1 incomplete finding"), verdict
 
 
 def test_engage_refused_while_a_required_recording_fails() -> None:
@@ -355,55 +398,6 @@ def test_engage_refused_while_a_required_recording_fails() -> None:
 
 
 # --- a full disk is a fault while it lasts ---------------------------------------------------------
-
-
-class Disk:
-    """A disk whose free space the test sets: a write beyond it fails with ENOSPC, as on a
-    full tmpfs (files opened for writing under ``root`` only)."""
-
-    def __init__(self, root: Path) -> None:
-        self.root = root
-        self.free = 10**9  # bytes
-
-    def install(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        real_open = Path.open
-        disk = self
-
-        def open_(path: Path, mode: str = "r", *args: Any, **kwargs: Any) -> Any:
-            file = real_open(path, mode, *args, **kwargs)
-            if mode[0] in "wa" and path.is_relative_to(disk.root):
-                return _DiskFile(file, disk)
-            return file
-
-        monkeypatch.setattr(Path, "open", open_)
-
-
-class _DiskFile:
-    def __init__(self, file: Any, disk: Disk) -> None:
-        self._file = file
-        self._disk = disk
-
-    def write(self, data: Any) -> int:
-        if len(data) > self._disk.free:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        self._disk.free -= len(data)
-        n: int = self._file.write(data)
-        return n
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._file, name)
-
-    def __iter__(self) -> Any:
-        return iter(self._file)
-
-
-def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
 
 
 def test_a_full_disk_is_a_session_fault_while_it_lasts(
@@ -476,8 +470,8 @@ def test_a_full_disk_is_a_can_log_fault_while_it_lasts(
     assert len(list(first)) >= 50 and not first.ended  # given up as it was: no end marker
     second = FrameSource(rec.files[1], markers=True)
     frames = list(second)
-    # frames held back in the reorder window when the part failed go on in the next
-    assert second.ended and T0 + 1.0 <= frames[0].timestamp <= T0 + 5.002
+    # the next part starts with the first frame after the outage: one hole, between the parts
+    assert second.ended and frames[0].timestamp == pytest.approx(T0 + 5.0, abs=2e-3)
     assert all(a.timestamp <= b.timestamp + 2e-3 for a, b in itertools.pairwise(frames))
     assert frames[-2].timestamp == pytest.approx(T0 + 10.49, abs=2e-3)
 

@@ -298,7 +298,7 @@ def test_batch_check_checks_a_rotated_log_as_one(
     out = capsys.readouterr().out
     whole = check_log(drive.log, profile=PROFILE)
     assert f"({len(drive.parts)} parts): OK: {whole.frames} frames" in out, out
-    assert "1 logs, 0 with findings" in out
+    assert "1 log, 0 with findings" in out
 
 
 def test_batch_check_line_of_a_finding_without_a_name_has_no_empty_field(
@@ -314,3 +314,15 @@ def test_batch_check_line_of_a_finding_without_a_name_has_no_empty_field(
     assert cli.main([*argv, "--out", str(tmp_path / "out")]) == 1
     out = capsys.readouterr().out
     assert "first: incomplete: no end-of-recording marker" in out, out
+
+
+def test_counts_of_one_are_singular(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Old code: '1 frames', '1 coverage findings'."""
+    log = tmp_path / "foreign.log"
+    log.write_text("(1700000000.000000) vcan0 123#00\n")
+    assert main_check(log, profile=PROFILE) == 1
+    out = capsys.readouterr().out
+    assert f"{log}: 1 frame, " in out
+    verdict = _verdict(out)
+    assert "0 engaged command frames checked" in verdict and "1 coverage finding;" not in verdict
+    assert verdict.endswith(", 1 coverage finding"), verdict

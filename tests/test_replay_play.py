@@ -249,4 +249,4 @@ def test_out_of_order_frames_are_said_and_fail_the_playback(
         assert len(received(rx)) == 3
     assert status == 1
     assert "1 skipped: 1 out of order" in out.getvalue()
-    assert "1 frames not sent" in capsys.readouterr().err
+    assert "1 frame not sent: timed before" in capsys.readouterr().err  # not "1 frames"

@@ -19,6 +19,7 @@ from leafgate.cliargs import (
     positive_int,
     positive_seconds,
 )
+from leafgate.text import plural
 
 __all__ = ["add_arguments", "cmd_batch"]
 
@@ -90,7 +91,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _engine_text(run: EngineRun) -> str:
-    workers = {0: "workers unknown", 1: "1 worker"}.get(run.workers, f"{run.workers} workers")
+    workers = plural(run.workers, "worker") if run.workers else "workers unknown"
     return f"{run.scheduler}, {workers}, {run.wall_s:.1f} s wall time"
 
 
@@ -181,7 +182,7 @@ def cmd_batch_sim(args: argparse.Namespace) -> int:
     cases = sweep_module.expand(sweep)
     timeout = args.timeout if args.timeout is not None else sweep.timeout_s
     with _output(args.out_dir) as out:
-        print(f"{sweep.path}: {len(cases)} cases", flush=True)
+        print(f"{sweep.path}: {plural(len(cases), 'case')}", flush=True)
         run = run_tasks(
             sim_case,
             {c.case_id: (list(c.argv),) for c in cases},
@@ -208,7 +209,9 @@ def cmd_batch_sim(args: argparse.Namespace) -> int:
         crossed = crossings(rows, sweep.thresholds, sweep.path)
         # the summary before the files: a disk that refuses them loses no verdict
         failed = sum(1 for r in rows if r["status"] == "failed")
-        print(f"{len(rows)} cases, {failed} failed{_counts(rows, run)}; {_engine_text(run)}")
+        print(
+            f"{plural(len(rows), 'case')}, {failed} failed{_counts(rows, run)}; {_engine_text(run)}"
+        )
         for line in crossed[:SHOWN]:
             print(f"  {line}")
 
@@ -228,7 +231,9 @@ def cmd_batch_sim(args: argparse.Namespace) -> int:
         print(_write(out, write, crossed[SHOWN:]))
         _stopped(run, rows, out)
     if crossed:
-        print(f"FAILED: {len(crossed)} threshold crossings or failed cases")
+        print(
+            f"FAILED: {plural(len(crossed), 'threshold crossing or failed case', 'threshold crossings or failed cases')}"
+        )
         return 1
     rerun = f" ({run.rerun} re-run after a worker died)" if run.rerun else ""
     print(f"PASSED: every case ran{rerun} and stayed within the thresholds of {sweep.path}")
@@ -300,8 +305,8 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
                 verdict = f"FAILED: {r['error']}"
             else:
                 counts = (
-                    f"{r['frames']} frames, {r['violations']} limit violations, "
-                    f"{r['e2e_errors']} E2E errors, {r['gaps']} gaps"
+                    f"{plural(r['frames'], 'frame')}, {plural(r['violations'], 'limit violation')}, "
+                    f"{plural(r['e2e_errors'], 'E2E error')}, {plural(r['gaps'], 'gap')}"
                 )
                 if r["ok"]:
                     verdict = f"OK: {counts}"
@@ -314,7 +319,7 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
             bad += r["status"] == "failed" or (r["status"] == "ok" and not r["ok"])
             print(f"{r['path']}: {verdict}")
         print(
-            f"{len(rows)} logs, {bad} with findings or unreadable{_counts(rows, run)}; "
+            f"{plural(len(rows), 'log')}, {bad} with findings or unreadable{_counts(rows, run)}; "
             f"{_engine_text(run)}"
         )
         table = _write(out, lambda: f"wrote {_save(out, rows, run, {'dir': args.dir})}", [])
@@ -342,11 +347,11 @@ def cmd_batch_rerun(args: argparse.Namespace) -> int:
             elif r["identical"] and r.get("truncated"):
                 # the session ends where its recording was cut: the rest of the drive is unchecked
                 verdict = (
-                    f"IDENTICAL up to the cut (truncated session): {r['ticks']} ticks, every "
+                    f"IDENTICAL up to the cut (truncated session): {plural(r['ticks'], 'tick')}, every "
                     "recorded command reproduced"
                 )
             elif r["identical"]:
-                verdict = f"IDENTICAL: {r['ticks']} ticks, every command reproduced"
+                verdict = f"IDENTICAL: {plural(r['ticks'], 'tick')}, every command reproduced"
             else:
                 verdict = f"DIVERGED at {r['first_divergence_s']:.3f} s: {r['diverging_signals']}"
                 if r.get("truncated"):
@@ -356,7 +361,7 @@ def cmd_batch_rerun(args: argparse.Namespace) -> int:
             print(f"{r['path']}: {verdict}")
         cut = f", {truncated} reproduced only up to a cut (truncated)" if truncated else ""
         print(
-            f"{len(rows)} sessions, {differing} not reproduced{cut}{_counts(rows, run)}; "
+            f"{plural(len(rows), 'session')}, {differing} not reproduced{cut}{_counts(rows, run)}; "
             f"{_engine_text(run)}"
         )
         extra = {"dir": args.dir, "overrides": overrides}

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any, TextIO
 
 from leafgate.errors import LeafgateError
+from leafgate.text import plural
 
 __all__ = ["NOT_RUN", "BatchError", "EngineRun", "run_plain", "run_tasks"]
 
@@ -253,7 +254,7 @@ def run_tasks(
             except (OSError, RuntimeError) as exc:  # ports, processes
                 raise BatchError(f"the local Dask cluster did not start: {exc}") from None
             with cluster, Client(cluster) as client:
-                processes = "1 worker process" if n == 1 else f"{n} worker processes"
+                processes = plural(n, "worker process", "worker processes")
                 run.workers, run.scheduler = n, f"local cluster ({processes})"
                 _submit_and_wait(client, fn, tasks, timeout, progress, what, run, interrupt)
         else:

@@ -17,27 +17,40 @@ A text log whose content is not of its format (binary content, such as a PNG nam
 or text of which no line is a frame, such as a JSON file) is refused naming the file, never
 read as an empty log.
 
-A rotated log's parts (the recorder's ``can-…_000.blf``, ``can-…_001.blf`` …) are one log:
+A rotated log's parts (the recorder's ``can-…_000.blf``, ``can-…_001.blf`` …) are one log, and
+so is a session with the sessions that resume it after a write failure (``session-….mcap``,
+``session-….2.mcap`` whose ``leafgate.session`` metadata says ``resumes: session-….mcap`` …):
 :func:`group_parts` finds them among the files given, in number order, with the numbers
-missing, and :class:`ChainedSource` reads them as one.
+missing, and :class:`ChainedSource` reads them as one. A part that ends without its
+end-of-recording marker and is followed by another was given up by the recorder after a write
+failure: :attr:`ChainedSource.losses` holds the stretch of time between the two, which the
+recorder lost (it starts the next file with the first item after the outage).
 """
 
 from __future__ import annotations
 
 import codecs
 import functools
+import itertools
 import json
+import math
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, Final
+from typing import IO, Any, Final, NamedTuple
 
 import can
 
 from leafgate.can.profile import PROFILE_NAMES, Profile, load_profile
 from leafgate.errors import ConfigError, ReplayError
-from leafgate.record.session import TOPIC_CAN, SessionDamaged, SessionReader, frame_from_record
+from leafgate.record.session import (
+    META_SESSION,
+    TOPIC_CAN,
+    SessionDamaged,
+    SessionReader,
+    frame_from_record,
+)
 from leafgate.settings import LeafgateConfig, load_config, with_profile
 
 __all__ = [
@@ -45,9 +58,11 @@ __all__ = [
     "ChainedSource",
     "FrameSource",
     "LogParts",
+    "RecorderLoss",
     "RecordingContext",
     "group_parts",
     "is_session",
+    "part_number",
     "recording_context",
 ]
 
@@ -154,7 +169,11 @@ def is_end_marker(msg: can.Message) -> bool:
 
 def is_session(path: str | Path) -> bool:
     """True for an MCAP session file (by suffix)."""
-    return Path(path).suffix.lower() == ".mcap"
+    return _session_suffix(Path(path).suffix)
+
+
+def _session_suffix(suffix: str) -> bool:
+    return suffix.lower() == ".mcap"
 
 
 class FrameSource:
@@ -283,15 +302,18 @@ class FrameSource:
                 file.close()
 
 
-_PART_STEM = re.compile(r"^(?P<base>.+)_(?P<number>\d{3,})$")
+_PART_STEM = re.compile(r"^(?P<base>.+)_(?P<number>\d{3,})$")  # a rotated log's part
+_RESUMED_STEM = re.compile(r"^(?P<base>.+)\.(?P<number>[1-9]\d*)$")  # a resumed session
 
 
 @dataclass(frozen=True)
 class LogParts:
-    """One log as given: a single file, or the parts of a rotated log in number order.
+    """One log as given: a single file, or the parts of one recording in number order (a
+    rotated log's, or a session and the sessions resuming it).
 
-    ``missing`` names the parts absent from the numbering (from ``_000`` to the last given):
-    deleted, lost, or, for several parts given, not among them.
+    ``missing`` names the parts absent from the numbering (from the first, ``_000`` or the
+    session itself, to the last given): deleted, lost, or, for several parts given, not among
+    them.
     """
 
     paths: tuple[Path, ...]
@@ -305,25 +327,79 @@ class LogParts:
         return f"{self.paths[0]} … {self.paths[-1].name} ({len(self.paths)} parts)"
 
 
-def _part_number(path: Path) -> tuple[tuple[Path, str, str], int] | None:
-    """(the rotated log's identity: folder, base stem, suffix; the part's number), or None for
-    a name that is not a part's (a session, a file not named ``STEM_NNN.SUFFIX``)."""
+_Key = tuple[Path, str, str]  # one recording's parts: folder, base stem, suffix
+
+
+def _first_number(key: _Key) -> int:
+    """A rotated log's first part is ``_000``; a session is the first of its resumptions."""
+    return 1 if _session_suffix(key[2]) else 0
+
+
+def _part_name(key: _Key, number: int, width: int = 3) -> Path:
+    """The file of part ``number``: ``STEM_NNN.SUFFIX`` of a log; ``STEM.mcap`` (1), then
+    ``STEM.N.mcap`` of a session."""
+    folder, base, suffix = key
+    if not _session_suffix(suffix):
+        return folder / f"{base}_{number:0{width}d}{suffix}"
+    return folder / (f"{base}{suffix}" if number == 1 else f"{base}.{number}{suffix}")
+
+
+def _width(path: Path, key: _Key) -> int:
+    """The digits of a rotated log's part numbers (3, or more as the recorder went on)."""
+    return max(3, len(path.stem) - len(key[1]) - 1)
+
+
+def _part(path: Path) -> tuple[_Key, int] | None:
+    """(the recording this file is a part of, its number) by the file's name alone, or None
+    for a file that is no part (a log not named ``STEM_NNN.SUFFIX``). A session is part 1 of
+    itself; ``STEM.N.mcap`` (N ≥ 2) is named as its part N."""
     if is_session(path):
-        return None
+        match = _RESUMED_STEM.match(path.stem)
+        if match is not None and int(match["number"]) >= 2:
+            return (path.parent, match["base"], path.suffix), int(match["number"])
+        return (path.parent, path.stem, path.suffix), 1
     match = _PART_STEM.match(path.stem)
     if match is None:
         return None
     return (path.parent, match["base"], path.suffix), int(match["number"])
 
 
+def part_number(path: Path) -> int | None:
+    """The number of a recording's part by its name (see :func:`group_parts`), or None."""
+    part = _part(path)
+    return None if part is None else part[1]
+
+
+def resumes(path: Path) -> str | None:
+    """The file a session resumes after a write failure (its ``leafgate.session`` metadata),
+    None when it resumes none or does not read (a check of it says why)."""
+    try:
+        with SessionReader(path) as reader:
+            value = reader.read_metadata().get(META_SESSION, {}).get("resumes")
+    except Exception:  # a damaged file is reported when it is checked, not here
+        return None
+    return value or None
+
+
+def _grouped_part(path: Path) -> tuple[_Key, int] | None:
+    """:func:`_part`, with a session named as a resumption (``STEM.N.mcap``) a part only when
+    its metadata says it resumes the part before (``lap.2.mcap`` may be a drive of its own)."""
+    part = _part(path)
+    if part is None or not is_session(path) or part[1] == 1:
+        return part
+    key, number = part
+    if resumes(path) != _part_name(key, number - 1).name:
+        return None
+    return part
+
+
 def next_part(path: Path) -> Path | None:
     """The rotated log's part after ``path`` (None: ``path`` is not named as a part)."""
-    part = _part_number(path)
+    part = _part(path)
     if part is None:
         return None
-    (folder, base, suffix), number = part
-    width = max(3, len(path.stem) - len(base) - 1)
-    return folder / f"{base}_{number + 1:0{width}d}{suffix}"
+    key, number = part
+    return _part_name(key, number + 1, _width(path, key))
 
 
 def unread_next_part(parts: LogParts, continues: bool) -> Path | None:
@@ -337,17 +413,19 @@ def unread_next_part(parts: LogParts, continues: bool) -> Path | None:
 
 
 def group_parts(paths: Sequence[str | Path]) -> list[LogParts]:
-    """The files as logs, in the order given: the parts of one rotated log (the recorder's
-    ``STEM_000.SUFFIX``, ``STEM_001.SUFFIX`` … in one folder) together and in number order,
-    every other file alone. A file given twice is read once.
+    """The files as logs, in the order given: the parts of one recording together and in
+    number order — a rotated log's (the recorder's ``STEM_000.SUFFIX``, ``STEM_001.SUFFIX`` … in
+    one folder), a session's (``STEM.mcap``, then ``STEM.2.mcap`` … each of whose metadata says
+    it ``resumes`` the one before) — and every other file alone. A file given twice is read
+    once. This is the one place that decides which files are one recording.
 
-    A number between ``_000`` and the last part given that is not given is ``missing`` — unless
-    a single part was given and the others are on disk (one part, checked on purpose).
+    A number between the first part and the last part given that is not given is ``missing`` —
+    unless a single part was given and the others are on disk (one part, checked on purpose).
     """
-    groups: dict[tuple[Path, str, str], dict[int, Path]] = {}
+    groups: dict[_Key, dict[int, Path]] = {}
     for raw in paths:
         path = Path(raw)
-        part = _part_number(path)
+        part = _grouped_part(path)
         key = (path, "", "") if part is None else part[0]  # a file alone: itself
         number = -1 if part is None else part[1]
         groups.setdefault(key, {}).setdefault(number, path)
@@ -357,17 +435,26 @@ def group_parts(paths: Sequence[str | Path]) -> list[LogParts]:
         ordered = tuple(parts[n] for n in numbers)
         missing: list[Path] = []
         if numbers[0] >= 0:
-            folder, base, suffix = key
-            width = max(3, len(parts[numbers[0]].stem) - len(base) - 1)
-            for n in range(numbers[-1]):
+            width = _width(parts[numbers[0]], key)
+            for n in range(_first_number(key), numbers[-1]):
                 if n in parts:
                     continue
-                name = folder / f"{base}_{n:0{width}d}{suffix}"
+                name = _part_name(key, n, width)
                 if len(parts) == 1 and name.is_file():
                     continue
                 missing.append(name)
         out.append(LogParts(ordered, tuple(missing)))
     return out
+
+
+class RecorderLoss(NamedTuple):
+    """A stretch the recorder lost: the part ``before`` ends without its end-of-recording
+    marker (given up after a write failure) and the recording goes on in ``after``."""
+
+    before: Path
+    after: Path
+    start: float  # s, the last frame of ``before``
+    end: float  # s, the first frame of ``after``
 
 
 class ChainedSource:
@@ -403,6 +490,15 @@ class ChainedSource:
     @property
     def session(self) -> SessionReader | None:
         return self.sources[-1].session
+
+    @property
+    def losses(self) -> list[RecorderLoss]:
+        """The stretches between the parts read that the recorder lost (see the module)."""
+        out = []
+        for (before, _, last, ended), (after, first, _, _) in itertools.pairwise(self.spans):
+            if not ended and math.isfinite(last) and math.isfinite(first):
+                out.append(RecorderLoss(before, after, last, first))
+        return out
 
     def fraction(self) -> float | None:
         """How much of the parts has been read, 0–1 (None when a reader cannot tell)."""

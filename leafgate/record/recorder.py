@@ -129,7 +129,8 @@ class _BackgroundWriter:
     """A bounded queue drained by one thread that writes, flushes on time and closes.
 
     :param name: thread name and the start of every fault message
-    :param write: called on the thread for each item
+    :param write: called on the thread for each item; returns how many items it wrote to the
+        file (a writer that holds items back to order them writes them later)
     :param flush: makes everything written so far durable in the file
     :param close: finishes the file
     :param reopen: gives the failed file up (no end marker) and starts a new one; raises when
@@ -141,12 +142,12 @@ class _BackgroundWriter:
     def __init__(
         self,
         name: str,
-        write: Callable[[Any], None],
+        write: Callable[[Any], int],
         flush: Callable[[], None],
         close: Callable[[], None],
         flush_period: float,
         queue_size: int,
-        drain: Callable[[], None] | None = None,
+        drain: Callable[[], int] | None = None,
         queue_bytes: int = 64 * 1024 * 1024,
         reopen: Callable[[], None] | None = None,
         abandon: Callable[[], None] | None = None,
@@ -163,7 +164,7 @@ class _BackgroundWriter:
         # items lost to the failures recovered from: dropped during the outage, and those
         # written since the last flush before it (the failed file may not hold them)
         self.lost = 0
-        self._unflushed = 0  # items written since the last flush
+        self._unflushed = 0  # items written to the file since the last flush
         self._lost_unflushed = 0  # … when the failure came
         self._outage_fault = ""  # the fault that began the outage
         # from a failure until a new file has flushed what was written to it: the fault holds
@@ -231,13 +232,14 @@ class _BackgroundWriter:
         else:
             log.warning("recording problem: %s", self.fault)
 
-    def _guarded(self, what: str, fn: Callable[[], None]) -> None:
+    def _guarded(self, what: str, fn: Callable[[], Any]) -> Any:
         if self.failed:
-            return
+            return None
         try:
-            fn()
+            return fn()
         except Exception as exc:  # nothing may escape into (or kill) the writer thread
             self.fail(what, exc)
+            return None
 
     def _run(self) -> None:
         period = self._period
@@ -256,7 +258,7 @@ class _BackgroundWriter:
                     self._bytes -= _item_bytes(item)
             if isinstance(item, threading.Event):  # a flush request
                 if self._drain is not None:
-                    self._guarded("write", self._drain)
+                    self._unflushed += self._guarded("write", self._drain) or 0
                 if dirty:
                     self._flushed()
                     dirty = False
@@ -267,9 +269,8 @@ class _BackgroundWriter:
                     self.dropped += 1
                 else:
                     try:
-                        self._write(item)
+                        self._unflushed += self._write(item)
                         self.written += 1
-                        self._unflushed += 1
                         dirty = True
                     except Exception as exc:
                         self.fail("write", exc)
@@ -394,9 +395,14 @@ class _AscWriter(can.ASCWriter):
     FORMAT_DATE = "%a %b %d %H:%M:%S.{:03d} %Y"
 
 
+#: Suffixes of the CAN log formats that store a channel number, not a name (python-can's
+#: writers hold an integer: a name's trailing digits, + 1 in the file).
+_NUMBERED_FORMATS: Final = (".blf", ".asc")
+
+
 def _open_can_writer(path: Path, channel: str) -> can.io.generic.FileIOMessageWriter[Any]:
     """The writer for the suffix; ``channel`` names frames without one in ``.log`` files
-    (BLF and ASC number their channels and use python-can's default, 1)."""
+    (BLF and ASC are given each frame's bus number: :meth:`CanLogRecorder._numbered`)."""
     if path.suffix.lower() == ".blf":
         return _BlfWriter(path)
     if path.suffix.lower() == ".log":
@@ -480,6 +486,15 @@ class _ReorderWindow(Generic[T]):
         self._newest = max(self._newest, t)
         return self.release(self._newest - self.window)
 
+    def discard(self) -> int:
+        """Drop every item held (how many): those held when a file failed. Written to the next
+        file they would be an island from before the outage, and the outage a hole inside that
+        file, which no reader can tell from a silent bus; dropped, the recording's one hole is
+        between the failed file and the next."""
+        held = len(self._heap)
+        self._heap.clear()
+        return held
+
     def release(self, until: float = math.inf) -> list[tuple[float, T]]:
         """The items held with a time up to ``until``, each with the time to write it at."""
         out = []
@@ -508,9 +523,16 @@ class CanLogRecorder(_FileRecorder):
     :param queue_size: frames waiting for the writer thread before frames are dropped
     :param tx_clock: stamps sent frames when given (the daemon passes ``time.time`` so sent
         frames share the clock of received ones); None keeps each frame's own timestamp
-    :param channel: channel written for frames that carry none (sent frames)
+    :param channel: the drive-by-wire bus's channel name (``can.dbw.channel``), written for
+        frames that carry none (sent frames)
+    :param car_channel: CAR-CAN's channel name (``can.car.channel``), None without one
     :param one_bus: every frame is on one bus (the drive-by-wire and car frames share it):
         every frame is written under ``channel``, so one bus has one name in the log
+
+    Channels (README, "Recording and replay"): ``.log`` (candump) writes a frame's bus by its
+    configured name; BLF and ASC store a number, CAN 1 for the drive-by-wire bus (``channel``),
+    CAN 2 for CAR-CAN (``car_channel``) and 3, 4 … for any other name a frame carries, in the
+    order they appear (python-can reads them back 0-based: 0, 1 …).
     :param reorder_window: s; frames are written in time order: the writer holds each frame
         back until a frame this much newer has arrived (sent and received frames reach the
         recorder from different threads, up to ~0.12 s apart under load). A frame that
@@ -531,6 +553,7 @@ class CanLogRecorder(_FileRecorder):
         queue_size: int = 20_000,
         tx_clock: Callable[[], float] | None = None,
         channel: str = "can0",
+        car_channel: str | None = None,
         one_bus: bool = False,
         reorder_window: float = DEFAULT_REORDER_WINDOW,
         time_offset: float = 0.0,
@@ -547,6 +570,11 @@ class CanLogRecorder(_FileRecorder):
         self.tx_clock = tx_clock
         self.channel = channel
         self.one_bus = one_bus
+        # the numbers BLF and ASC store, 0-based as python-can's writers take them
+        self._numbers: dict[object, int] = {channel: 0, None: 0}  # none: the dbw bus
+        if car_channel is not None and not one_bus:
+            self._numbers.setdefault(car_channel, 1)
+        self._numbered = self.path.suffix.lower() in _NUMBERED_FORMATS
         self.reorder_window = reorder_window
         self.files: list[Path] = []
         # frames in time order; those that came after the window are written re-stamped
@@ -622,8 +650,10 @@ class CanLogRecorder(_FileRecorder):
             _close_quietly(writer.file)
 
     def _reopen(self) -> None:
-        """Give the failed part up and start the next one (the frames held back go there)."""
+        """Give the failed part up and start the next one, with the first frame after the
+        outage (:meth:`_ReorderWindow.discard`: one stretch lost, between the two parts)."""
         self._abandon()
+        self._bg.dropped += self._order.discard()
         if self.files and self._part_frames == 0:
             # a part opened by an earlier attempt that failed before a frame: it holds nothing
             # of the drive, and its number is reused (no trail of empty parts in an outage)
@@ -650,23 +680,34 @@ class CanLogRecorder(_FileRecorder):
         """Frames that arrived after the reorder window (written re-stamped)."""
         return self._order.late
 
-    def _write(self, msg: can.Message) -> None:
-        """Hold the frame back in time order; write those older than the window."""
+    def _write(self, msg: can.Message) -> int:
+        """Hold the frame back in time order; write those older than the window (how many)."""
         if self.one_bus and msg.channel != self.channel:
             msg = copy_frame(msg, channel=self.channel)
-        self._emit_all(self._order.push(msg.timestamp, msg))
+        return self._emit_all(self._order.push(msg.timestamp, msg))
 
-    def _drain(self) -> None:
-        self._emit_all(self._order.release())
+    def _drain(self) -> int:
+        return self._emit_all(self._order.release())
 
-    def _emit_all(self, frames: list[tuple[float, can.Message]]) -> None:
+    def _emit_all(self, frames: list[tuple[float, can.Message]]) -> int:
         for t, msg in frames:
             self._emit(msg if msg.timestamp == t else copy_frame(msg, timestamp=t))
+        return len(frames)
+
+    def _for_file(self, msg: can.Message) -> can.Message:
+        """The frame as the format stores its channel: BLF and ASC a number (the class's
+        notes), the text formats the name."""
+        if not self._numbered:
+            return msg
+        number = self._numbers.get(msg.channel)
+        if number is None:  # a name beside the configured ones: the next number
+            number = self._numbers[msg.channel] = max(self._numbers.values()) + 1
+        return copy_frame(msg, channel=number)
 
     def _emit(self, msg: can.Message) -> None:
         if self._writer is None:
             raise OSError(0, "no open log file")
-        self._writer.on_message_received(msg)
+        self._writer.on_message_received(self._for_file(msg))
         self._part_frames += 1
         self._since_check += 1
         if self.max_bytes and self._since_check >= _ROTATE_CHECK_EVERY:
@@ -690,7 +731,7 @@ class CanLogRecorder(_FileRecorder):
         stamp = self.tx_clock() if self.tx_clock is not None else time.time()
         # never before the last frame: a simulated drive's clock runs ahead of the wall clock
         marker = end_marker(max(stamp, self._order.last), self.channel, continues)
-        writer.on_message_received(marker)
+        writer.on_message_received(self._for_file(marker))
 
     def _finish(self) -> None:
         if self._writer is not None:
@@ -850,8 +891,10 @@ class SessionRecorder(_FileRecorder):
         _close_quietly(file)
 
     def _reopen(self) -> None:
-        """Give the failed file up and go on in the next (the items held back go there)."""
+        """Give the failed file up and go on in the next, with the first item after the
+        outage (:meth:`_ReorderWindow.discard`: one stretch lost, between the two files)."""
         self._abandon()
+        self._bg.dropped += self._order.discard()
         if len(self.files) > 1 and self._file_items == 0:
             # a file opened by an earlier attempt that failed before an item: it holds nothing
             # of the drive, and its name is reused (no trail of empty files in an outage)
@@ -869,14 +912,18 @@ class SessionRecorder(_FileRecorder):
         """Items that arrived after the reorder window (logged at the last time)."""
         return self._order.late
 
-    def _write(self, item: tuple[Any, ...]) -> None:
-        """Hold the item back in time order; write those older than the window."""
-        for t, held in self._order.push(item[1], item):
+    def _write(self, item: tuple[Any, ...]) -> int:
+        """Hold the item back in time order; write those older than the window (how many)."""
+        released = self._order.push(item[1], item)
+        for t, held in released:
             self._emit(t, held)
+        return len(released)
 
-    def _drain(self) -> None:
-        for t, held in self._order.release():
+    def _drain(self) -> int:
+        released = self._order.release()
+        for t, held in released:
             self._emit(t, held)
+        return len(released)
 
     def _emit(self, t: float, item: tuple[Any, ...]) -> None:
         """Write one item at log time ``t`` (s, gateway clock)."""
@@ -1022,6 +1069,7 @@ def open_recording(
                 queue_bytes=cfg.queue_bytes,
                 tx_clock=wall_clock,
                 channel=config.can.dbw.channel,
+                car_channel=None if config.can.car is None else config.can.car.channel,
                 one_bus=config.can.car is None,
                 time_offset=sim_epoch or 0.0,
             )

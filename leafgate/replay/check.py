@@ -49,10 +49,15 @@ checked and a log in which no command's rates could be checked are findings, nev
 "OK" says what was checked, so nothing checked is not OK. Timestamps that go backwards
 are warned about.
 
-The parts of a rotated log (``can-…_000.blf``, ``can-…_001.blf`` …, given together) are checked
-as one log, frames chained; a part missing from the numbering is an ``incomplete`` finding, as
-is a part before the last without its end-of-recording marker. Several logs give one report
-each and a last line with the verdict over all of them.
+The parts of one recording given together — a rotated log's (``can-…_000.blf``,
+``can-…_001.blf`` …), a session's and the sessions resuming it (``session-….2.mcap``) — are
+checked as one log, frames chained (:func:`~leafgate.record.logs.group_parts`); a part missing
+from the numbering is an ``incomplete`` finding. A part before the last without its
+end-of-recording marker was given up by the recorder after a write failure: the stretch until
+the next part is one ``incomplete`` finding, lost by the recorder, with its length; the bus
+silence, the IDs' gaps and the skipped alive counters across it are the recorder's, not
+reported as the bus's. Several logs give one report each and a last line with the verdict over
+all of them.
 
 Tolerances are 1.5 quantisation steps of the command signals (read from the DBC, through the
 profile's unit and scale): the gate bounds the float command, the frame carries it rounded.
@@ -96,14 +101,18 @@ from leafgate.record.logs import (
     ChainedSource,
     FrameSource,
     LogParts,
+    RecorderLoss,
     group_parts,
     is_end_marker,
+    is_session,
+    part_number,
     recording_context,
     unread_next_part,
 )
 from leafgate.replay.decode import authentication_summary
 from leafgate.replay.report import write_report
 from leafgate.settings import LeafgateConfig
+from leafgate.text import plural
 
 __all__ = [
     "MAX_GAP_PERIODS",
@@ -251,7 +260,7 @@ class CheckReport:
     def format(self) -> list[str]:
         """The summary table, the findings, and one verdict line."""
         lines = [
-            f"{self.path}: {self.frames} frames, {self.end - self.start:.3f} s, profile "
+            f"{self.path}: {plural(self.frames, 'frame')}, {self.end - self.start:.3f} s, profile "
             f"{self.profile}" + (" (truncated session)" if self.truncated else ""),
             f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
             f"{'gaps':>5} {'crc':>5} {'cnt':>5} {'len':>5}",
@@ -259,7 +268,7 @@ class CheckReport:
         if self.backwards:
             lines.insert(
                 1,
-                f"warning: the log goes backwards in time at {self.backwards} frames "
+                f"warning: the log goes backwards in time at {plural(self.backwards, 'frame')} "
                 f"(by up to {self.worst_backwards * 1e3:.1f} ms)",
             )
         for s in self.ids:
@@ -279,12 +288,20 @@ class CheckReport:
             f"{v} {k.replace('_', ' ')}" for k, v in self.not_checkable.items() if v
         )
         lines.append(
-            f"{'OK' if self.ok else 'FAILED'}: {self.engaged_frames} engaged command frames "
-            f"checked (not checkable: {not_checkable or 'none'}), {self.count('limit')} limit "
-            f"violations, {self.count('e2e')} E2E errors, {self.count('gap')} gaps, "
-            f"{self.count('silence')} bus silences, {self.count('period')} period findings"
-            + (f", {self.count('coverage')} coverage findings" if self.count("coverage") else "")
-            + "".join(f", {n} {kind}" for kind, n in self._other_findings().items())
+            f"{'OK' if self.ok else 'FAILED'}: "
+            f"{plural(self.engaged_frames, 'engaged command frame')} checked (not checkable: "
+            f"{not_checkable or 'none'}), {plural(self.count('limit'), 'limit violation')}, "
+            f"{plural(self.count('e2e'), 'E2E error')}, {plural(self.count('gap'), 'gap')}, "
+            f"{plural(self.count('silence'), 'bus silence')}, "
+            f"{plural(self.count('period'), 'period finding')}"
+            + (
+                f", {plural(self.count('coverage'), 'coverage finding')}"
+                if self.count("coverage")
+                else ""
+            )
+            + "".join(
+                f", {plural(n, kind + ' finding')}" for kind, n in self._other_findings().items()
+            )
             + (f"; {self.authentication}" if self.authentication else "")
         )
         return lines
@@ -597,7 +614,8 @@ def check_frames(
     if progress is not None:
         progress.done()
     merged, names = scan.stats()
-    ids, findings = _findings(scan, merged, names, gap_periods, require_end)
+    losses = frames.losses if isinstance(frames, ChainedSource) else []
+    ids, findings = _findings(scan, merged, names, gap_periods, require_end, losses)
     return CheckReport(
         path=path,
         profile=template.profile.name,
@@ -658,21 +676,31 @@ def _findings(
     names: dict[int, str | None],
     gap_periods: float,
     require_end: bool,
+    losses: Sequence[RecorderLoss] = (),
 ) -> tuple[list[IdStats], list[Finding]]:
-    """The per-ID statistics and every finding of a finished scan, in time order."""
+    """The per-ID statistics and every finding of a finished scan, in time order.
+
+    What the recorder lost (``losses``: the stretches between a part it gave up after a write
+    failure and the next) is reported once, as that (:func:`_part_findings`), never as the
+    bus's: a silence, the IDs' gaps and the counters skipped across such a stretch are the
+    recorder's.
+    """
     skips = {
         (frame_id, index) for index, _, frame_id, _, error in scan.e2e if error == "bad_counter"
     }
     ids, gaps = _timing(scan.times, scan.template, names, merged, gap_periods, skips)
     findings = list(scan.commands.findings)
     gap_firsts = {(frame_id, index) for frame_id, index, _, _ in gaps}
+    lost = [(loss.start, loss.end) for loss in losses]
     for index, t, frame_id, name, kind in scan.e2e:
         if kind == "bad_counter" and (frame_id, index) in gap_firsts:
             continue  # the frames lost in a gap, reported as the gap
+        if kind == "bad_counter" and index and _across(scan.times[frame_id][index - 1], t, lost):
+            continue  # the frames the recorder lost
         findings.append(Finding(t, "e2e", frame_id, name, kind))
-    silences = _bus_silences(scan.times, ids, gap_periods)
+    silences = [s for s in _bus_silences(scan.times, ids, gap_periods) if not _across(*s, lost)]
     findings.extend(_silence_findings(silences, gaps))
-    findings.extend(_merge_gaps(_unexplained(gaps, silences, ids, gap_periods), names))
+    findings.extend(_merge_gaps(_unexplained(gaps, silences + lost, ids, gap_periods), names))
     findings.extend(_period_findings(ids, scan.first))
     findings.extend(_coverage_findings(scan, merged))
     findings.extend(scan.judge.findings)
@@ -925,6 +953,11 @@ def _bus_silences(
     return [(float(t[i]), float(t[i + 1])) for i in np.flatnonzero(dt > threshold)]
 
 
+def _across(before: float, after: float, stretches: Sequence[_Silence]) -> bool:
+    """Whether the interval from ``before`` to ``after`` (s) spans one of the stretches."""
+    return any(before <= start and after >= end for start, end in stretches)
+
+
 def _overlaps(gap: _Gap, silence: _Silence) -> bool:
     return gap[2] <= silence[0] and gap[3] >= silence[1]
 
@@ -1009,9 +1042,9 @@ def check_log(
     progress: TextIO | None = None,
     key_file: str | None = None,
 ) -> CheckReport:
-    """Check a recorded log or session, or a rotated log's parts as one (see the module notes).
+    """Check a recorded log or session, or one recording's parts as one (see the module notes).
 
-    :param path: a python-can log, a ``.mcap`` session, or a rotated log's parts
+    :param path: a python-can log, a ``.mcap`` session, or one recording's parts
         (:func:`~leafgate.record.logs.group_parts`)
     :param config: the configuration (or its file) whose safety limits and vehicle profile
         apply; a session's recorded configuration when None
@@ -1048,18 +1081,15 @@ def check_log(
     return report
 
 
-def _part_number(path: Path) -> str:
-    return path.stem.rsplit("_", 1)[-1]
-
-
 def _part_findings(parts: LogParts, source: ChainedSource) -> list[Finding]:
-    """A rotated log's parts missing from the numbering, and parts before the last that end
-    without their end-of-recording marker (the last one's is the check's own finding)."""
+    """The parts of a recording missing from the numbering, the stretches the recorder lost
+    between a part it gave up and the next, and a next part the last one names but that was not
+    given (the last part's own missing end marker is the check's own finding)."""
     out = []
     spans = source.spans
     for missing in parts.missing:
-        number = int(_part_number(missing))
-        before = [s for s in spans if int(_part_number(s[0])) < number]
+        number = part_number(missing)
+        before = [s for s in spans if (part_number(s[0]) or 0) < (number or 0)]
         t = before[-1][2] if before else (spans[0][1] if spans else math.nan)
         on_disk = " (on disk, not given)" if missing.is_file() else ""
         out.append(
@@ -1068,8 +1098,8 @@ def _part_findings(parts: LogParts, source: ChainedSource) -> list[Finding]:
                 "incomplete",
                 None,
                 "parts",
-                f"part {missing.name} of the rotated log is missing{on_disk}: its frames were "
-                "not checked",
+                f"part {missing.name} of the {'session' if is_session(missing) else 'rotated log'}"
+                f" is missing{on_disk}: its frames were not checked",
             )
         )
     after = unread_next_part(parts, source.continues)
@@ -1085,8 +1115,10 @@ def _part_findings(parts: LogParts, source: ChainedSource) -> list[Finding]:
                 f"{after.name}, which is missing{on_disk}: its frames were not checked",
             )
         )
+    out.extend(_loss_finding(loss) for loss in source.losses)
+    lost = {loss.before for loss in source.losses}
     for span_path, _, last, ended in spans[:-1]:
-        if not ended:
+        if not ended and span_path not in lost:  # a part without frames
             out.append(
                 Finding(
                     last,
@@ -1097,6 +1129,25 @@ def _part_findings(parts: LogParts, source: ChainedSource) -> list[Finding]:
                 )
             )
     return out
+
+
+def _loss_finding(loss: RecorderLoss) -> Finding:
+    """One stretch the recorder lost, said as that: not a silent bus, not bus errors."""
+    how = (
+        f"{loss.after.name} resumes it"
+        if is_session(loss.after)
+        else f"the recording goes on in part {loss.after.name}"
+    )
+    return Finding(
+        loss.start,
+        "incomplete",
+        None,
+        "parts",
+        f"part {loss.before.name} ends without its end-of-recording marker (the recorder gave "
+        f"it up: a write failure) and {how} {loss.end - loss.start:.3f} s later: the frames in "
+        "between were lost by the recorder, not checked",
+        loss.end - loss.start,
+    )
 
 
 def main_check(
@@ -1149,7 +1200,8 @@ def main_check(
         if report.backwards:
             err.write(
                 f"leafgate: warning: {report.path}: timestamps go backwards at "
-                f"{report.backwards} frames (by up to {report.worst_backwards * 1e3:.1f} ms)\n"
+                f"{plural(report.backwards, 'frame')} (by up to "
+                f"{report.worst_backwards * 1e3:.1f} ms)\n"
             )
         reports.append(report)
         if not report.ok:
@@ -1163,9 +1215,9 @@ def main_check(
             out.write("\n")
         elif failed:
             out.write(
-                f"FAILED: {len(failed)} of {len(groups)} logs failed the check: "
+                f"FAILED: {len(failed)} of {plural(len(groups), 'log')} failed the check: "
                 f"{', '.join(failed)}\n"
             )
         else:
-            out.write(f"OK: all {len(groups)} logs checked without a finding\n")
+            out.write(f"OK: all {plural(len(groups), 'log')} checked without a finding\n")
     return 1 if failed else 0

@@ -42,6 +42,7 @@ import can
 from leafgate.can.codec import CanCodec, Decoded, FrameStats
 from leafgate.can.profile import Profile
 from leafgate.record.logs import ChainedSource, LogParts, group_parts, unread_next_part
+from leafgate.text import plural
 
 __all__ = ["authentication_summary", "decode_log", "format_frame", "format_summary"]
 
@@ -177,8 +178,14 @@ def _incomplete_note(parts: LogParts, source: ChainedSource) -> str:
         notes.append(" (truncated session)" if source.session is not None else " (cut short)")
     if source.frames and not source.ended:
         notes.append("; no end-of-recording marker: the recording stops early")
+    lost = {loss.before for loss in source.losses}
+    for loss in source.losses:
+        notes.append(
+            f"; part {loss.before.name} has no end-of-recording marker: the recorder lost "
+            f"{loss.end - loss.start:.3f} s before {loss.after.name}"
+        )
     for span_path, _, _, ended in source.spans[:-1]:
-        if not ended:
+        if not ended and span_path not in lost:
             notes.append(f"; part {span_path.name} has no end-of-recording marker")
     after = unread_next_part(parts, source.continues)
     if after is not None:
@@ -235,7 +242,7 @@ def _decode_parts(
         out.write(line + "\n")
     if backwards:
         err.write(
-            f"leafgate: warning: {path}: timestamps go backwards at {backwards} frames "
+            f"leafgate: warning: {path}: timestamps go backwards at {plural(backwards, 'frame')} "
             f"(by up to {worst * 1e3:.1f} ms)\n"
         )
     note = _incomplete_note(parts, source)
@@ -250,7 +257,7 @@ def _decode_parts(
                     merged[frame_id] = merged.get(frame_id, FrameStats()) + s
                     names[frame_id] = codec.name_of(frame_id)
         out.write(
-            f"# {path.name}: {sum(s.frames for s in merged.values())} frames, "
+            f"# {path.name}: {plural(sum(s.frames for s in merged.values()), 'frame')}, "
             f"profile {template.profile.name}{note}\n"
         )
         for line in format_summary(merged, names):

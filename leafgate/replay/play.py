@@ -42,6 +42,7 @@ from leafgate.cliargs import non_negative_number, non_negative_seconds
 from leafgate.config.can import BusConfig
 from leafgate.errors import BusError, ConfigError, ReplayError
 from leafgate.record.logs import FrameSource, is_end_marker, is_session
+from leafgate.text import plural
 
 __all__ = [
     "MAX_PART_BACK",
@@ -167,7 +168,9 @@ def play_frames(
         try:
             bus.send(copy_frame(msg, timestamp=0.0, channel=None, is_error_frame=False, is_rx=True))
         except can.CanError as exc:
-            raise BusError(f"playback stopped after {sent} frames: send failed: {exc}") from None
+            raise BusError(
+                f"playback stopped after {plural(sent, 'frame')}: send failed: {exc}"
+            ) from None
         sent += 1
     return PlayStats(
         sent=sent,
@@ -342,7 +345,7 @@ def main_play(
         opened.shutdown()
     names = Path(paths[0]).name + (f" and {len(paths) - 1} more" if len(paths) > 1 else "")
     out.write(
-        f"{names}: {stats.sent} frames sent ({stats.skipped_text(start)}"
+        f"{names}: {plural(stats.sent, 'frame')} sent ({stats.skipped_text(start)}"
         + (
             f"; {left_out} of the gateway's command IDs "
             f"{', '.join(f'{i:03X}' for i in sorted(excluded))} left out: --all-ids plays them"
@@ -354,7 +357,7 @@ def main_play(
     )
     if stats.out_of_order:
         print(
-            f"leafgate replay play: {stats.out_of_order} frames not sent: timed before the "
+            f"leafgate replay play: {plural(stats.out_of_order, 'frame')} not sent: timed before the "
             "log's first frame (out of order), so they have no place on its timeline",
             file=sys.stderr,
         )

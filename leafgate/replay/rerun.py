@@ -16,8 +16,16 @@ vehicle profile, the controller, the gateway and its longitudinal mode); the oth
 the recorder, whose effects are already in the recorded inputs. An override of such a key is
 refused (:func:`check_rerun_overrides`): an IDENTICAL verdict would say nothing about it.
 
-Exit status: 0 when every command is identical, 1 when any signal diverges, 2 for an override
-a re-run cannot honour (or a configuration that does not load).
+A session that resumes another after a recording failure (``session-….2.mcap``, metadata
+``resumes``) starts mid-drive: its first tick's gateway state, controller memory and previous
+commands are not in it, so a fresh gateway would differ from its first engaged tick on, a
+divergence of the recording, not of the code. It is refused (an error naming the session it
+resumes), never reported as IDENTICAL or DIVERGED; the session it resumes re-runs up to its
+cut.
+
+Exit status: 0 when every command is identical, 1 when any signal diverges or the session
+cannot be re-run, 2 for an override a re-run cannot honour (or a configuration that does not
+load).
 """
 
 from __future__ import annotations
@@ -35,6 +43,7 @@ from leafgate.errors import ConfigError, ReplayError
 from leafgate.gateway.core import Gateway
 from leafgate.messages import Commands, GatewayState, Trajectory
 from leafgate.record.session import (
+    META_SESSION,
     TOPIC_TICK,
     TOPIC_TRAJECTORY,
     SessionReader,
@@ -45,6 +54,7 @@ from leafgate.record.session import (
     gateway_mode,
 )
 from leafgate.replay.report import write_report
+from leafgate.text import plural
 
 __all__ = [
     "RERUN_SECTIONS",
@@ -188,7 +198,7 @@ class RerunReport:
 
     def format(self) -> list[str]:
         lines = [
-            f"{self.path}: {self.ticks} ticks re-run"
+            f"{self.path}: {plural(self.ticks, 'tick')} re-run"
             + (
                 f" with {', '.join(f'{k}={v}' for k, v in self.overrides.items())}"
                 if self.overrides
@@ -204,7 +214,7 @@ class RerunReport:
             )
         if self.identical and self.truncated:
             lines.append(
-                f"IDENTICAL up to the cut: the {self.ticks} ticks the truncated session holds "
+                f"IDENTICAL up to the cut: the {plural(self.ticks, 'tick')} the truncated session holds "
                 "reproduced bit for bit; the drive after the cut was not recorded, not re-run"
             )
         elif self.identical:
@@ -217,7 +227,8 @@ class RerunReport:
 def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) -> RerunReport:
     """Re-run a session through a fresh gateway and compare the commands.
 
-    :raises ReplayError: not a session, or one without configuration or ticks
+    :raises ReplayError: not a session, one without configuration or ticks, or one that
+        resumes another (it starts mid-drive)
     :raises ConfigError: an override outside :data:`RERUN_SECTIONS`, or the recorded
         configuration (with the overrides) does not load
     """
@@ -225,7 +236,13 @@ def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) 
     path = Path(path)
     report = RerunReport(str(path), dict(overrides or {}))
     with SessionReader(path) as reader:
-        reader.read_metadata()
+        resumed = reader.read_metadata().get(META_SESSION, {}).get("resumes")
+        if resumed:
+            raise ReplayError(
+                f"{path}: not re-run: it resumes {resumed} after a recording failure, so it "
+                "starts mid-drive (the gateway's state and the controller's memory at its first "
+                f"tick are not in it) and cannot be re-run from its first tick; re-run {resumed}"
+            )
         config = reader.config(overrides)
         controller = make_controller(config.controller, config.vehicle, config.gateway.period)
         gateway = Gateway(config.gateway, config.vehicle, controller, gateway_mode(config))
