@@ -325,4 +325,5 @@ def test_counts_of_one_are_singular(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert f"{log}: 1 frame, " in out
     verdict = _verdict(out)
     assert "0 engaged command frames checked" in verdict and "1 coverage finding;" not in verdict
-    assert verdict.endswith(", 1 coverage finding"), verdict
+    # a foreign log has no end marker: that fails it too, and the verdict says so
+    assert verdict.endswith(", 1 coverage finding, 1 incomplete finding"), verdict
