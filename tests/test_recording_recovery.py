@@ -258,3 +258,24 @@ def test_batch_check_and_rerun_see_one_recording_per_outage(
     line = next(x for x in out.splitlines() if x.startswith(f"{outage.sessions[1]}:"))
     assert "not re-run: it resumes session.mcap" in line and "DIVERGED" not in line, line
     assert f"{outage.sessions[0]}: IDENTICAL up to the cut" in out
+
+
+def test_play_takes_a_session_and_its_resumption_in_their_order(outage: Outage) -> None:
+    """A shell glob sorts ``session.2.mcap`` before ``session.mcap``; play refused the pair as
+    going back in time. It plays them in the recording's order."""
+    from leafgate.config.can import BusConfig
+    from leafgate.replay.play import main_play
+
+    globbed = sorted(outage.sessions, key=lambda p: p.name)
+    assert globbed[0].name == "session.2.mcap"
+    channel = "recovery-play"
+    with can.Bus(interface="virtual", channel=channel) as rx:
+        out = io.StringIO()
+        code = main_play(
+            globbed, bus=BusConfig(interface="virtual", channel=channel), speed=0, out=out
+        )
+        played = 0
+        while rx.recv(timeout=0.0) is not None:
+            played += 1
+    assert code == 0, out.getvalue()
+    assert played > 1000

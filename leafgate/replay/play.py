@@ -41,7 +41,7 @@ from leafgate.can.profile import PROFILE_NAMES
 from leafgate.cliargs import non_negative_number, non_negative_seconds
 from leafgate.config.can import BusConfig
 from leafgate.errors import BusError, ConfigError, ReplayError
-from leafgate.record.logs import FrameSource, is_end_marker, is_session
+from leafgate.record.logs import FrameSource, group_parts, is_end_marker, is_session
 from leafgate.text import plural
 
 __all__ = [
@@ -302,7 +302,8 @@ def main_play(
 ) -> int:
     """``leafgate replay play LOG… [-i I -c C [-b B] [--bus-kwargs K=V …] | --config F]``.
 
-    :param logs: one log, or the parts of a rotated log in order (a shell glob sorts them)
+    :param logs: one log, or the parts of one recording (a rotated log's, a session and its
+        resumptions) in any order: :func:`group_parts` puts them in theirs
     :param bus: the bus to play onto; None: the config's dbw bus (its bench's port)
     :param config: the deployment config: its bus, and its profile's command IDs to leave out
     :param profile: the vehicle profile whose command IDs are left out (over the config's)
@@ -315,7 +316,9 @@ def main_play(
         interface or a send error (the CLI prints it)
     """
     out = out or sys.stdout
-    paths = [logs] if isinstance(logs, (str, Path)) else list(logs)
+    given = [logs] if isinstance(logs, (str, Path)) else list(logs)
+    # one recording's parts in their order (a glob sorts session.2.mcap before session.mcap)
+    paths: list[str | Path] = [path for group in group_parts(given) for path in group.paths]
     sources = [FrameSource(path) for path in paths]  # a missing file first: the plainer error
     check_continuity(paths)
     if bus is None:
