@@ -601,10 +601,11 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
     if (args.file is None) == (args.scenario is None):
         raise ConfigError("publish-trajectory: give a FILE or --scenario NAME (one of them)")
     if args.file is not None:
-        from leafgate.control.reference import load_trajectory, validate
+        from leafgate.control.reference import load_plan_file, validate
 
-        # the rule the gateway applies, with its limits: a plan it would drop is not sent
-        trajectory = load_trajectory(
+        # the rule for a file (as `sim --trajectory` reads it), with the gateway's limits: a
+        # plan it would drop, or one the car would wait on forever, is not sent
+        trajectory = load_plan_file(
             args.file,
             max_speed=cfg.gateway.safety.max_speed,
             max_points=cfg.zenoh.max_plan_points,

@@ -70,24 +70,46 @@ class Spacing:
 
 
 def load_trajectory(
-    path: str | Path,
-    *,
-    max_speed: float = math.inf,
-    max_points: int | None = None,
-    to_the_end: bool = False,
+    path: str | Path, *, max_speed: float = math.inf, max_points: int | None = None
 ) -> Trajectory:
     """Read a trajectory from CSV (header ``x,y,heading,speed``) or YAML, and check it by the
     rule for a usable plan (:func:`trajectory_problem`, with ``max_speed`` and ``max_points``).
 
     YAML holds either a list of mappings with the four keys or a mapping of the four keys to
-    lists of equal length. Units are SI (m, rad, m/s).
+    lists of equal length. Units are SI (m, rad, m/s). A user's file is read with
+    :func:`load_plan_file`, which adds the rule for a file that is the whole plan.
 
-    :param to_the_end: the plan is all the car will get (a simulation of the file): refuse it
-        when it comes to rest before the end of a direction segment (:func:`stop_point`),
-        where the car would wait for a plan that moves on
+    :raises TrajectoryError: naming the file, the row and the problem
+    """
+    return _read_checked(Path(path), max_speed, max_points)[0]
+
+
+def load_plan_file(
+    path: str | Path, *, max_speed: float = math.inf, max_points: int | None = None
+) -> Trajectory:
+    """Read a user's trajectory file, **the** rule for whether one is acceptable: every command
+    that takes one (``sim --trajectory``, ``publish-trajectory``) reads it here.
+
+    The file is checked by the rule the gateway applies to a plan (:func:`load_trajectory`),
+    and, being all the car will get, refused when it comes to rest before the end of a
+    direction segment (:func:`stop_point`): the car would stop there and wait for a plan that
+    moves on, and none comes (a re-published file is the same plan again).
+
+    :param max_speed: m/s, the safety gate's limit
+    :param max_points: the transport's limit on a plan's waypoints
     :raises TrajectoryError: naming the file, the row and the problem
     """
     path = Path(path)
+    traj, rows = _read_checked(path, max_speed, max_points)
+    _refuse_stop_points(traj, str(path), rows)
+    return traj
+
+
+def _read_checked(
+    path: Path, max_speed: float, max_points: int | None
+) -> tuple[Trajectory, list[int] | None]:
+    """The trajectory in ``path``, checked (:func:`trajectory_problem`), and the file row of
+    each waypoint (None: waypoint ``i`` is row ``i + 1``)."""
     text = read_text(path, TrajectoryError)
     suffix = path.suffix.lower()
     if suffix == ".csv":
@@ -107,13 +129,12 @@ def load_trajectory(
     )
     if problem is not None:
         raise TrajectoryError(problem)
-    if to_the_end:
-        _refuse_stop_points(traj, str(path), rows)
-    return traj
+    return traj, rows
 
 
 def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | None) -> None:
-    """Raise when the plan comes to rest before a direction segment's end (``to_the_end``)."""
+    """Raise when the plan comes to rest before a direction segment's end
+    (:func:`load_plan_file`)."""
     kept = _kept_points(traj)
     plan = _subset(traj, kept)
     for seg in split_segments(plan):
@@ -125,9 +146,9 @@ def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | Non
         leg = "forward" if seg.direction > 0 else "reverse"
         raise TrajectoryError(
             f"{source}: row {row}: the plan comes to rest here, before the end of its {leg} "
-            "leg (its speeds are 0 from here on, as a planner stops a car at a stop line): the "
-            "car would stop and wait for another plan; a file is one plan, so give speeds above "
-            "0 up to each cusp and the end"
+            "leg (speed 0: the car stops at the first waypoint at rest, as at a planner's stop "
+            "line, whatever speeds follow): it would stop and wait for another plan; a file is "
+            "one plan, so give speeds above 0 up to each cusp and the end"
         )
 
 
