@@ -343,7 +343,8 @@ def trajectory_problem(
       the safety gate's, which the car would never be allowed to reach);
     - a heading flip: neighbouring kept waypoints whose headings differ by more than
       :data:`MAX_HEADING_STEP` (a car cannot turn 90° within one waypoint spacing of ≤ 1 m; a
-      change of direction keeps the heading, only the speed's sign changes);
+      change of direction keeps the heading, only the speed's sign changes); the first one is
+      named, and headings that look like degrees (:func:`_in_degrees`) are told so;
     - a heading that disagrees with the way the path runs: each chord of at least
       :data:`HEADING_CHORD` between kept waypoints runs along the mean of its two headings (as
       on any circular arc), forward or, driven in reverse, backward; off by more than
@@ -371,13 +372,29 @@ def trajectory_problem(
     kept = _kept_points(traj)
     heading = traj.heading[kept]
     steps = np.abs(np.angle(np.exp(1j * np.diff(heading))))
-    if steps.size and float(steps.max()) > MAX_HEADING_STEP:
-        i = int(np.argmax(steps))
+    flips = np.flatnonzero(steps > MAX_HEADING_STEP)
+    if flips.size:
+        i = int(flips[0])
         return (
             f"{source}: row {row_of(int(kept[i + 1]))}: heading turns "
             f"{math.degrees(float(steps[i])):.0f}° from the waypoint before (a flip)"
+            + _in_degrees(heading, flips.size)
         )
     return _heading_problem(_subset(traj, kept), kept, source, row_of)
+
+
+def _in_degrees(heading: FloatArray, flips: int) -> str:
+    """``"; headings are … radians …"`` when headings with ``flips`` flips between neighbours
+    look like degrees: some beyond ±2π, or a flip at half the steps or more (a path turning a
+    degree or more per waypoint, read as radians); "" otherwise."""
+    largest = float(np.abs(heading).max())
+    steps = len(heading) - 1
+    if largest <= 2.0 * math.pi and 2 * flips < steps:
+        return ""
+    return (
+        f"; headings are the vehicle's, in radians, and these look like degrees (up to "
+        f"{largest:.4g}, a flip at {flips} of {steps} steps)"
+    )
 
 
 def _heading_problem(
