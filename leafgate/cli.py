@@ -143,8 +143,13 @@ trajectory files (--trajectory, publish-trajectory):
   {x, y, heading, speed} mappings or a mapping of those four keys to lists of equal length.
   x, y: m, rear-axle centre; heading: rad, the vehicle's heading (also when reversing);
   speed: m/s, signed (negative = reverse; where the sign changes is a cusp, speed 0 there).
-  At least 4 waypoints, 0.5-1.0 m apart as a planner sends them, no point repeated; the last
-  waypoint is the goal (speed 0). Example CSV:
+  Required: at least 4 waypoints once a point closer than 1 cm to the one before is dropped,
+  speeds above 0 up to each cusp and the last waypoint (at a 0 before them the car would
+  stop and wait for another plan), none above the safety gate's limit. Any spacing drives:
+  the controller follows a curve through the waypoints; a planner sends them 0.5-1.0 m
+  apart, and sim warns where they are so far apart in a turn that its lateral error,
+  measured from the straight chords between them, is coarse. The last waypoint is the goal:
+  the car stops on it whatever its speed (a planner gives it 0). Example CSV:
     x,y,heading,speed
     0.0,0.0,0.0,0.3
     0.5,0.0,0.0,0.6
