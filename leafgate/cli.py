@@ -737,6 +737,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    from leafgate.record.logs import readable_suffixes_text
     from leafgate.sim.compare import CONTROLLERS, PLANTS
     from leafgate.sim.names import TO_SIM, TO_SIM_ECU, injection_names, only_here
     from leafgate.sim.realtime import SIM_ECU_INJECTIONS
@@ -939,7 +940,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "log",
         nargs="+",
-        help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap); a rotated log's parts "
+        help=f"CAN log or session ({readable_suffixes_text()}); a rotated log's parts "
         "(checked as one log, a missing part reported), or several logs (one verdict)",
     )
     add_profile_options(r, "the deployment config whose limits and profile apply")
@@ -992,13 +993,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_publish_trajectory)
 
-    p = sub.add_parser(
-        "decode", help="decode a CAN log (.log/.asc/.blf/.trc/.csv) with the leafgate DBCs"
-    )
+    p = sub.add_parser("decode", help="decode a CAN log or session with the leafgate DBCs")
     p.add_argument(
         "log",
         nargs="+",
-        help="CAN log or session (.mcap); a rotated log's parts are decoded in order as one",
+        help=f"CAN log or session ({readable_suffixes_text()}); a rotated log's parts are "
+        "decoded in order as one",
     )
     add_profile_options(p, "the deployment config naming the vehicle profile and DBCs")
     p.add_argument("--no-summary", action="store_true")
