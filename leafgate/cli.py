@@ -814,6 +814,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
         "--profile",
+        metavar="NAME|FILE",
         help="vehicle profile: leafgate-dbw (default), leafgate-dbw-auth, sze-hlc, "
         "leaf-ze1-lkas, or a .yaml file",
     )
