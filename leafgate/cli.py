@@ -33,11 +33,12 @@ try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line
         non_negative_seconds,
         positive_number,
         positive_seconds,
+        whole_number_between,
     )
     from leafgate.config import parse_overrides
-    from leafgate.errors import ConfigError, LeafgateError
+    from leafgate.errors import ConfigError, LeafgateError, UsageError
     from leafgate.journal import setup_logging
-    from leafgate.settings import LeafgateConfig, load_config, with_profile
+    from leafgate.settings import MAX_BENCH, LeafgateConfig, load_config, with_profile
     from leafgate.sim.scenarios import Scenario
 except KeyboardInterrupt:
     print("leafgate: interrupted", file=sys.stderr)
@@ -223,9 +224,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
         mpc = dataclasses.replace(cfg.controller.mpc, model=default_model(cfg.sim.plant.kind))
         cfg = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, mpc=mpc))
     if args.trajectory and args.scenario:
-        raise ConfigError("sim: give --scenario NAME or --trajectory FILE, not both")
+        raise UsageError("sim: give --scenario NAME or --trajectory FILE, not both")
     if args.start and not args.trajectory:
-        raise ConfigError("sim: --start goes with --trajectory (a scenario has its own start)")
+        raise UsageError("sim: --start goes with --trajectory (a scenario has its own start)")
     if args.trajectory:
         from leafgate.sim.scenarios import file_scenario
 
@@ -241,7 +242,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     injections = tuple(Injection.parse(text) for text in args.inject)
     window = None
     if args.rolling_window is None and (args.window_behind or args.window_resample):
-        raise ConfigError("--window-behind and --window-resample need --rolling-window")
+        raise UsageError("--window-behind and --window-resample need --rolling-window")
     if args.rolling_window is not None:
         from leafgate.sim.runner import RollingWindow
 
@@ -249,7 +250,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             args.rolling_window, args.window_period, args.window_behind, args.window_resample
         )
     if (injections or args.record or window) and (args.direct or args.realtime):
-        raise ConfigError(
+        raise UsageError(
             "--inject, --record and --rolling-window need the full simulated loop "
             "(not --direct or --realtime)"
         )
@@ -388,11 +389,11 @@ def _start_pose(text: str | None) -> Any:
     try:
         x, y, heading_deg = (float(p) for p in parts)
     except ValueError:
-        raise ConfigError(
+        raise UsageError(
             f"--start {text!r}: expected X,Y,HEADING_DEG (m, m, degrees), e.g. 0,0,90"
         ) from None
     if not all(isfinite(v) for v in (x, y, heading_deg)):
-        raise ConfigError(f"--start {text!r}: values must be finite")
+        raise UsageError(f"--start {text!r}: values must be finite")
     return Pose(x=x, y=y, heading=radians(heading_deg), speed=0.0)
 
 
@@ -604,7 +605,7 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     if (args.file is None) == (args.scenario is None):
-        raise ConfigError("publish-trajectory: give a FILE or --scenario NAME (one of them)")
+        raise UsageError("publish-trajectory: give a FILE or --scenario NAME (one of them)")
     if args.file is not None:
         from leafgate.control.reference import load_plan_file, validate
 
@@ -616,7 +617,7 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
             max_points=cfg.zenoh.max_plan_points,
         )
         spacing = validate(trajectory, args.file)
-        print(f"{args.file}: {len(trajectory)} waypoints, spacing {spacing}")
+        print(f"{args.file}: {len(trajectory)} waypoints, {spacing} apart")
     else:
         trajectory = _scenario(args.scenario).trajectory
     zcfg = tool_view(cfg.zenoh)
@@ -730,7 +731,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument(
         "--bench",
-        type=int,
+        # checked here: passed on as LEAFGATE_BENCH, a bad N would be blamed on the variable
+        type=whole_number_between(0, MAX_BENCH, "a bench number"),
         metavar="N",
         help="simulation bench N: a config with `bench:` takes its CAN and Zenoh ports from N "
         "(same as LEAFGATE_BENCH=N)",
@@ -1015,11 +1017,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _naming_the_file(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
-    """A config error that names the config file of the command (every entry point)."""
+    """A config error that names the config file of the command (every entry point); a usage
+    error names the options, as it is."""
     path = getattr(args, "config", None) or getattr(args, "file", None)
     text = str(exc)
     sources = (str(path), "command line", "--profile", "--config")
-    if path is None or any(text.startswith(s) for s in sources):
+    if path is None or isinstance(exc, UsageError) or any(text.startswith(s) for s in sources):
         return exc
     return ConfigError(f"{path}: {text}")
 

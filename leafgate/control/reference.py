@@ -65,6 +65,9 @@ class Spacing:
     median: float
     max: float
 
+    def __str__(self) -> str:
+        return f"{self.min:.2f}-{self.max:.2f} m (median {self.median:.2f} m)"
+
 
 # --- loading and validation -------------------------------------------------------------------
 
