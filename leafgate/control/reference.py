@@ -1,7 +1,7 @@
 """The reference: loading and checking trajectories, nearest waypoint, resampling to the horizon.
 
-A trajectory is a list of rear-axle waypoints ``(x, y, heading, speed)`` 0.5–1.0 m apart
-(paper §II.B). Speeds are signed; where the sign changes (a cusp) the trajectory is split into
+A trajectory is a list of rear-axle waypoints ``(x, y, heading, speed)``, 0.5–1.0 m apart as
+a planner sends them (paper §II.B; any spacing is followed). Speeds are signed; where the sign changes (a cusp) the trajectory is split into
 *direction segments* and the controller tracks one segment to its end, stops there, and moves
 on to the next (:class:`ReferencePath`).
 
