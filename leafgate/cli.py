@@ -33,11 +33,12 @@ try:  # Ctrl-C while Python loads leafgate (seconds on a busy machine): one line
         non_negative_seconds,
         positive_number,
         positive_seconds,
+        whole_number_between,
     )
     from leafgate.config import parse_overrides
-    from leafgate.errors import ConfigError, LeafgateError
+    from leafgate.errors import ConfigError, LeafgateError, UsageError
     from leafgate.journal import setup_logging
-    from leafgate.settings import LeafgateConfig, load_config, with_profile
+    from leafgate.settings import MAX_BENCH, LeafgateConfig, load_config, with_profile
     from leafgate.sim.scenarios import Scenario
 except KeyboardInterrupt:
     print("leafgate: interrupted", file=sys.stderr)
@@ -143,8 +144,13 @@ trajectory files (--trajectory, publish-trajectory):
   {x, y, heading, speed} mappings or a mapping of those four keys to lists of equal length.
   x, y: m, rear-axle centre; heading: rad, the vehicle's heading (also when reversing);
   speed: m/s, signed (negative = reverse; where the sign changes is a cusp, speed 0 there).
-  At least 4 waypoints, 0.5-1.0 m apart as a planner sends them, no point repeated; the last
-  waypoint is the goal (speed 0). Example CSV:
+  Required: at least 4 waypoints once a point closer than 1 cm to the one before is dropped,
+  speeds above 0 up to each cusp and the last waypoint (at a 0 before them the car would
+  stop and wait for another plan), none above the safety gate's limit. Any spacing drives:
+  the controller follows a curve through the waypoints; a planner sends them 0.5-1.0 m
+  apart, and sim warns where they are so far apart in a turn that its lateral error,
+  measured from the straight chords between them, is coarse. The last waypoint is the goal:
+  the car stops on it whatever its speed (a planner gives it 0). Example CSV:
     x,y,heading,speed
     0.0,0.0,0.0,0.3
     0.5,0.0,0.0,0.6
@@ -218,9 +224,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
         mpc = dataclasses.replace(cfg.controller.mpc, model=default_model(cfg.sim.plant.kind))
         cfg = dataclasses.replace(cfg, controller=dataclasses.replace(cfg.controller, mpc=mpc))
     if args.trajectory and args.scenario:
-        raise ConfigError("sim: give --scenario NAME or --trajectory FILE, not both")
+        raise UsageError("sim: give --scenario NAME or --trajectory FILE, not both")
     if args.start and not args.trajectory:
-        raise ConfigError("sim: --start goes with --trajectory (a scenario has its own start)")
+        raise UsageError("sim: --start goes with --trajectory (a scenario has its own start)")
     if args.trajectory:
         from leafgate.sim.scenarios import file_scenario
 
@@ -236,7 +242,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     injections = tuple(Injection.parse(text) for text in args.inject)
     window = None
     if args.rolling_window is None and (args.window_behind or args.window_resample):
-        raise ConfigError("--window-behind and --window-resample need --rolling-window")
+        raise UsageError("--window-behind and --window-resample need --rolling-window")
     if args.rolling_window is not None:
         from leafgate.sim.runner import RollingWindow
 
@@ -244,7 +250,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
             args.rolling_window, args.window_period, args.window_behind, args.window_resample
         )
     if (injections or args.record or window) and (args.direct or args.realtime):
-        raise ConfigError(
+        raise UsageError(
             "--inject, --record and --rolling-window need the full simulated loop "
             "(not --direct or --realtime)"
         )
@@ -383,11 +389,11 @@ def _start_pose(text: str | None) -> Any:
     try:
         x, y, heading_deg = (float(p) for p in parts)
     except ValueError:
-        raise ConfigError(
+        raise UsageError(
             f"--start {text!r}: expected X,Y,HEADING_DEG (m, m, degrees), e.g. 0,0,90"
         ) from None
     if not all(isfinite(v) for v in (x, y, heading_deg)):
-        raise ConfigError(f"--start {text!r}: values must be finite")
+        raise UsageError(f"--start {text!r}: values must be finite")
     return Pose(x=x, y=y, heading=radians(heading_deg), speed=0.0)
 
 
@@ -599,18 +605,19 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     if (args.file is None) == (args.scenario is None):
-        raise ConfigError("publish-trajectory: give a FILE or --scenario NAME (one of them)")
+        raise UsageError("publish-trajectory: give a FILE or --scenario NAME (one of them)")
     if args.file is not None:
-        from leafgate.control.reference import load_trajectory, validate
+        from leafgate.control.reference import load_plan_file, validate
 
-        # the rule the gateway applies, with its limits: a plan it would drop is not sent
-        trajectory = load_trajectory(
+        # the rule for a file (as `sim --trajectory` reads it), with the gateway's limits: a
+        # plan it would drop, or one the car would wait on forever, is not sent
+        trajectory = load_plan_file(
             args.file,
             max_speed=cfg.gateway.safety.max_speed,
             max_points=cfg.zenoh.max_plan_points,
         )
         spacing = validate(trajectory, args.file)
-        print(f"{args.file}: {len(trajectory)} waypoints, spacing {spacing}")
+        print(f"{args.file}: {len(trajectory)} waypoints, {spacing} apart")
     else:
         trajectory = _scenario(args.scenario).trajectory
     zcfg = tool_view(cfg.zenoh)
@@ -724,13 +731,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument(
         "--bench",
-        type=int,
+        # checked here: passed on as LEAFGATE_BENCH, a bad N would be blamed on the variable
+        type=whole_number_between(0, MAX_BENCH, "a bench number"),
         metavar="N",
         help="simulation bench N: a config with `bench:` takes its CAN and Zenoh ports from N "
         "(same as LEAFGATE_BENCH=N)",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
+    from leafgate.record.logs import readable_suffixes_text
     from leafgate.sim.compare import CONTROLLERS, PLANTS
     from leafgate.sim.names import TO_SIM, TO_SIM_ECU, injection_names, only_here
     from leafgate.sim.realtime import SIM_ECU_INJECTIONS
@@ -807,6 +816,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("acceleration", "velocity"))
     p.add_argument(
         "--profile",
+        metavar="NAME|FILE",
         help="vehicle profile: leafgate-dbw (default), leafgate-dbw-auth, sze-hlc, "
         "leaf-ze1-lkas, or a .yaml file",
     )
@@ -933,7 +943,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "log",
         nargs="+",
-        help="CAN log (.log/.asc/.blf/.trc/.csv) or session (.mcap); a rotated log's parts "
+        help=f"CAN log or session ({readable_suffixes_text()}); a rotated log's parts "
         "(checked as one log, a missing part reported), or several logs (one verdict)",
     )
     add_profile_options(r, "the deployment config whose limits and profile apply")
@@ -986,13 +996,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_publish_trajectory)
 
-    p = sub.add_parser(
-        "decode", help="decode a CAN log (.log/.asc/.blf/.trc/.csv) with the leafgate DBCs"
-    )
+    p = sub.add_parser("decode", help="decode a CAN log or session with the leafgate DBCs")
     p.add_argument(
         "log",
         nargs="+",
-        help="CAN log or session (.mcap); a rotated log's parts are decoded in order as one",
+        help=f"CAN log or session ({readable_suffixes_text()}); a rotated log's parts are "
+        "decoded in order as one",
     )
     add_profile_options(p, "the deployment config naming the vehicle profile and DBCs")
     p.add_argument("--no-summary", action="store_true")
@@ -1008,11 +1017,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _naming_the_file(exc: ConfigError, args: argparse.Namespace) -> ConfigError:
-    """A config error that names the config file of the command (every entry point)."""
+    """A config error that names the config file of the command (every entry point); a usage
+    error names the options, as it is."""
     path = getattr(args, "config", None) or getattr(args, "file", None)
     text = str(exc)
     sources = (str(path), "command line", "--profile", "--config")
-    if path is None or any(text.startswith(s) for s in sources):
+    if path is None or isinstance(exc, UsageError) or any(text.startswith(s) for s in sources):
         return exc
     return ConfigError(f"{path}: {text}")
 

@@ -28,13 +28,16 @@ def _number(text: str, kind: type[int] | type[float]) -> float:
     return value
 
 
-def _bounded(kind: type[int] | type[float], low: float, strict: bool, what: str) -> Any:
-    """An argparse type: a finite ``kind`` above ``low`` (``strict``) or at least ``low``;
-    ``what`` names what it must be in the error, e.g. ``"a number of seconds > 0"``."""
+def _bounded(
+    kind: type[int] | type[float], low: float, strict: bool, what: str, high: float = math.inf
+) -> Any:
+    """An argparse type: a finite ``kind`` above ``low`` (``strict``) or at least ``low``, and
+    at most ``high``; ``what`` names what it must be in the error, e.g.
+    ``"a number of seconds > 0"``."""
 
     def check(text: str) -> float:
         value = _number(text, kind)
-        if value < low or (strict and value == low):
+        if value < low or (strict and value == low) or value > high:
             raise argparse.ArgumentTypeError(f"must be {what}, not {text!r}")
         return kind(value)
 
@@ -48,6 +51,11 @@ positive_number = _bounded(float, 0.0, True, "a number > 0")  # metres, a factor
 non_negative_number = _bounded(float, 0.0, False, "a number >= 0")
 positive_int = _bounded(int, 1, False, "a whole number >= 1")  # worker processes
 non_negative_int = _bounded(int, 0, False, "a whole number >= 0")  # a count, 0: no limit
+
+
+def whole_number_between(low: int, high: int, what: str) -> Any:
+    """An argparse type: a whole number ``low``–``high``, ``what`` it is named in the error."""
+    return _bounded(int, low, False, f"{what} {low}-{high}", high=high)
 
 
 def add_overrides(parser: argparse.ArgumentParser) -> None:

@@ -13,6 +13,11 @@ class ConfigError(LeafgateError):
     """A configuration file is missing, unreadable or holds a bad key or value."""
 
 
+class UsageError(ConfigError):
+    """The command line asks for what cannot be: options that do not go together, a bad value
+    of one. Its message names the options, never the config file (which is not at fault)."""
+
+
 class TrajectoryError(LeafgateError):
     """A trajectory file or message is malformed (the message names the row)."""
 

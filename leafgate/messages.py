@@ -89,10 +89,12 @@ class Pose:
 
 @dataclass(frozen=True, eq=False)
 class Trajectory:
-    """A planned trajectory: waypoints of the rear-axle centre, 0.5–1.0 m apart.
+    """A planned trajectory: waypoints of the rear-axle centre (a planner sends them 0.5–1.0 m
+    apart; the controller follows any spacing).
 
     Arrays are float64 of equal length and made read-only. Validation of content (finite
-    values, spacing, no repeated points) lives in :func:`leafgate.control.reference.validate`.
+    values, enough points once overlapping ones are dropped) lives in
+    :func:`leafgate.control.reference.validate`.
     """
 
     x: FloatArray  # m

@@ -121,3 +121,36 @@ def test_corrupt_log_is_a_one_line_replay_error(tmp_path: Path, name: str, conte
     with pytest.raises(ReplayError, match=f"{name}: unreadable") as info:
         decode_log(path, io.StringIO(), profile="leafgate-dbw")
     assert "\n" not in str(info.value)
+
+
+def test_the_readable_suffixes_are_one_list_with_what_each_needs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: ``batch check --help`` listed .mf4 as readable, the default install could not
+    read it (a reader error quoting python-can's advice), and the README left it out. The help
+    texts and the README now list the one set ``batch check`` takes by default, .mf4 with the
+    package it needs; without that package an .mf4 is refused saying so."""
+    import importlib.util
+
+    from leafgate import cli
+    from leafgate.record.logs import NEEDS_PACKAGE, READABLE_SUFFIXES, readable_suffixes_text
+
+    assert readable_suffixes_text() == ".log .asc .blf .trc .csv .mcap; .mf4 needs asammdf"
+    assert set(READABLE_SUFFIXES) >= set(NEEDS_PACKAGE)
+    for command in (["batch", "check"], ["decode"], ["replay", "check"]):
+        with pytest.raises(SystemExit):
+            cli.main([*command, "--help"])
+        assert readable_suffixes_text() in " ".join(capsys.readouterr().out.split()), command
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    lists = [line for line in readme.splitlines() if "leafgate decode drive/" in line]
+    assert lists and all(s in lists[0] for s in READABLE_SUFFIXES)
+    assert ".mf4 needs asammdf" in lists[0]
+    if importlib.util.find_spec("asammdf") is not None:
+        pytest.skip("asammdf is installed here: an .mf4 is read")
+    log = tmp_path / "drive.mf4"
+    log.write_bytes(b"MDF     4.10    ")
+    assert cli.main(["decode", str(log), "--profile", "leafgate-dbw"]) == 1
+    assert capsys.readouterr().err == (
+        f"leafgate: error: {log}: unreadable: a .mf4 log needs the asammdf package, which is "
+        "not installed (pip install asammdf)\n"
+    )

@@ -6,7 +6,9 @@ it once (``python tools/readme_check.py --repeat 10`` for the ten runs in a row)
 
 from __future__ import annotations
 
+import argparse
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -89,3 +91,31 @@ def test_readme_blocks_pass_as_written() -> None:
         report["failures"], indent=1
     )
     assert report["blocks_run"] >= 6
+
+
+def _sim_parser() -> argparse.ArgumentParser:
+    from leafgate import cli
+
+    parser = cli.build_parser()
+    subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return subparsers.choices["sim"]
+
+
+def test_the_sim_synopsis_is_the_sim_command_line() -> None:
+    """Old README: the ``leafgate sim`` synopsis left out --profile, --seed, --no-plots and
+    --record. Every option of ``leafgate sim --help`` is in it, with its choices as the
+    command takes them, and nothing else."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("## The simulator") :]
+    synopsis = re.search(r"```text\n(leafgate sim .*?)```", section, re.S)
+    assert synopsis is not None, "README.md: no ```text block of `leafgate sim` usage"
+    written = dict(re.findall(r"(--[a-z][a-z-]*)(?: ([^\s\]]+))?", synopsis.group(1)))
+    options = {
+        action.option_strings[-1]: action
+        for action in _sim_parser()._actions
+        if action.option_strings and action.option_strings[-1] != "--help"
+    }
+    assert set(written) == set(options), "README.md's sim synopsis differs from sim --help"
+    for name, action in options.items():
+        if action.choices is not None:
+            assert written[name] == "|".join(action.choices), name

@@ -248,6 +248,19 @@ def test_an_empty_or_header_only_text_log_is_still_an_empty_log(tmp_path: Path) 
         assert not report.ok and report.findings[0].detail == "the log has no frames"
 
 
+def test_replay_check_of_an_empty_log_says_no_frames_and_fails(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: "empty.log: 0 frames, nan s", and the finding's time printed as nan."""
+    empty = tmp_path / "empty.log"
+    empty.write_text("")
+    assert cli.main(["replay", "check", str(empty), "--profile", PROFILE]) == 1
+    out = capsys.readouterr().out
+    assert out.splitlines()[0] == f"{empty}: no frames, profile {PROFILE}"
+    assert "nan" not in out and "-  coverage log  the log has no frames" in out
+    assert out.splitlines()[-1].startswith("FAILED: ")
+
+
 # --- 4: decode takes a rotated log's parts, and says when a recording is incomplete ---------------
 
 

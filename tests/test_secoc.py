@@ -222,7 +222,9 @@ def test_a_good_key_file_loads(tmp_path: Path) -> None:
         (KEY.hex(), 0o604, "accessible by group or others (mode 0604)"),
         (KEY.hex(), 0o660, "chmod 600"),
         (KEY[:8].hex(), 0o600, "the key is 64 bits long, at least 128"),
-        (KEY.hex()[:-1] + "z", 0o600, "does not hold hex digits"),
+        (KEY.hex()[:-1] + "z", 0o600, "the key file holds 'z', not a hex digit (0-9, a-f)"),
+        # old code: "does not hold hex digits" of a file of nothing else
+        ("abc", 0o600, "holds 3 hex digits, an odd number: a key is whole bytes"),
     ],
 )
 def test_a_bad_key_file_is_one_line_naming_file_and_reason(

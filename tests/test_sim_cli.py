@@ -104,6 +104,40 @@ def test_sim_warns_when_sparse_waypoints_make_the_lateral_error_coarse(
     assert f"{2 * radius * math.sin(0.5 * angle[1]):.2f} m apart" in err
 
 
+@pytest.mark.parametrize(
+    "name, spacing, goal_speed",
+    [("2 m apart", 2.0, 0.0), ("0.1 m apart", 0.1, 0.0), ("a goal at 0.5 m/s", 0.5, 0.5)],
+)
+def test_sim_drives_what_the_format_allows_beyond_what_a_planner_sends(
+    name: str, spacing: float, goal_speed: float, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The help says what a file needs and what a planner sends: waypoints farther apart or
+    closer than 0.5-1.0 m drive (the controller follows a curve through them), and the car
+    stops on the last waypoint whatever its speed, so neither is refused nor warned about on
+    a straight."""
+    n = round(10.0 / spacing) + 1
+    speeds = [0.8] * (n - 1) + [goal_speed]
+    rows = [f"{spacing * i:.3f},0,0,{v}" for i, v in enumerate(speeds)]
+    route = tmp_path / "route.csv"
+    route.write_text("\n".join(["x,y,heading,speed", *rows]) + "\n", encoding="utf-8")
+    assert _sim("--trajectory", str(route), "--out", str(tmp_path / "o")) == 0, name
+    assert capsys.readouterr().err == ""
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert metrics["finished"] is True and metrics["final_position_error_m"] < 0.1
+
+
+def test_sim_help_tells_required_from_recommended(capsys: pytest.CaptureFixture[str]) -> None:
+    """Old help: "0.5-1.0 m apart as a planner sends them … the last waypoint is the goal
+    (speed 0)" among the requirements, neither checked, and the rule that did refuse files
+    (speeds at 0 before a leg's end) not said."""
+    with pytest.raises(SystemExit):
+        cli.main(["sim", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "Any spacing drives" in text and "a planner sends them 0.5-1.0 m apart" in text
+    assert "the car stops on it whatever its speed" in text
+    assert "speeds above 0 up to each cusp and the last waypoint" in text
+
+
 def test_sim_drives_a_yaml_trajectory_from_a_given_start(tmp_path: Path) -> None:
     route = _write_route(tmp_path / "route.yaml")
     out = tmp_path / "out"

@@ -108,6 +108,31 @@ def test_sim_refuses_a_file_whose_plan_stops_short_naming_the_waypoint(
     assert "still.csv: row 1: the plan comes to rest here" in capsys.readouterr().err
 
 
+def test_publish_trajectory_refuses_the_file_sim_refuses_with_the_same_reason(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: ``publish-trajectory`` read a file by the gateway's rule only and sent a plan
+    that comes to rest half way, on which the car would wait for ever (the file is re-sent as
+    it is); ``sim --trajectory`` refused it. Both read a file by one rule now (before any
+    session opens)."""
+    speeds = [0.3, 0.6, 0.8, 1.0, 1.0, 1.0, 0.6, 0.3, 0.0, 0.3, 0.6, 0.8, 1.0, 1.0, 0.6, 0.3, 0.0]
+    midstop = _write(
+        tmp_path / "midstop.csv", [(0.5 * i, 0.0, 0.0, v) for i, v in enumerate(speeds)]
+    )
+    config = tmp_path / "z.yaml"
+    config.write_text("{}\n", encoding="utf-8")
+    out = tmp_path / "out"
+    assert cli.main(["sim", "--no-plots", "--trajectory", str(midstop), "--out", str(out)]) == 1
+    sim_err = capsys.readouterr().err
+    publish = ["publish-trajectory", str(midstop), "--config", str(config), "--count", "1"]
+    assert cli.main([*publish, "--wait", "0"]) == 1
+    out_text, publish_err = capsys.readouterr()
+    assert "published" not in out_text
+    reason = "midstop.csv: row 9: the plan comes to rest here, before the end of its forward leg"
+    assert reason in sim_err and reason in publish_err
+    assert publish_err.strip().splitlines() == sim_err.strip().splitlines()
+
+
 def test_sim_refuses_at_load_what_the_gateway_would_refuse(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -164,3 +164,22 @@ def test_engage_with_overlapping_points_starts_and_drives() -> None:
     rig.engage()
     rig.run(1.0)
     assert rig.state == GatewayState.ENGAGED, rig.gw.machine.reason
+
+
+def test_headings_in_degrees_that_flip_name_the_first_row_and_say_radians() -> None:
+    """Old code: a 12 m arc of 10 m radius in degrees (2.9° a waypoint, a "flip" of 164° as
+    radians at every step) was refused at the step whose flip was largest, row 22 or wherever
+    rounding put it, and the hint that headings are radians never showed."""
+    arc = _arc(radius=10.0, n=25)
+    degrees = Trajectory(x=arc.x, y=arc.y, heading=np.degrees(arc.heading), speed=arc.speed)
+    assert trajectory_problem(degrees) == (
+        "trajectory: row 2: heading turns 164° from the waypoint before (a flip); headings are "
+        "the vehicle's, in radians, and these look like degrees (up to 68.75, a flip at 24 of "
+        "24 steps)"
+    )
+    # flips the plan has twice, headings in range: the first is named, not the larger
+    turned = arc.heading + np.select([np.arange(25) >= 15, np.arange(25) >= 7], [-0.9, 2.0])
+    flipped = Trajectory(x=arc.x, y=arc.y, heading=turned, speed=arc.speed)
+    assert trajectory_problem(flipped) == (
+        "trajectory: row 8: heading turns 117° from the waypoint before (a flip)"
+    )

@@ -69,13 +69,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="s per case, counted from when a worker starts it (default: the sweep's timeout_s)",
     )
     _common(p, "leafgate-batch")
+    from leafgate.record.logs import readable_suffixes_text
+
     p = sub.add_parser("check", help="`replay check` of every CAN log and session under DIR")
     p.add_argument("dir", help="folder searched recursively")
     p.add_argument(
         "--glob",
         metavar="PATTERN",
         help="only files whose name matches, e.g. '*.mcap' (default: every file with a "
-        "readable suffix: .log .asc .blf .trc .csv .mf4 .mcap)",
+        f"readable suffix: {readable_suffixes_text()})",
     )
     add_profile_options(p, "the deployment config whose limits and profile apply")
     from leafgate.replay.check import add_gap_periods

@@ -51,6 +51,7 @@ import math
 import os
 import secrets
 import stat
+import string
 from pathlib import Path
 from typing import Any, Final, Literal
 
@@ -207,10 +208,16 @@ def load_key(path: str | Path) -> bytes:
     except (OSError, UnicodeDecodeError) as exc:
         reason = exc.strerror if isinstance(exc, OSError) else "not ASCII hex text"
         raise ConfigError(f"{where}: cannot read the key file: {reason}") from None
-    try:
-        key = bytes.fromhex("".join(text.split()))
-    except ValueError:
-        raise ConfigError(f"{where}: the key file does not hold hex digits") from None
+    digits = "".join(text.split())
+    other = next((c for c in digits if c not in string.hexdigits), None)
+    if other is not None:
+        raise ConfigError(f"{where}: the key file holds {other!r}, not a hex digit (0-9, a-f)")
+    if len(digits) % 2:
+        raise ConfigError(
+            f"{where}: the key file holds {len(digits)} hex digits, an odd number: a key is "
+            "whole bytes, two digits each"
+        )
+    key = bytes.fromhex(digits)
     if len(key) < KEY_MIN_BYTES:
         raise ConfigError(
             f"{where}: the key is {len(key) * 8} bits long, at least {KEY_MIN_BYTES * 8} are needed"

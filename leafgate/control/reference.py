@@ -1,7 +1,7 @@
 """The reference: loading and checking trajectories, nearest waypoint, resampling to the horizon.
 
-A trajectory is a list of rear-axle waypoints ``(x, y, heading, speed)`` 0.5–1.0 m apart
-(paper §II.B). Speeds are signed; where the sign changes (a cusp) the trajectory is split into
+A trajectory is a list of rear-axle waypoints ``(x, y, heading, speed)``, 0.5–1.0 m apart as
+a planner sends them (paper §II.B; any spacing is followed). Speeds are signed; where the sign changes (a cusp) the trajectory is split into
 *direction segments* and the controller tracks one segment to its end, stops there, and moves
 on to the next (:class:`ReferencePath`).
 
@@ -65,29 +65,54 @@ class Spacing:
     median: float
     max: float
 
+    def __str__(self) -> str:
+        return f"{self.min:.2f}-{self.max:.2f} m (median {self.median:.2f} m)"
+
 
 # --- loading and validation -------------------------------------------------------------------
 
 
 def load_trajectory(
-    path: str | Path,
-    *,
-    max_speed: float = math.inf,
-    max_points: int | None = None,
-    to_the_end: bool = False,
+    path: str | Path, *, max_speed: float = math.inf, max_points: int | None = None
 ) -> Trajectory:
     """Read a trajectory from CSV (header ``x,y,heading,speed``) or YAML, and check it by the
     rule for a usable plan (:func:`trajectory_problem`, with ``max_speed`` and ``max_points``).
 
     YAML holds either a list of mappings with the four keys or a mapping of the four keys to
-    lists of equal length. Units are SI (m, rad, m/s).
+    lists of equal length. Units are SI (m, rad, m/s). A user's file is read with
+    :func:`load_plan_file`, which adds the rule for a file that is the whole plan.
 
-    :param to_the_end: the plan is all the car will get (a simulation of the file): refuse it
-        when it comes to rest before the end of a direction segment (:func:`stop_point`),
-        where the car would wait for a plan that moves on
+    :raises TrajectoryError: naming the file, the row and the problem
+    """
+    return _read_checked(Path(path), max_speed, max_points)[0]
+
+
+def load_plan_file(
+    path: str | Path, *, max_speed: float = math.inf, max_points: int | None = None
+) -> Trajectory:
+    """Read a user's trajectory file, **the** rule for whether one is acceptable: every command
+    that takes one (``sim --trajectory``, ``publish-trajectory``) reads it here.
+
+    The file is checked by the rule the gateway applies to a plan (:func:`load_trajectory`),
+    and, being all the car will get, refused when it comes to rest before the end of a
+    direction segment (:func:`stop_point`): the car would stop there and wait for a plan that
+    moves on, and none comes (a re-published file is the same plan again).
+
+    :param max_speed: m/s, the safety gate's limit
+    :param max_points: the transport's limit on a plan's waypoints
     :raises TrajectoryError: naming the file, the row and the problem
     """
     path = Path(path)
+    traj, rows = _read_checked(path, max_speed, max_points)
+    _refuse_stop_points(traj, str(path), rows)
+    return traj
+
+
+def _read_checked(
+    path: Path, max_speed: float, max_points: int | None
+) -> tuple[Trajectory, list[int] | None]:
+    """The trajectory in ``path``, checked (:func:`trajectory_problem`), and the file row of
+    each waypoint (None: waypoint ``i`` is row ``i + 1``)."""
     text = read_text(path, TrajectoryError)
     suffix = path.suffix.lower()
     if suffix == ".csv":
@@ -107,13 +132,12 @@ def load_trajectory(
     )
     if problem is not None:
         raise TrajectoryError(problem)
-    if to_the_end:
-        _refuse_stop_points(traj, str(path), rows)
-    return traj
+    return traj, rows
 
 
 def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | None) -> None:
-    """Raise when the plan comes to rest before a direction segment's end (``to_the_end``)."""
+    """Raise when the plan comes to rest before a direction segment's end
+    (:func:`load_plan_file`)."""
     kept = _kept_points(traj)
     plan = _subset(traj, kept)
     for seg in split_segments(plan):
@@ -125,9 +149,9 @@ def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | Non
         leg = "forward" if seg.direction > 0 else "reverse"
         raise TrajectoryError(
             f"{source}: row {row}: the plan comes to rest here, before the end of its {leg} "
-            "leg (its speeds are 0 from here on, as a planner stops a car at a stop line): the "
-            "car would stop and wait for another plan; a file is one plan, so give speeds above "
-            "0 up to each cusp and the end"
+            "leg (speed 0: the car stops at the first waypoint at rest, as at a planner's stop "
+            "line, whatever speeds follow): it would stop and wait for another plan; a file is "
+            "one plan, so give speeds above 0 up to each cusp and the end"
         )
 
 
@@ -322,7 +346,8 @@ def trajectory_problem(
       the safety gate's, which the car would never be allowed to reach);
     - a heading flip: neighbouring kept waypoints whose headings differ by more than
       :data:`MAX_HEADING_STEP` (a car cannot turn 90° within one waypoint spacing of ≤ 1 m; a
-      change of direction keeps the heading, only the speed's sign changes);
+      change of direction keeps the heading, only the speed's sign changes); the first one is
+      named, and headings that look like degrees (:func:`_in_degrees`) are told so;
     - a heading that disagrees with the way the path runs: each chord of at least
       :data:`HEADING_CHORD` between kept waypoints runs along the mean of its two headings (as
       on any circular arc), forward or, driven in reverse, backward; off by more than
@@ -350,13 +375,29 @@ def trajectory_problem(
     kept = _kept_points(traj)
     heading = traj.heading[kept]
     steps = np.abs(np.angle(np.exp(1j * np.diff(heading))))
-    if steps.size and float(steps.max()) > MAX_HEADING_STEP:
-        i = int(np.argmax(steps))
+    flips = np.flatnonzero(steps > MAX_HEADING_STEP)
+    if flips.size:
+        i = int(flips[0])
         return (
             f"{source}: row {row_of(int(kept[i + 1]))}: heading turns "
             f"{math.degrees(float(steps[i])):.0f}° from the waypoint before (a flip)"
+            + _in_degrees(heading, flips.size)
         )
     return _heading_problem(_subset(traj, kept), kept, source, row_of)
+
+
+def _in_degrees(heading: FloatArray, flips: int) -> str:
+    """``"; headings are … radians …"`` when headings with ``flips`` flips between neighbours
+    look like degrees: some beyond ±2π, or a flip at half the steps or more (a path turning a
+    degree or more per waypoint, read as radians); "" otherwise."""
+    largest = float(np.abs(heading).max())
+    steps = len(heading) - 1
+    if largest <= 2.0 * math.pi and 2 * flips < steps:
+        return ""
+    return (
+        f"; headings are the vehicle's, in radians, and these look like degrees (up to "
+        f"{largest:.4g}, a flip at {flips} of {steps} steps)"
+    )
 
 
 def _heading_problem(

@@ -2,7 +2,8 @@
 
 :class:`FrameSource` iterates the frames of a file in recorded order and tells how far it has
 got (for a progress bar): python-can's readers for ``.log``, ``.asc``, ``.blf``, ``.trc``,
-``.csv``, ``.mf4`` (and gzip), :class:`~leafgate.record.session.SessionReader` for ``.mcap``.
+``.csv``, ``.mf4`` (with asammdf, which leafgate does not install) (and gzip),
+:class:`~leafgate.record.session.SessionReader` for ``.mcap``.
 
 A session's frames carry the time they were recorded at on the gateway clock (MCAP log time),
 so received and sent frames share one clock; in a simulated session it is the frame's own time.
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import codecs
 import functools
+import importlib.util
 import itertools
 import json
 import math
@@ -54,6 +56,7 @@ from leafgate.record.session import (
 from leafgate.settings import LeafgateConfig, load_config, with_profile
 
 __all__ = [
+    "NEEDS_PACKAGE",
     "READABLE_SUFFIXES",
     "ChainedSource",
     "FrameSource",
@@ -63,11 +66,33 @@ __all__ = [
     "group_parts",
     "is_session",
     "part_number",
+    "readable_suffixes_text",
     "recording_context",
 ]
 
-#: File suffixes :class:`FrameSource` reads (python-can's logs and leafgate sessions).
+#: File suffixes :class:`FrameSource` reads (python-can's logs and leafgate sessions): the one
+#: list behind ``batch check``'s default and every help text that lists them.
 READABLE_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4", ".mcap")
+#: The suffixes whose python-can reader needs a package leafgate does not install, and which.
+#: They stay readable suffixes: ``batch check`` fails such a file, saying what it needs,
+#: rather than leave it out of a folder's check without a word.
+NEEDS_PACKAGE = {".mf4": "asammdf"}
+
+
+def readable_suffixes_text() -> str:
+    """The readable suffixes as help texts list them: ``.log .asc … .mcap; .mf4 needs asammdf``."""
+    plain = " ".join(s for s in READABLE_SUFFIXES if s not in NEEDS_PACKAGE)
+    needs = "; ".join(f"{s} needs {package}" for s, package in NEEDS_PACKAGE.items())
+    return f"{plain}; {needs}" if needs else plain
+
+
+def _missing_package(path: Path) -> str | None:
+    """The package ``path``'s reader needs and this installation lacks, or None."""
+    package = NEEDS_PACKAGE.get(path.suffix.lower())
+    if package is None or importlib.util.find_spec(package) is not None:
+        return None
+    return package
+
 
 # ASC stores times relative to a start written with ms resolution; absolute times keep the
 # formats comparable (to ±1 ms for ASC).
@@ -210,6 +235,12 @@ class FrameSource:
             return None
 
     def __iter__(self) -> Iterator[can.Message]:
+        package = _missing_package(self.path)
+        if package is not None:
+            raise ReplayError(
+                f"{self.path}: unreadable: a {self.path.suffix} log needs the {package} package, "
+                f"which is not installed (pip install {package})"
+            )
         text_format = _TEXT_FORMATS.get(self.path.suffix.lower())
         if text_format is not None and _binary(self.path):
             raise ReplayError(
@@ -232,7 +263,7 @@ class FrameSource:
             reason = " ".join((str(exc) or type(exc).__name__).split())
             if self.frames == 0 and "unknown log format" in reason:
                 raise ReplayError(
-                    f"{self.path}: {reason} (readable: {', '.join(READABLE_SUFFIXES)})"
+                    f"{self.path}: {reason} (readable: {readable_suffixes_text()})"
                 ) from None
             if self.frames == 0 and text_format is not None:
                 raise ReplayError(

@@ -259,9 +259,14 @@ class CheckReport:
 
     def format(self) -> list[str]:
         """The summary table, the findings, and one verdict line."""
+        span = (
+            f"{plural(self.frames, 'frame')}, {self.end - self.start:.3f} s"
+            if self.frames
+            else "no frames"
+        )
         lines = [
-            f"{self.path}: {plural(self.frames, 'frame')}, {self.end - self.start:.3f} s, profile "
-            f"{self.profile}" + (" (truncated session)" if self.truncated else ""),
+            f"{self.path}: {span}, profile {self.profile}"
+            + (" (truncated session)" if self.truncated else ""),
             f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
             f"{'gaps':>5} {'crc':>5} {'cnt':>5} {'len':>5}",
         ]
@@ -283,7 +288,8 @@ class CheckReport:
             extra = ""
             if f.kind == "limit":
                 extra = f": {f.value:.6g} beyond {f.bound:.6g}"
-            lines.append(f"{f.time:.6f}  {f.kind:<7} {where}{f.name}  {f.detail}{extra}")
+            when = f"{f.time:.6f}" if math.isfinite(f.time) else "-"  # of the whole log
+            lines.append(f"{when}  {f.kind:<7} {where}{f.name}  {f.detail}{extra}")
         not_checkable = ", ".join(
             f"{v} {k.replace('_', ' ')}" for k, v in self.not_checkable.items() if v
         )

@@ -39,7 +39,7 @@ from typing import Any, Final, TextIO
 
 from leafgate.config import parse_overrides
 from leafgate.control import make_controller
-from leafgate.errors import ConfigError, ReplayError
+from leafgate.errors import ReplayError, UsageError
 from leafgate.gateway.core import Gateway
 from leafgate.messages import Commands, GatewayState, Trajectory
 from leafgate.record.session import (
@@ -80,7 +80,7 @@ def check_rerun_overrides(overrides: Mapping[str, Any] | None) -> None:
     for key in overrides or {}:
         section = key.split(".", 1)[0]
         if section not in RERUN_SECTIONS:
-            raise ConfigError(
+            raise UsageError(
                 f"--set {key}: a re-run feeds the recorded gateway inputs to a controller and "
                 f"gateway built from the {', '.join(RERUN_SECTIONS)} sections only; "
                 f"{section}.* cannot change its commands (override one of those sections)"

@@ -587,19 +587,17 @@ def file_scenario(
     max_speed: float = math.inf,
     max_points: int | None = None,
 ) -> Scenario:
-    """A user's route from a trajectory file (:func:`~leafgate.control.reference.load_trajectory`),
-    refused at once when the gateway would refuse it (``max_speed``: the safety gate's, m/s;
-    ``max_points``: the transport's limit), or when the car could never reach its end: the
-    plan comes to rest before the end of a direction segment (a stop point,
-    :func:`~leafgate.control.reference.stop_point`), where the car would wait for a plan that
-    moves on and the simulation has none to send.
+    """A user's route from a trajectory file, refused at once by the rule for a file
+    (:func:`~leafgate.control.reference.load_plan_file`, which ``publish-trajectory`` applies
+    too): when the gateway would refuse it (``max_speed``: the safety gate's, m/s;
+    ``max_points``: the transport's limit), or when the car could never reach its end.
 
     :param start: the start pose; None starts at rest on the first waypoint
     :raises TrajectoryError: naming the file, the row and the problem
     """
-    from leafgate.control.reference import load_trajectory
+    from leafgate.control.reference import load_plan_file
 
-    traj = load_trajectory(path, max_speed=max_speed, max_points=max_points, to_the_end=True)
+    traj = load_plan_file(path, max_speed=max_speed, max_points=max_points)
     if start is None:
         start = Pose(
             x=float(traj.x[0]), y=float(traj.y[0]), heading=float(traj.heading[0]), speed=0.0
