@@ -212,3 +212,29 @@ def test_reverse_segment_asks_for_reverse_and_brakes_at_the_end(kind: type) -> N
     assert out.status == "stopping" and out.accel > 0.0  # d(v)/dt > 0 brakes a reversing car
     out = ctrl.step(Pose(float(traj.x[-1]), 0.0, 0.0, 0.0), 0.0, traj)
     assert out.finished and out.gear == Gear.R
+
+
+def _bend(direction: int, radius: float = 8.0) -> Trajectory:
+    """5 m straight, then 15 m of a left bend of ``radius`` m (rear axle), waypoints 0.5 m
+    apart; driven forward, or in reverse along the same ground (the vehicle facing back)."""
+    s = 0.5 * np.arange(41)
+    turn = np.maximum(s - 5.0, 0.0) / radius  # rad turned by each waypoint
+    x = np.where(s <= 5.0, s, 5.0 + radius * np.sin(turn))
+    y = np.where(s <= 5.0, 0.0, radius * (1.0 - np.cos(turn)))
+    speed = np.minimum(np.minimum(0.3 + 0.1 * np.arange(41), 1.5), 0.3 * (40 - np.arange(41)))
+    heading = turn if direction > 0 else turn + math.pi
+    return Trajectory(x=x, y=y, heading=heading, speed=direction * speed)
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+def test_stanley_holds_the_rear_axle_on_a_bend(direction: int) -> None:
+    """Old code held the front axle on the rear axle's path: on an 8 m radius the rear axle ran
+    L²/2R = 0.46 m inside the bend (and Stanley missed the parking goals by 0.2 m)."""
+    traj = _bend(direction)
+    start = Pose(float(traj.x[0]), float(traj.y[0]), float(traj.heading[0]), 0.0)
+    scenario = Scenario("bend", "an 8 m bend", traj, start, 60.0)
+    cfg = drive_config(LeafgateConfig(), "stanley", "kinematic")
+    metrics = run_direct(cfg, scenario).metrics
+    assert metrics["finished"], metrics.get("not_finished_reason")
+    assert metrics["lateral_error_max_m"] < 0.03
+    assert metrics["final_position_error_m"] < 0.05

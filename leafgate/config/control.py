@@ -171,8 +171,9 @@ class TrackerConfig:
     steer_max: float = math.radians(30.0)  # rad, road-wheel
     steer_rate_max: float = 0.5  # rad/s, road-wheel
     goal_tolerance: float = 0.25  # m, a segment's end counts as reached within this distance
-    # (wider than the MPC's 0.15 m: both laws end parking moves up to ≈ 0.22 m off the goal, and
-    # a segment ends only by progress *and* within this distance — farther is "off-goal")
+    # (wider than the MPC's 0.15 m: Pure Pursuit ends the parallel park up to ≈ 0.15 m off the
+    # goal, and a segment ends only by progress *and* within this distance — farther is
+    # "off-goal")
     stop_speed: float = 0.02  # m/s, "at rest" below this
     align_tolerance: float = 0.03  # rad, wheel within this of the law's angle before driving off
     search_window: int = 20  # waypoints examined by the forward nearest-point search
