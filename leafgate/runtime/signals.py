@@ -51,6 +51,36 @@ def reason(signum: int) -> str:
     return f"{signal.Signals(signum).name} received"
 
 
+@contextmanager
+def interrupt_deferred() -> Iterator[None]:
+    """Ctrl-C during the block is noted and raised as KeyboardInterrupt at its end, so that a
+    stop in order is not cut short (main thread only; elsewhere a no-op).
+
+    ``sim --realtime`` stops its gateway and ECU threads before it closes the Zenoh session
+    they use. A second Ctrl-C once raised KeyboardInterrupt inside the first thread's join: the
+    ECU thread was never told to stop, the session closed under it, and the interpreter exited
+    while it was inside Zenoh's native code. Python 3.11 ends such a daemon thread with
+    ``pthread_exit`` when it takes the GIL back, an unwinding that the Rust frames it passes
+    through do not let by: ``FATAL: exception not rethrown`` and SIGABRT (1 in 20 double
+    Ctrl-Cs here).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+
+    def note(signum: int, _frame: Any) -> None:
+        came.append(signum)  # list.append: safe in a handler
+
+    previous = signal.signal(signal.SIGINT, note)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if came:
+        raise KeyboardInterrupt
+
+
 class StopRequest:
     """Why ``stop`` was set: the signal's reason, or "" when something else set it."""
 
