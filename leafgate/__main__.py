@@ -1,13 +1,15 @@
 """``python -m leafgate`` and the ``leafgate`` command.
 
 The entry point is here, not in :mod:`leafgate.cli`, so that the daemon's stop signals are held
-(:func:`leafgate.runtime.signals.hold`) before the half second of imports ``leafgate.cli``
-costs: a SIGTERM or SIGHUP then ends ``leafgate run`` cleanly, not with the default kill.
+(:func:`leafgate.runtime.hold.hold`) before the half second of imports ``leafgate.cli``
+costs: a SIGTERM or SIGHUP then ends ``leafgate run`` cleanly, not with the default kill. Only
+``sys`` and :mod:`leafgate.runtime.hold` (``signal`` only) load before the hold; what runs before
+this module (the interpreter, ``site``, the console script) cannot hold anything.
 """
 
 import sys
 
-from leafgate.runtime.signals import hold
+from leafgate.runtime.hold import hold
 
 
 def main() -> int:

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 if __name__ == "__main__":  # python -m leafgate.cli: hold the stop signals before the imports
-    from leafgate.runtime.signals import hold
+    from leafgate.runtime.hold import hold
 
     hold()
 

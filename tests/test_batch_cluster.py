@@ -240,3 +240,65 @@ def test_a_lost_scheduler_keeps_the_finished_cases_in_one_line(tmp_path: Path) -
     statuses = [r["status"] for r in rows]
     assert statuses.count("ok") >= 3 and "not run" in statuses
     assert set(statuses) <= {"ok", "not run"}
+
+
+def test_a_result_lost_in_transit_is_the_lost_scheduler_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The scheduler dies while the client gathers a result: distributed raises
+    ``CommClosedError`` from ``Future.result()``. That is the lost scheduler too: one line, exit
+    1, the rows received kept, every other case ``not run``. Before (07779e5) the batch ended in
+    ``leafgate: error: in <TCP (closed) …>: Stream is closed`` and wrote nothing.
+
+    The test above reaches this path only when its kill happens to fall during a gather; here
+    the third gather fails, whatever the timing."""
+    from distributed import LocalCluster
+    from distributed.client import Future
+    from distributed.comm.core import CommClosedError
+
+    gathered = 0
+    real_result = Future.result
+
+    def result_lost_on_the_third(self: Future[Any], timeout: float | None = None) -> Any:
+        nonlocal gathered
+        gathered += 1
+        if gathered == 3:
+            raise CommClosedError("in <TCP (closed) ConnectionPool.gather>: Stream is closed")
+        return real_result(self, timeout)
+
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP.replace("samples: 2", "samples: 3"), encoding="utf-8")
+    # a worker process: a case in a thread of this one would redirect this process's stderr
+    with LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as cluster:
+        address = cluster.scheduler_address
+        monkeypatch.setattr(Future, "result", result_lost_on_the_third)
+        status = main(
+            ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "o")]
+        )
+        monkeypatch.undo()
+    captured = capsys.readouterr()
+    assert gathered == 3
+    assert status == 1
+    assert "Traceback" not in captured.err + captured.out
+    assert "Stream is closed" not in captured.err + captured.out
+    err = captured.err.strip().splitlines()
+    assert err == [
+        f"leafgate: error: lost the scheduler {address}: 4 of 6 not run; "
+        f"what finished is in {tmp_path / 'o'}"
+    ], captured.err
+    rows = read_table(tmp_path / "o" / "results.parquet")
+    assert len(rows) == 6
+    statuses = [r["status"] for r in rows]
+    assert statuses.count("ok") == 2 and statuses.count("not run") == 4
+    assert all(
+        r["error"] == f"not run: lost the scheduler {address}"
+        for r in rows
+        if r["status"] == "not run"
+    )
+    assert "4 not run (lost the scheduler" in captured.out

@@ -6,7 +6,9 @@ hide an arrow — and checks the arrows between the layers (docs/design.md):
 - the pure core (``leafgate.gateway``) imports no shell, no transport and no file or socket I/O;
 - the simulator never imports replay;
 - there is no cycle between packages;
-- loading the config imports no controller module (checked in a fresh interpreter).
+- loading the config imports no controller module (checked in a fresh interpreter);
+- the ``leafgate`` command holds its stop signals before it imports anything but ``signal``
+  (checked in a fresh interpreter).
 
 Imports inside functions count too (a lazy import is still an arrow); those under
 ``if TYPE_CHECKING:`` do not (they exist only for the type checker).
@@ -226,6 +228,38 @@ def test_loading_the_config_imports_no_controller() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
     )
     assert out.stdout.strip() == "", f"loading the config imported {out.stdout.strip()}"
+
+
+#: what ``leafgate.__main__`` may import before it holds SIGTERM and SIGHUP
+BEFORE_THE_HOLD = {
+    "leafgate",
+    "leafgate.runtime",
+    "leafgate.runtime.hold",
+    "leafgate.__main__",
+    "signal",
+    "_signal",
+}
+
+
+def test_the_command_holds_its_stop_signals_before_any_heavy_import() -> None:
+    """A SIGTERM before :func:`leafgate.runtime.hold.hold` is the default kill (status 143), so
+    nothing costly may load before it: ``leafgate/__init__.py``, ``leafgate/runtime/__init__``
+    and ``hold.py`` import ``signal`` only (``signals.py`` with logging and threads cost 12 ms;
+    the interpreter's own start, some 14 ms, comes before any of it)."""
+    code = (
+        "import sys\n"
+        "before = set(sys.modules)\n"
+        "import leafgate.__main__\n"
+        "print(','.join(sorted(set(sys.modules) - before)))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    loaded = set(filter(None, out.stdout.strip().split(",")))
+    assert "leafgate.runtime.hold" in loaded  # the check sees the imports it is about
+    assert loaded <= BEFORE_THE_HOLD, (
+        f"imported before the hold: {sorted(loaded - BEFORE_THE_HOLD)}"
+    )
 
 
 def test_the_contract_checker_sees_a_planted_arrow() -> None:

@@ -413,10 +413,10 @@ def test_a_signal_that_lands_while_the_loop_sleeps_on_stop_still_stops_it(
 def test_a_stop_signal_held_from_the_commands_first_line_reaches_the_daemon() -> None:
     """``leafgate`` holds SIGTERM and SIGHUP before its imports; the daemon's handlers take
     over what came meanwhile, and leave the handlers from before the hold."""
-    from leafgate.runtime import signals
+    from leafgate.runtime import hold, signals
 
     before = signal.getsignal(signal.SIGTERM)
-    signals.hold()
+    hold.hold()
     try:
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(0.05)

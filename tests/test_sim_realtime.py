@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import signal
+import threading
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -38,6 +41,42 @@ def test_realtime_run_drives_a_short_straight_to_the_end(tmp_path: Path) -> None
     assert 0.0 <= metrics["ecu_loop_max_lateness_s"] < 5.0  # measured, not a placeholder
     events = " ".join(e for _, e in outcome["timeline"])
     assert "ENGAGED" in events
+
+
+@pytest.mark.slow
+def test_a_second_ctrl_c_while_stopping_still_stops_both_threads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C mid-drive, and again as the gateway thread is being joined: both threads still
+    stop before the Zenoh session closes, then the interrupt is raised. Before, the second
+    Ctrl-C cut the stop short: the ECU thread was never told to stop and ran on in Zenoh while
+    the interpreter exited, which aborted it once in 20 double Ctrl-Cs (``FATAL: exception not
+    rethrown``, SIGABRT)."""
+    scenario = _forward("short", "8 m straight at 2 m/s", lambda u: (u, np.zeros_like(u)), 8.0, 2.0)
+    first: list[float] = []
+    second: list[float] = []
+    real_join = threading.Thread.join
+
+    def join(self: threading.Thread, timeout: float | None = None) -> None:
+        main = threading.current_thread() is threading.main_thread()
+        if self.name == "leafgate-gateway" and main and not second:
+            second.append(1.0)
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C again, as the stop begins
+        real_join(self, timeout)
+
+    def progress(t: float, _state: str) -> None:
+        if t >= 1.0 and not first:
+            first.append(t)
+            signal.raise_signal(signal.SIGINT)  # the first Ctrl-C, mid-drive
+
+    monkeypatch.setattr(threading.Thread, "join", join)
+    outcome: Any = None
+    with pytest.raises(KeyboardInterrupt):
+        outcome = run_realtime(_relaxed(tmp_path), scenario, progress)
+    monkeypatch.undo()
+    assert first and second and outcome is None
+    names = {"leafgate-sim-ecu", "leafgate-gateway"}
+    assert [t.name for t in threading.enumerate() if t.name in names] == []
 
 
 def test_a_report_fault_after_a_late_simulator_says_the_simulator_was_late() -> None:

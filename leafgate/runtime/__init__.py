@@ -6,5 +6,6 @@
 - :mod:`~leafgate.runtime.loop` — the fixed-rate loop around ``Gateway.step``
 - :mod:`~leafgate.runtime.daemon` — the daemon's composition root (``leafgate run``)
 - :mod:`~leafgate.runtime.signals` — SIGINT, SIGTERM and SIGHUP as the controlled stop
+- :mod:`~leafgate.runtime.hold` — SIGTERM and SIGHUP held from the command's first line
 - :mod:`~leafgate.runtime.systemd` — systemd notification
 """

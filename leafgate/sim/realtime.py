@@ -427,6 +427,7 @@ def run_realtime(
 
     from leafgate.runtime.daemon import run_daemon
     from leafgate.runtime.loop import Runtime
+    from leafgate.runtime.signals import interrupt_deferred
     from leafgate.transport.client import OdometryPublisher, TrajectoryPublisher, request
 
     channel = f"leafgate-realtime-{next(_channels)}"
@@ -495,9 +496,10 @@ def run_realtime(
                 name="leafgate-gateway",
                 daemon=True,
             )
-            ecu_thread.start()
-            gw_thread.start()
             try:
+                with interrupt_deferred():  # both started, or Ctrl-C after: the finally joins
+                    ecu_thread.start()
+                    gw_thread.start()
                 deadline = time.perf_counter() + scenario.duration + 5.0
                 engaged = drove = False
                 next_plan = 0.0
@@ -527,11 +529,14 @@ def run_realtime(
                     if drove and idle and trace.rows and abs(trace.rows[-1][4]) < 0.01:
                         break
                     time.sleep(0.02)
-            finally:  # also on Ctrl-C: the threads stop before the session closes
-                stop_gw.set()
-                gw_thread.join(timeout=5.0)
-                stop_ecu.set()
-                ecu_thread.join(timeout=5.0)
+            finally:  # also on Ctrl-C: the threads stop before the session closes,
+                # and a second Ctrl-C waits for that: a thread left inside Zenoh when the
+                # interpreter exits aborts it (SIGABRT, see interrupt_deferred)
+                with interrupt_deferred():
+                    stop_gw.set()
+                    gw_thread.join(timeout=5.0)
+                    stop_ecu.set()
+                    ecu_thread.join(timeout=5.0)
     finally:
         session.close()
     if errors:
