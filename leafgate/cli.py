@@ -159,6 +159,25 @@ trajectory files (--trajectory, publish-trajectory):
 """
 
 
+def _realtime_verdict(cfg: LeafgateConfig, metrics: dict[str, Any]) -> tuple[bool, str]:
+    """Whether ``sim --realtime`` finished the route, and why not (with the simulator's own
+    lateness when that explains a report fault).
+
+    The gateway claims the end only by its reason: a controlled stop (stale localization, no
+    progress) ends in STANDBY too, and was reported as "the gateway reported the end reached,
+    but the car got 5.9 of 32.3 m", without the reason or the load hint.
+    """
+    from leafgate.gateway.core import END_REACHED
+    from leafgate.sim.runner import finish_verdict
+
+    final = metrics["final_state"]
+    claimed = final == "STANDBY" and metrics["final_reason"] == END_REACHED
+    finished, reason = finish_verdict(
+        metrics, claimed, f"the gateway ended in {final}: {metrics['final_reason']}"
+    )
+    return finished, (reason + _realtime_starved(cfg, metrics)) if reason else ""
+
+
 def _realtime_starved(cfg: LeafgateConfig, metrics: dict[str, Any]) -> str:
     """Why an ECU report was late in ``sim --realtime``, when the simulator itself was late.
 
@@ -262,17 +281,13 @@ def cmd_sim(args: argparse.Namespace) -> int:
     if args.realtime:
         from leafgate.progress import Progress
         from leafgate.sim.realtime import run_realtime
-        from leafgate.sim.runner import finish_verdict
 
         with Progress(f"sim --realtime {scenario.name}", scenario.duration, "s") as shown:
             outcome = run_realtime(cfg, scenario, lambda t, state: shown.update(round(t), state))
         metrics, trace, timeline = outcome["metrics"], outcome["trace"], outcome["timeline"]
-        final = metrics["final_state"]
-        metrics["finished"], reason = finish_verdict(
-            metrics, final == "STANDBY", f"the gateway ended in {final}: {metrics['final_reason']}"
-        )
+        metrics["finished"], reason = _realtime_verdict(cfg, metrics)
         if reason:
-            metrics["not_finished_reason"] = reason + _realtime_starved(cfg, metrics)
+            metrics["not_finished_reason"] = reason
         loop = "real time (daemon runtime, in-process Zenoh, virtual CAN)"
     else:
         if args.direct:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from leafgate.cli import _realtime_starved
+from leafgate.cli import _realtime_starved, _realtime_verdict
 from leafgate.settings import LeafgateConfig, load_config
 from leafgate.sim.realtime import run_realtime
 from leafgate.sim.scenarios import _forward
@@ -96,3 +96,31 @@ def test_a_report_fault_after_a_late_simulator_says_the_simulator_was_late() -> 
     slow = replace(cfg, gateway=replace(cfg.gateway, watchdog=watchdog))
     assert _realtime_starved(slow, {**fault, "ecu_loop_max_lateness_s": 0.015}) == ""
     assert _realtime_starved(slow, {**fault, "ecu_loop_max_lateness_s": 0.060}) != ""
+
+
+def test_a_controlled_stop_is_not_read_as_the_end_reached() -> None:
+    """A realtime run that stopped for stale localization at 5.9 of 32.3 m ended in STANDBY and
+    was reported as 'the gateway reported the end reached, but the car got 5.9 …'."""
+    from leafgate.gateway.core import END_REACHED
+
+    cfg = LeafgateConfig()
+    stopped = {
+        "final_state": "STANDBY",
+        "final_reason": "at rest after a controlled stop (localization age 0.101 s > 0.1 s)",
+        "route_length_m": 32.3,
+        "progress_m": 5.9,
+        "final_position_error_m": 20.0,
+    }
+    finished, reason = _realtime_verdict(cfg, stopped)
+    assert not finished
+    assert "end reached" not in reason and "localization age 0.101 s" in reason
+    done = {
+        **stopped,
+        "final_reason": END_REACHED,
+        "progress_m": 32.3,
+        "final_position_error_m": 0.02,
+    }
+    assert _realtime_verdict(cfg, done) == (True, "")
+    short = {**done, "progress_m": 5.9, "final_position_error_m": 20.0}  # claimed, not so
+    finished, reason = _realtime_verdict(cfg, short)
+    assert not finished and "reported the end reached, but the car got 5.9" in reason
