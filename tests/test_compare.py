@@ -132,8 +132,8 @@ MATCHED_MPC = {"kinematic": "mpc", "steer-lag": "mpc-steer", "dynamic": "mpc-ste
 STEER_LAG_MARGIN = 0.01
 #: How far Stanley's max lateral error may be below the MPC's on the kinematic plant (m).
 #: Stanley feeds the plan's curvature forward on the front axle's path; on a plant that is
-#: exactly its model that tracks tighter than the MPC on most scenarios, by up to 1.9 cm
-#: (perpendicular park: 0.7 against 2.6 cm). Where the wheel lags, it is far behind.
+#: exactly its model that tracks tighter than the MPC on most scenarios, by up to 1.8 cm
+#: (perpendicular park: 0.8 against 2.6 cm). Where the wheel lags, it is far behind.
 KINEMATIC_MARGIN = 0.025
 
 
