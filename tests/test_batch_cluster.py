@@ -202,35 +202,94 @@ def _finished_tasks(address: str) -> int:
         return int(client.run_on_scheduler(count))
 
 
+class _Terminal:
+    """A pseudo-terminal for a child's stderr, so that the batch draws its progress bar
+    (``… 3/60 cases, 0 failed …``: what the batch itself has received, not the scheduler)."""
+
+    def __init__(self) -> None:
+        import pty
+
+        self.master, self.slave = pty.openpty()
+        self.text = ""
+
+    def read(self, wait: float = 0.2) -> str:
+        """What the child wrote since, waiting up to ``wait`` s for something."""
+        import select
+
+        while select.select([self.master], [], [], wait)[0]:
+            try:
+                chunk = os.read(self.master, 65536)
+            except OSError:  # the child has gone and closed its side
+                break
+            if not chunk:
+                break
+            self.text += chunk.decode(errors="replace")
+            wait = 0.0
+        return self.text
+
+    def received(self) -> int:
+        """The cases the progress bar last said the batch has received."""
+        import re
+
+        counts = re.findall(r"\] (\d+)/\d+ ", self.text)
+        return int(counts[-1]) if counts else 0
+
+    def close(self) -> None:
+        for fd in (self.master, self.slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
 def test_a_lost_scheduler_keeps_the_finished_cases_in_one_line(tmp_path: Path) -> None:
     """The scheduler killed mid-batch: the cases received are written, the others listed as
     not run, and stderr holds one line. Before: CancelledError tracebacks from the client, then
-    "Timed out trying to connect", exit 1, and no --out: the finished cases were lost."""
+    "Timed out trying to connect", exit 1, and no --out: the finished cases were lost.
+
+    The kill waits for the batch's own progress bar (stderr on a pseudo-terminal) to count
+    three cases received: the scheduler's count of finished tasks runs ahead of the batch,
+    which looks every 50 ms, and a kill in between left it fewer than three."""
     sweep = tmp_path / "sweep.yaml"
     sweep.write_text(SWEEP.replace("samples: 2", "samples: 30"), encoding="utf-8")
     pids: list[int] = []
-    with dask_cluster(tmp_path, pids) as address:
-        argv = ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "o")]
-        with (tmp_path / "err").open("w+") as err, (tmp_path / "out").open("w+") as out:
-            batch = subprocess.Popen(
-                [str(BIN / "leafgate"), *argv], stdout=out, stderr=err, start_new_session=True
-            )
-            try:
-                deadline = time.monotonic() + 120
-                while _finished_tasks(address) < 3:
-                    assert batch.poll() is None and time.monotonic() < deadline
-                    time.sleep(0.2)
-                os.killpg(pids[0], signal.SIGKILL)  # the scheduler
-                status = batch.wait(timeout=120)
-            finally:
-                if batch.poll() is None:
-                    os.killpg(batch.pid, signal.SIGKILL)
-                    batch.wait()
-            err.seek(0)
-            out.seek(0)
-            stderr, stdout = err.read(), out.read()
-    assert status == 1, stderr
-    assert "Traceback" not in stderr + stdout and "CancelledError" not in stderr + stdout
+    terminal = _Terminal()
+    try:
+        with dask_cluster(tmp_path, pids) as address:
+            argv = [
+                "batch",
+                "sim",
+                str(sweep),
+                "--scheduler",
+                address,
+                "--out",
+                str(tmp_path / "o"),
+            ]
+            with (tmp_path / "out").open("w+") as out:
+                batch = subprocess.Popen(
+                    [str(BIN / "leafgate"), *argv],
+                    stdout=out,
+                    stderr=terminal.slave,
+                    start_new_session=True,
+                )
+                try:
+                    deadline = time.monotonic() + 120
+                    while terminal.received() < 3:
+                        terminal.read()
+                        assert batch.poll() is None and time.monotonic() < deadline
+                    os.killpg(pids[0], signal.SIGKILL)  # the scheduler
+                    status = batch.wait(timeout=120)
+                finally:
+                    if batch.poll() is None:
+                        os.killpg(batch.pid, signal.SIGKILL)
+                        batch.wait()
+                out.seek(0)
+                stdout = out.read()
+        everything = terminal.read().replace("\r\n", "\n")
+        # the bar's redraws end in a blank line drawn over it: the lines after are the messages
+        stderr = everything.split("\r")[-1]
+    finally:
+        terminal.close()
+    assert status == 1, everything
+    assert "Traceback" not in everything + stdout and "CancelledError" not in everything + stdout
     lines = stderr.strip().splitlines()
     assert lines, stdout  # before: cases recorded as "failed: cancelled", and nothing said
     assert lines[-1].startswith(f"leafgate: error: lost the scheduler {address}: "), stderr
