@@ -126,8 +126,8 @@ def discard_queued(
     Between opening a bus and starting to read it the daemon opens Zenoh and its recording,
     which takes a second on a loaded machine. The socket's queue holds what the ECU sent
     meanwhile, until it overflows and drops frames. Read late, those frames come as a burst
-    stamped at the time they were read, with counter skips where the queue dropped some:
-    the recording showed six E2E errors at every start. They are history from before the
+    stamped at the time they were read, with counter skips where the queue dropped some (a
+    recorded start under load showed six E2E errors). They are history from before the
     gateway listened, so they are neither acted on nor recorded.
 
     A bus that fails to read ends the discarding; the receiver meets the same error.
