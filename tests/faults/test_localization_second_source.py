@@ -41,7 +41,8 @@ class SecondSource:
         self.first: float | None = None  # perf_counter of the first spoofed pose
         self.sent = 0
         self.genuine: set[str] = set()
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # a publish and the publisher's close never overlap
+        self._closed = False
         self._subscriber = session.declare_subscriber(self.publisher.key, self._on_pose)
 
     def _on_pose(self, sample: zenoh.Sample) -> None:
@@ -49,6 +50,8 @@ class SecondSource:
         if source == self.identity:
             return  # our own publication, delivered back to our session
         with self._lock:
+            if self._closed:
+                return
             self.genuine.add(source)
             pose = self.codec.decode(sample.payload.to_bytes())
             if self.first is None:
@@ -57,6 +60,11 @@ class SecondSource:
             self.sent += 1
 
     def close(self) -> None:
+        # A callback publishing on Zenoh's thread while the publisher closed raised
+        # "RuntimeError: Already borrowed" (Zenoh's binding) in a CI run. Publishes run under
+        # the lock: once closed is set under it, none runs and none starts.
+        with self._lock:
+            self._closed = True
         self._subscriber.undeclare()
         self.publisher.close()
 
