@@ -48,19 +48,15 @@ from leafgate.transport.payloads import (
     codecs,
 )
 from leafgate.transport.session import build_config, open_session
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_for
 
 ZENOH_FILES = Path(__file__).resolve().parents[1] / "config" / "zenoh"
 WAIT = 5.0  # s, upper bound for loopback delivery; tests poll and never assert on speed
 
 
 def wait_until(condition: Callable[[], bool], timeout: float = WAIT) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
+    """:func:`tests.conftest.wait_for` with this module's loopback bound."""
+    return wait_for(condition, timeout)
 
 
 class FakeClock:
