@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import copy
+import functools
+import pickle
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -161,6 +165,7 @@ def test_hildreth_with_a_cholesky_factor_is_hildreth_with_the_inverse(seed: int)
 # --- DAQP (issue 13): the default backend ------------------------------------------------------
 
 
+@functools.cache
 def _closed_loop_qps() -> list[tuple[np.ndarray, ...]]:
     """The QPs the MPC really solves with constraints active: a parking move and a slalom from
     standing starts 0.9 m and 25° off the path (the steering saturates for seconds)."""
@@ -220,6 +225,60 @@ def test_daqp_hildreth_and_osqp_give_the_same_first_move_on_closed_loop_qps() ->
             np.testing.assert_allclose(osqp_result.x[:2], daqp_result.x[:2], rtol=0, atol=1e-6)
     assert n_dual_bound == len(qps)  # every one of them saturated a constraint
     assert osqp_converged >= 0.97 * len(qps)
+
+
+@pytest.mark.slow
+def test_daqp_from_the_last_active_set_gives_the_answer_of_a_cold_start() -> None:
+    """The controller's backend keeps its workspace: each closed-loop QP starts from the last
+    one's active set. Same optimum as a workspace set up for each QP alone, in fewer
+    iterations (else nothing was carried over); after a reset it starts cold again."""
+    qps = [qp for qp in _closed_loop_qps() if qp[2] is _closed_loop_qps()[0][2]]  # one M
+    assert len(qps) > 100
+    E0, f0, M, gamma0 = qps[0]
+    warm, cold = DaqpBackend(M), DaqpBackend(M)
+    warm_iterations = cold_iterations = 0
+    for E, f, _, gamma in qps:
+        w = warm.solve(E, f, gamma)
+        cold.reset()
+        c = cold.solve(E, f, gamma)
+        assert w.converged and c.converged
+        np.testing.assert_allclose(w.x, c.x, rtol=0, atol=1e-9)
+        warm_iterations += w.iterations
+        cold_iterations += c.iterations
+    assert warm_iterations < 0.5 * cold_iterations
+    warm.reset()
+    cold.reset()
+    assert warm.solve(E0, f0, gamma0).iterations == cold.solve(E0, f0, gamma0).iterations
+
+
+def test_daqp_starts_cold_after_a_solve_that_did_not_end_optimal() -> None:
+    """A capped solve leaves no active set worth starting from: the next solve is a cold one
+    (same iterations as a fresh backend's), and converges."""
+    E, f, M, gamma = _box_qp(3)
+    fresh = DaqpBackend(M).solve(E, f, gamma)
+    assert fresh.converged and fresh.iterations > 1
+    backend = DaqpBackend(M)
+    backend.solve(E, f, gamma)  # a workspace with the optimal active set...
+    backend._settings["iter_limit"] = 1
+    backend.reset()
+    assert not backend.solve(E, f, gamma).converged  # ...dropped, then capped from cold
+    backend._settings["iter_limit"] = 1000
+    again = backend.solve(E, f, gamma)
+    assert again.converged and again.iterations == fresh.iterations
+
+
+@pytest.mark.parametrize("how", ["deepcopy", "pickle"])
+def test_a_copied_daqp_backend_solves_on_its_own_workspace(how: str) -> None:
+    """DAQP's workspace cannot be copied: a deep copy (the benchmark copies controllers) or a
+    pickle sets up its own at its first solve and leaves the original's alone."""
+    E, f, M, gamma = _box_qp(5)
+    original = DaqpBackend(M)
+    first = original.solve(E, f, gamma)
+    clone = copy.deepcopy(original) if how == "deepcopy" else pickle.loads(pickle.dumps(original))
+    from_clone = clone.solve(E, f, gamma)
+    assert from_clone.converged and from_clone.iterations == first.iterations  # cold
+    assert original.solve(E, f, gamma).iterations < first.iterations  # still warm
+    np.testing.assert_allclose(from_clone.x, first.x, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("seed", range(20))

@@ -308,6 +308,8 @@ class MpcController:
         self._in_flight: deque[float] = deque(maxlen=max(self._dead_ticks, 1))
         if self._osqp is not None:
             self._osqp.reset()
+        for backend in self._daqp_dir.values():
+            backend.reset()
         self._disturbance.reset()
 
     def step(self, pose: Pose, steer_angle: float, trajectory: Trajectory) -> ControlOutput:

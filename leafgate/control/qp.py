@@ -6,7 +6,8 @@ Three backends return the same :class:`QpResult`:
   written for the small dense QPs of MPC: the default. A ``M`` of the MPC's shape
   ``[C; −C; I; −I; D]`` is passed as two-sided constraints ``lo ≤ C x ≤ hi`` with simple bounds
   ``lo ≤ x ≤ hi`` (a quarter of the first rows) and the rows ``D`` (the MPC's speed rows, if
-  any) one-sided; any other ``M`` as ``M x ≤ γ``.
+  any) one-sided; any other ``M`` as ``M x ≤ γ``. One DAQP workspace is kept and updated in
+  place (no allocation in DAQP's solve), and each solve starts from the last one's active set.
 
 - :func:`hildreth` — Hildreth's dual coordinate-ascent procedure as in Wang's ``QPhild``: the
   unconstrained optimum is returned when it is feasible; otherwise the dual
@@ -378,6 +379,12 @@ class DaqpBackend:
     any rows ``D`` after those (the MPC's speed rows) as the one-sided ``D x ≤ γ₅``; otherwise
     as the one-sided ``M x ≤ γ``. Multipliers are mapped back to the rows of ``M``.
 
+    The workspace (a ``daqp.Model``) is set up at the first solve and updated in place after
+    it, so each solve starts from the previous one's active set: on the MPC's QPs one tick's
+    active set is mostly the next one's. The answer is the QP's unique optimum either way (``E``
+    is positive definite); only the iterations to it differ. :meth:`reset` and a solve that
+    did not end optimal drop the workspace, and the next solve starts cold.
+
     :param M: the constraint matrix
     :param max_iter: active-set iteration cap (DAQP's ``iter_limit``)
     :param primal_tol: DAQP's primal feasibility tolerance
@@ -412,16 +419,36 @@ class DaqpBackend:
             self._A = np.ascontiguousarray(M)
             self._lower = np.full(self.m, -1e30)
         self._settings: dict[str, Any] = {"iter_limit": max_iter, "primal_tol": primal_tol}
+        self._model: daqp.Model | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Copied or pickled without the workspace (DAQP's cannot be): the copy's first solve
+        sets up its own, cold."""
+        state = self.__dict__.copy()
+        state["_model"] = None
+        return state
+
+    def reset(self) -> None:
+        """Drop the workspace: the next solve starts with no active set."""
+        self._model = None
 
     def solve(self, E: FloatArray, f: FloatArray, gamma: FloatArray) -> QpResult:
-        """Solve one QP (DAQP sets up its workspace per call: no state between ticks)."""
+        """Solve one QP, from the last solve's active set (see the class notes)."""
         if self._structured:
             upper = gamma.take(self._upper_rows)
             lower = self._lower.copy()
             np.negative(gamma.take(self._lower_rows), out=lower[: 2 * self.n])
         else:
             upper, lower = np.asarray(gamma, dtype=np.float64), self._lower
-        x, _, flag, info = daqp.solve(E, f, self._A, upper, lower, **self._settings)
+        model = self._model
+        if model is None:
+            model = daqp.Model()
+            model.settings = self._settings
+            model.setup(E, f, self._A, upper, lower)
+            self._model = model
+        else:
+            model.update(H=E, f=f, bupper=upper, blower=lower)
+        x, _, flag, info = model.solve()
         x = np.asarray(x, dtype=np.float64)
         lam_d = np.asarray(info["lam"], dtype=np.float64)
         if self._structured:  # DAQP: λ > 0 on an active upper bound, λ < 0 on a lower one
@@ -434,4 +461,6 @@ class DaqpBackend:
         else:
             lam = np.maximum(lam_d, 0.0)
         converged = int(flag) == self.OPTIMAL and bool(np.isfinite(x).all())
+        if not converged:
+            self._model = None  # no active set to start the next QP from
         return QpResult(x, converged, int(info["iterations"]), lam)
