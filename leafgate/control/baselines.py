@@ -50,7 +50,7 @@ from leafgate.control.reference import (
 )
 from leafgate.geometry import clip_abs as _clip
 from leafgate.geometry import wrap_angle as _wrap
-from leafgate.messages import ControlOutput, Gear, Pose, Trajectory
+from leafgate.messages import ControlOutput, FloatArray, Gear, Pose, Trajectory
 
 __all__ = [
     "PurePursuit",
@@ -169,7 +169,7 @@ class _Tracker:
             )
 
         # steering: the law in the travel frame, negated in reverse, within the limits
-        law = direction * self._law(path, seg, s0, pose, direction)
+        law = direction * self._law(path, seg, s0, pose)
         if not math.isfinite(law):
             return self._fault("non-finite", direction, t0)
         target = _clip(law, cfg.steer_max)
@@ -270,9 +270,7 @@ class _Tracker:
 
     # --- the law (subclasses) ---
 
-    def _law(
-        self, path: ReferencePath, seg: Segment, s0: float, pose: Pose, direction: int
-    ) -> float:
+    def _law(self, path: ReferencePath, seg: Segment, s0: float, pose: Pose) -> float:
         """Road-wheel angle for forward driving in the travel frame, rad."""
         raise NotImplementedError
 
@@ -331,20 +329,19 @@ class _Tracker:
         )
 
 
-def point_on_path(path: ReferencePath, seg: Segment, s: float) -> tuple[float, float, float]:
-    """``(x, y, heading)`` of the segment at arc length ``s``, continued straight past its ends.
+def points_on_path(path: ReferencePath, seg: Segment, s: FloatArray) -> FloatArray:
+    """``(x, y, heading)`` rows of the segment at the arc lengths ``s``, continued straight past
+    its ends.
 
     Beyond the end (or before the start) the path is extended along the end's travel direction,
     so look-ahead points and front-axle projections stay meaningful at a stop point.
     """
-    s_start, s_end = float(path.s[seg.start]), float(path.s[seg.end])
-    clamped = min(max(s, s_start), s_end)
-    x, y, h = (float(v) for v in path.sample(seg, np.array([clamped]))[0])
-    extra = s - clamped  # m, > 0 past the end, < 0 before the start
-    if extra != 0.0:
-        x += extra * seg.direction * math.cos(h)
-        y += extra * seg.direction * math.sin(h)
-    return x, y, h
+    clamped = np.clip(s, float(path.s[seg.start]), float(path.s[seg.end]))
+    pts = path.sample(seg, clamped)  # a new array: written in place below
+    extra = (s - clamped) * seg.direction  # m, along the travel direction past an end
+    pts[:, 0] += extra * np.cos(pts[:, 2])
+    pts[:, 1] += extra * np.sin(pts[:, 2])
+    return pts
 
 
 class PurePursuit(_Tracker):
@@ -360,15 +357,13 @@ class PurePursuit(_Tracker):
     def __init__(self, cfg: PurePursuitConfig, vehicle: VehicleConfig, period: float) -> None:
         super().__init__(cfg, vehicle, period)
 
-    def _law(
-        self, path: ReferencePath, seg: Segment, s0: float, pose: Pose, direction: int
-    ) -> float:
+    def _law(self, path: ReferencePath, seg: Segment, s0: float, pose: Pose) -> float:
         cfg = self.cfg
         lookahead = min(
             max(cfg.lookahead_min, cfg.lookahead_gain * abs(pose.speed)), cfg.lookahead_max
         )
-        tx, ty, _ = point_on_path(path, seg, s0 + lookahead)
-        travel = pose.heading if direction > 0 else pose.heading + math.pi
+        tx, ty, _ = points_on_path(path, seg, np.array([s0 + lookahead]))[0].tolist()
+        travel = pose.heading if seg.direction > 0 else pose.heading + math.pi
         dx, dy = tx - pose.x, ty - pose.y
         distance = math.hypot(dx, dy)
         if distance < 1e-6:
@@ -402,13 +397,13 @@ class Stanley(_Tracker):
 
     def __init__(self, cfg: StanleyConfig, vehicle: VehicleConfig, period: float) -> None:
         super().__init__(cfg, vehicle, period)
+        # the arc lengths of one curvature, relative to its point
+        self._around = np.array([-self.CURVATURE_STEP, 0.0, self.CURVATURE_STEP])
 
-    def _law(
-        self, path: ReferencePath, seg: Segment, s0: float, pose: Pose, direction: int
-    ) -> float:
+    def _law(self, path: ReferencePath, seg: Segment, s0: float, pose: Pose) -> float:
         cfg = self.cfg
         L = self.L
-        travel = pose.heading if direction > 0 else pose.heading + math.pi
+        travel = pose.heading if seg.direction > 0 else pose.heading + math.pi
         # the travel frame's front axle: one wheelbase ahead in the direction of travel
         fx = pose.x + L * math.cos(travel)
         fy = pose.y + L * math.sin(travel)
@@ -438,9 +433,9 @@ class Stanley(_Tracker):
         """The front-axle path at rear arc length ``s``: ``(x, y)`` of ``F(s)``, the rear
         path's travel direction there (rad) and its curvature in the travel frame (1/m)."""
         h_step = self.CURVATURE_STEP
-        px, py, h = point_on_path(path, seg, s)
-        h_ahead = point_on_path(path, seg, s + h_step)[2]
-        h_behind = point_on_path(path, seg, s - h_step)[2]
+        behind, here, ahead = points_on_path(path, seg, s + self._around).tolist()
+        px, py, h = here
+        h_ahead, h_behind = ahead[2], behind[2]
         kappa = _wrap(h_ahead - h_behind) / (2.0 * h_step)
         tangent = h if seg.direction > 0 else h + math.pi
         return px + self.L * math.cos(tangent), py + self.L * math.sin(tangent), tangent, kappa
