@@ -25,6 +25,7 @@ from leafgate.record.logs import FrameSource, LogParts, end_marker, group_parts
 from leafgate.record.recorder import CanLogRecorder, Recording, SessionRecorder
 from leafgate.record.session import SessionReader
 from leafgate.replay.check import check_log, main_check
+from leafgate.replay.decode import AFTER_RECORDER_LOSS, decode_log
 from leafgate.replay.rerun import main_rerun, rerun_session
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import run
@@ -279,3 +280,18 @@ def test_play_takes_a_session_and_its_resumption_in_their_order(outage: Outage) 
             played += 1
     assert code == 0, out.getvalue()
     assert played > 1000
+
+
+def test_decode_does_not_call_the_counters_after_a_write_failure_bus_errors(
+    outage: Outage,
+) -> None:
+    """Old code: the first frame of each ID in ``can_001.blf`` was a ``bad_counter`` line and
+    counted in bad_cnt: errors of the bus for frames the recorder lost in the outage."""
+    out = io.StringIO()
+    decode_log(outage.logs, out, profile="leafgate-dbw")
+    lines = out.getvalue().splitlines()
+    assert not [line for line in lines if line.endswith("bad_counter")]
+    after = [line for line in lines if line.endswith(AFTER_RECORDER_LOSS)]
+    assert after and all(float(line.split()[0]) - EPOCH >= FULL_UNTIL - 0.03 for line in after)
+    total = next(line for line in lines if line.startswith("#") and line.split()[1] == "total")
+    assert total.split()[4] == "0", total  # bad_cnt
