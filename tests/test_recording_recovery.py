@@ -295,3 +295,33 @@ def test_decode_does_not_call_the_counters_after_a_write_failure_bus_errors(
     assert after and all(float(line.split()[0]) - EPOCH >= FULL_UNTIL - 0.03 for line in after)
     total = next(line for line in lines if line.startswith("#") and line.split()[1] == "total")
     assert total.split()[4] == "0", total  # bad_cnt
+
+
+def _header(paths: list[Path]) -> str:
+    out = io.StringIO()
+    main_check(paths, out=out)
+    return out.getvalue().splitlines()[0]
+
+
+def test_a_chain_names_the_part_cut_short_and_why(outage: Outage, tmp_path: Path) -> None:
+    """Old code: '(truncated session)' for the whole recording whenever any part was, which
+    read as a crash of the drive. The session given up at the full disk has no footer (the
+    recorder leaves a failed file as it is); that is the loss already reported, named as that.
+    A last part cut short (a crash after the recovery) is named as the truncated session."""
+    header = _header(outage.sessions)
+    assert "(part session.mcap cut where the recorder gave it up)" in header, header
+    assert "truncated session" not in header, header
+    copies = [tmp_path / p.name for p in outage.sessions]
+    for source, copy in zip(outage.sessions, copies, strict=True):
+        shutil.copy(source, copy)
+    with copies[1].open("r+b") as file:  # a crash: the last part stops before its footer
+        file.truncate(copies[1].stat().st_size // 2)
+    header = _header(copies)
+    assert "the last part, session.2.mcap, is a truncated session" in header, header
+    assert "part session.mcap cut where the recorder gave it up" in header, header
+    out = io.StringIO()
+    decode_log(copies, out, profile="leafgate-dbw")
+    (summary,) = [line for line in out.getvalue().splitlines() if "profile leafgate-dbw" in line]
+    assert "the last part, session.2.mcap, is a truncated session" in summary, summary
+    # a single session cut short is still a 'truncated session'
+    assert "(truncated session)" in _header([copies[1]])

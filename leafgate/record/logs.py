@@ -583,6 +583,35 @@ class ChainedSource:
         return any(s.truncated for s in self.sources)
 
     @property
+    def truncated_parts(self) -> list[Path]:
+        """The parts read that were cut short (a session without its footer, a text log with a
+        cut last line)."""
+        return [s.path for s in self.sources if s.truncated]
+
+    def truncation(self) -> str:
+        """Which parts were cut short, in words for a report's first line ("" when none): a
+        single file is a ``truncated session`` or a log ``cut short``; of a recording's parts,
+        the part is named, and a part the recorder gave up after a write failure is said to be
+        that (it leaves the file as it is: its cut is the loss reported between it and the
+        next, not a crash)."""
+        cut = self.truncated_parts
+        if not cut:
+            return ""
+        if len(self.sources) == 1:
+            return "truncated session" if is_session(cut[0]) else "cut short"
+        given_up = {loss.before for loss in self.losses}
+        words = []
+        for path in cut:
+            if path in given_up:
+                words.append(f"part {path.name} cut where the recorder gave it up")
+            elif path == self.sources[-1].path:
+                what = "a truncated session" if is_session(path) else "cut short"
+                words.append(f"the last part, {path.name}, is {what}")
+            else:
+                words.append(f"part {path.name} is cut short")
+        return "; ".join(words)
+
+    @property
     def ended(self) -> bool:
         return self.sources[-1].ended
 

@@ -225,7 +225,8 @@ class CheckReport:
     worst_backwards: float = 0.0  # s
     ids: list[IdStats] = field(default_factory=list)
     findings: list[Finding] = field(default_factory=list)
-    truncated: bool = False  # a session file that ended before its footer
+    truncated: bool = False  # a session file that ended before its footer (a part of one)
+    truncation: str = ""  # which parts were cut short, in words (ChainedSource.truncation)
     recorder_dropped: int = 0  # frames the recorder marked as dropped (its queue overflowed)
     elapsed: float = 0.0  # s of wall time spent checking
     authentication: str = ""  # what was checked of the MACs ("" for a profile without any)
@@ -256,6 +257,7 @@ class CheckReport:
             "backwards_timestamps": self.backwards,
             "worst_backwards_s": self.worst_backwards,
             "truncated": self.truncated,
+            "truncation": self.truncation or None,
             "recorder_dropped_frames": self.recorder_dropped,
             "authentication": self.authentication or None,
             "ids": [s.to_dict() for s in self.ids],
@@ -272,7 +274,7 @@ class CheckReport:
         )
         lines = [
             f"{self.path}: {span}, profile {self.profile}"
-            + (" (truncated session)" if self.truncated else ""),
+            + (f" ({self.truncation})" if self.truncation else ""),
             f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
             f"{'gaps':>5} {'crc':>5} {'cnt':>5} {'len':>5}",
         ]
@@ -1122,6 +1124,7 @@ def check_log(
         key=tool_key(key_file, cfg if config is not None else None),
     )
     report.truncated = source.truncated
+    report.truncation = source.truncation()
     report.recorder_dropped = sum(d.frames for d in source.drops)
     extra = _part_findings(parts, source)
     if extra:

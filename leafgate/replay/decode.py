@@ -28,8 +28,9 @@ verified)``, and the summary says that no MAC was checked.
 Several files: the parts of a rotated log (``can-…_000.blf``, ``can-…_001.blf`` …) are
 decoded in order as one log (one summary; a part missing from the numbering is named in it),
 other files each alone. The summary's first line says when the recording is incomplete: a
-session cut before its footer "(truncated session)", a log or session without the recorder's
-end-of-recording marker "no end-of-recording marker", frames the recorder dropped.
+session cut before its footer "(truncated session)" (of several parts, the part named:
+:meth:`~leafgate.record.logs.ChainedSource.truncation`), a log or session without the
+recorder's end-of-recording marker "no end-of-recording marker", frames the recorder dropped.
 """
 
 from __future__ import annotations
@@ -186,8 +187,9 @@ AFTER_RECORDER_LOSS = "counter not judged: the recorder lost frames before it"
 def _incomplete_note(parts: LogParts, source: ChainedSource) -> str:
     """What the summary's first line says of an incomplete recording ("" for a complete one)."""
     notes = []
-    if source.truncated:
-        notes.append(" (truncated session)" if source.session is not None else " (cut short)")
+    truncation = source.truncation()
+    if truncation:
+        notes.append(f" ({truncation})")
     if source.frames and not source.ended:
         notes.append("; no end-of-recording marker: the recording stops early")
     lost = {loss.before for loss in source.losses}
