@@ -325,3 +325,17 @@ def test_a_chain_names_the_part_cut_short_and_why(outage: Outage, tmp_path: Path
     assert "the last part, session.2.mcap, is a truncated session" in summary, summary
     # a single session cut short is still a 'truncated session'
     assert "(truncated session)" in _header([copies[1]])
+
+
+def test_a_log_beside_sessions_is_not_checked_without_a_profile_but_their_profile_is_named(
+    outage: Outage,
+) -> None:
+    """The daemon's CAN log names no profile, so ``replay check rec/*`` cannot check it; the
+    sessions recorded beside it name theirs, which the message now says (old code: only 'give
+    --profile'). It is a hint, not a guess: the log is still not checked."""
+    out, err = io.StringIO(), io.StringIO()
+    assert main_check([*outage.logs, *outage.sessions], out=out, err=err) == 1
+    (line,) = [x for x in out.getvalue().splitlines() if ": not checked: " in x]
+    assert "can_000.blf" in line and "names no vehicle profile" in line, line
+    assert "the 2 sessions beside it were recorded with profile leafgate-dbw" in line, line
+    assert "--profile leafgate-dbw if the log is of the same drive" in line, line

@@ -51,6 +51,7 @@ from typing import IO, Any, Final, NamedTuple
 import can
 
 from leafgate.can.profile import PROFILE_NAMES, Profile, load_profile
+from leafgate.config import safe_load_yaml
 from leafgate.errors import ConfigError, ReplayError
 from leafgate.record.session import (
     META_SESSION,
@@ -718,6 +719,41 @@ def recording_context(
     if cfg is None:
         raise ReplayError(
             f"{path}: the recording names no vehicle profile; give --profile NAME|FILE "
-            f"({', '.join(PROFILE_NAMES)}) or --config FILE"
+            f"({', '.join(PROFILE_NAMES)}) or --config FILE{_profiles_beside(Path(path))}"
         )
     return RecordingContext(cfg)
+
+
+_BESIDE_MAX: Final = 20  # sessions read for the hint of a log that names no profile
+
+
+def _profiles_beside(path: Path) -> str:
+    """A hint for a CAN log that names no profile: the profiles the sessions in its folder were
+    recorded with (the daemon records both side by side). Only a hint: nothing tells which
+    drive a log is of, so no profile is taken from them."""
+    if is_session(path):
+        return ""
+    found: dict[str, list[str]] = {}
+    for session in sorted(path.parent.glob("*.mcap"))[:_BESIDE_MAX]:
+        try:
+            with SessionReader(session) as reader:
+                reader.read_metadata()
+                text = reader.config_yaml
+            name = safe_load_yaml(text or "")["vehicle"]["profile"]
+        except Exception:  # a session that does not tell: no hint from it
+            continue
+        if isinstance(name, str):
+            found.setdefault(name, []).append(session.name)
+    if len(found) == 1:
+        ((name, sessions),) = found.items()
+        which = (
+            f"the session beside it, {sessions[0]}, was"
+            if len(sessions) == 1
+            else f"the {len(sessions)} sessions beside it were"
+        )
+        hint = f"--profile {name} if the log is of the same drive"
+        return f" ({which} recorded with profile {name}: {hint})"
+    if found:
+        listed = "; ".join(f"{name}: {', '.join(s)}" for name, s in found.items())
+        return f" (the sessions beside it were recorded with several profiles: {listed})"
+    return ""
