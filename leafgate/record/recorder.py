@@ -261,7 +261,7 @@ class _BackgroundWriter:
 
     def _overflow(self, item: Any) -> None:
         """Note a frame dropped as the queue overflowed, for its marker (lock held)."""
-        t = None if self._drop_time is None else self._drop_time(item)
+        t = None if self._drop_time is None or self._mark is None else self._drop_time(item)
         if t is None or not math.isfinite(t):
             return
         self.overflowed += 1
@@ -279,7 +279,13 @@ class _BackgroundWriter:
         written = 0
         for drops in taken:
             held = self._held_drops
-            if held is not None and not held.written and held.absorb(drops):
+            # held back at its first frame's time: it can take later frames, not earlier ones
+            if (
+                held is not None
+                and not held.written
+                and drops.first >= held.first
+                and held.absorb(drops)
+            ):
                 continue
             self._held_drops = drops
             written += self._mark(drops)
