@@ -219,3 +219,38 @@ def test_old_files_without_drop_markers_read_as_before_and_a_marker_parses() -> 
     assert bytes(marker.data) == b"LGL" + (321).to_bytes(3, "big") + (457).to_bytes(2, "big")
     frame = can.Message(arbitration_id=0x1FFFFFFF, is_extended_id=True, data=b"LGX" + bytes(5))
     assert not is_recorder_marker(frame)
+
+
+def test_a_drop_earlier_than_the_held_marker_gets_its_own_marker(tmp_path: Path) -> None:
+    """Frames reach the recorder from several threads, out of order by up to its window. Old
+    code added a later-taken drop with an earlier time to the marker held back at 10.05 s,
+    which was still written there: the frame dropped at 10.03 s was outside every marker."""
+    rec = CanLogRecorder(tmp_path / "can.log")
+    stalled = _Stalled(rec)
+
+    def frame(t: float) -> can.Message:
+        return can.Message(timestamp=t, arbitration_id=0x123, data=b"\x01", is_extended_id=False)
+
+    def stall(first: float, queued: tuple[float, ...], dropped: float) -> None:
+        assert wait_for(stalled.caught_up)
+        stalled.gate, stalled.entered = threading.Event(), threading.Event()
+        stalled.bg._queue.maxsize = len(queued)
+        stalled.stalling = True
+        rec.on_can_frame(frame(first), "rx")  # the writer takes it and waits
+        assert wait_for(stalled.entered.is_set)
+        for t in queued:
+            rec.on_can_frame(frame(t), "rx")
+        rec.on_can_frame(frame(dropped), "rx")  # the queue is full: dropped
+        stalled.stalling = False
+        stalled.gate.set()
+        assert wait_for(stalled.caught_up)
+        stalled.bg._queue.maxsize = 1000
+
+    stall(10.00, (10.01, 10.02), 10.05)
+    stall(10.06, (10.07, 10.08), 10.03)  # from another thread, later than its time
+    rec.close()
+    assert stalled.bg.overflowed == 2
+    source = ChainedSource(rec.files)
+    list(source)
+    for t in (10.03, 10.05):
+        assert any(d.start <= t <= d.end for d in source.drops), (t, source.drops)
