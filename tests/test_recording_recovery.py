@@ -25,6 +25,7 @@ from leafgate.record.logs import FrameSource, LogParts, end_marker, group_parts
 from leafgate.record.recorder import CanLogRecorder, Recording, SessionRecorder
 from leafgate.record.session import SessionReader
 from leafgate.replay.check import check_log, main_check
+from leafgate.replay.decode import AFTER_RECORDER_LOSS, decode_log
 from leafgate.replay.rerun import main_rerun, rerun_session
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import run
@@ -279,3 +280,62 @@ def test_play_takes_a_session_and_its_resumption_in_their_order(outage: Outage) 
             played += 1
     assert code == 0, out.getvalue()
     assert played > 1000
+
+
+def test_decode_does_not_call_the_counters_after_a_write_failure_bus_errors(
+    outage: Outage,
+) -> None:
+    """Old code: the first frame of each ID in ``can_001.blf`` was a ``bad_counter`` line and
+    counted in bad_cnt: errors of the bus for frames the recorder lost in the outage."""
+    out = io.StringIO()
+    decode_log(outage.logs, out, profile="leafgate-dbw")
+    lines = out.getvalue().splitlines()
+    assert not [line for line in lines if line.endswith("bad_counter")]
+    after = [line for line in lines if line.endswith(AFTER_RECORDER_LOSS)]
+    assert after and all(float(line.split()[0]) - EPOCH >= FULL_UNTIL - 0.03 for line in after)
+    total = next(line for line in lines if line.startswith("#") and line.split()[1] == "total")
+    assert total.split()[4] == "0", total  # bad_cnt
+
+
+def _header(paths: list[Path]) -> str:
+    out = io.StringIO()
+    main_check(paths, out=out)
+    return out.getvalue().splitlines()[0]
+
+
+def test_a_chain_names_the_part_cut_short_and_why(outage: Outage, tmp_path: Path) -> None:
+    """Old code: '(truncated session)' for the whole recording whenever any part was, which
+    read as a crash of the drive. The session given up at the full disk has no footer (the
+    recorder leaves a failed file as it is); that is the loss already reported, named as that.
+    A last part cut short (a crash after the recovery) is named as the truncated session."""
+    header = _header(outage.sessions)
+    assert "(part session.mcap cut where the recorder gave it up)" in header, header
+    assert "truncated session" not in header, header
+    copies = [tmp_path / p.name for p in outage.sessions]
+    for source, copy in zip(outage.sessions, copies, strict=True):
+        shutil.copy(source, copy)
+    with copies[1].open("r+b") as file:  # a crash: the last part stops before its footer
+        file.truncate(copies[1].stat().st_size // 2)
+    header = _header(copies)
+    assert "the last part, session.2.mcap, is a truncated session" in header, header
+    assert "part session.mcap cut where the recorder gave it up" in header, header
+    out = io.StringIO()
+    decode_log(copies, out, profile="leafgate-dbw")
+    (summary,) = [line for line in out.getvalue().splitlines() if "profile leafgate-dbw" in line]
+    assert "the last part, session.2.mcap, is a truncated session" in summary, summary
+    # a single session cut short is still a 'truncated session'
+    assert "(truncated session)" in _header([copies[1]])
+
+
+def test_a_log_beside_sessions_is_not_checked_without_a_profile_but_their_profile_is_named(
+    outage: Outage,
+) -> None:
+    """The daemon's CAN log names no profile, so ``replay check rec/*`` cannot check it; the
+    sessions recorded beside it name theirs, which the message now says (old code: only 'give
+    --profile'). It is a hint, not a guess: the log is still not checked."""
+    out, err = io.StringIO(), io.StringIO()
+    assert main_check([*outage.logs, *outage.sessions], out=out, err=err) == 1
+    (line,) = [x for x in out.getvalue().splitlines() if ": not checked: " in x]
+    assert "can_000.blf" in line and "names no vehicle profile" in line, line
+    assert "the 2 sessions beside it were recorded with profile leafgate-dbw" in line, line
+    assert "--profile leafgate-dbw if the log is of the same drive" in line, line

@@ -26,6 +26,13 @@ missing, and :class:`ChainedSource` reads them as one. A part that ends without 
 end-of-recording marker and is followed by another was given up by the recorder after a write
 failure: :attr:`ChainedSource.losses` holds the stretch of time between the two, which the
 recorder lost (it starts the next file with the first item after the outage).
+
+Frames the recorder dropped inside a file, when its queue overflowed (the writer fell behind;
+nothing failed), are marked where they were lost: a drop marker (:func:`drop_marker`) at the
+first dropped frame's time says how many it dropped and over how long. It is not a frame of
+the drive: :class:`FrameSource` never yields it and collects it in :attr:`FrameSource.drops`.
+:meth:`ChainedSource.lost_spans` is every stretch the recorder lost, of both kinds: the one
+list the tools judge the bus's gaps, silences and counters against.
 """
 
 from __future__ import annotations
@@ -33,7 +40,6 @@ from __future__ import annotations
 import codecs
 import functools
 import importlib.util
-import itertools
 import json
 import math
 import re
@@ -45,6 +51,7 @@ from typing import IO, Any, Final, NamedTuple
 import can
 
 from leafgate.can.profile import PROFILE_NAMES, Profile, load_profile
+from leafgate.config import safe_load_yaml
 from leafgate.errors import ConfigError, ReplayError
 from leafgate.record.session import (
     META_SESSION,
@@ -61,9 +68,12 @@ __all__ = [
     "ChainedSource",
     "FrameSource",
     "LogParts",
+    "RecorderDrop",
     "RecorderLoss",
     "RecordingContext",
+    "drop_marker",
     "group_parts",
+    "is_recorder_marker",
     "is_session",
     "part_number",
     "readable_suffixes_text",
@@ -192,6 +202,57 @@ def is_end_marker(msg: can.Message) -> bool:
     )
 
 
+# The drop marker: frames the recorder dropped when its queue overflowed, on the marker's ID:
+# ``LGL``, how many (3 bytes), over how many ms from the marker's time (2 bytes), big-endian.
+DROP_MARKER_MAGIC: Final = b"LGL"
+DROP_MAX_FRAMES: Final = 0xFFFFFF  # a marker counts at most this many frames …
+DROP_MAX_SPAN: Final = 0xFFFF / 1000  # … dropped within this many s (the recorder splits)
+
+
+def drop_marker(first: float, last: float, frames: int, channel: Any = None) -> can.Message:
+    """The marker of ``frames`` frames the recorder dropped, the first at ``first`` (s, the
+    marker's time), the last at ``last``; the span is rounded up to the ms, so it covers them."""
+    span = max(0, math.ceil(round((last - first) * 1000, 6)))
+    if not 0 < frames <= DROP_MAX_FRAMES or span > 0xFFFF:
+        raise ValueError(f"no drop marker holds {frames} frames over {span} ms")
+    return can.Message(
+        timestamp=first,
+        arbitration_id=END_MARKER_ID,
+        is_extended_id=True,
+        data=DROP_MARKER_MAGIC + frames.to_bytes(3, "big") + span.to_bytes(2, "big"),
+        channel=channel,
+        is_rx=False,
+    )
+
+
+def _drop(msg: can.Message) -> tuple[int, float] | None:
+    """(frames dropped, span in s) of a drop marker (the caller checked its ID), else None."""
+    data = bytes(msg.data)
+    if len(data) != 8 or not data.startswith(DROP_MARKER_MAGIC):
+        return None
+    return int.from_bytes(data[3:6], "big"), int.from_bytes(data[6:8], "big") / 1000
+
+
+def is_recorder_marker(msg: can.Message) -> bool:
+    """Whether ``msg`` is one of the recorder's markers (end of recording, of a part, frames
+    dropped): none is a frame of the drive."""
+    return (
+        msg.is_extended_id
+        and msg.arbitration_id == END_MARKER_ID
+        and (is_end_marker(msg) or _drop(msg) is not None)
+    )
+
+
+class RecorderDrop(NamedTuple):
+    """Frames the recorder dropped inside ``path`` (its queue overflowed): ``frames`` of them,
+    from ``start`` to ``end`` (s)."""
+
+    path: Path
+    start: float
+    end: float
+    frames: int
+
+
 def is_session(path: str | Path) -> bool:
     """True for an MCAP session file (by suffix)."""
     return _session_suffix(Path(path).suffix)
@@ -221,6 +282,7 @@ class FrameSource:
             raise ReplayError(f"{self.path}: no such file")
         self.size = self.path.stat().st_size
         self.frames = 0
+        self.drops: list[RecorderDrop] = []  # the recorder's drop markers read so far
         self.truncated = False  # a session without its footer, a text log with a cut last line
         self._position: Any = None  # callable giving the bytes consumed, when known
         self.session: SessionReader | None = None
@@ -249,6 +311,15 @@ class FrameSource:
             )
         try:
             for msg in self._frames():
+                if msg.arbitration_id == END_MARKER_ID and msg.is_extended_id:
+                    drop = _drop(msg)
+                    if drop is not None:  # not a frame of the drive, nor an end
+                        frames, span = drop
+                        self.drops.append(
+                            RecorderDrop(self.path, msg.timestamp, msg.timestamp + span, frames)
+                        )
+                        self.ended = self.continues = False
+                        continue
                 self.ended = is_end_marker(msg)
                 self.continues = self.ended and bytes(msg.data) == PART_MARKER_DATA
                 if self.markers or not self.ended:
@@ -492,13 +563,16 @@ class ChainedSource:
     """The frames of a rotated log's parts, one after the other (see :class:`FrameSource`).
 
     :attr:`spans` holds each part read: (its path, first and last timestamp, whether its last
-    frame was an end-of-recording marker).
+    frame was an end-of-recording marker). What the recorder lost (:attr:`losses`,
+    :attr:`drops`, :meth:`lost_spans`) is known up to the frame just yielded: a tool that goes
+    frame by frame (``decode``) can tell a frame after a loss as it comes.
     """
 
     def __init__(self, paths: Sequence[str | Path], markers: bool = False) -> None:
         self.sources = [FrameSource(path, markers=markers) for path in paths]
         self.size = sum(s.size for s in self.sources)
         self.spans: list[tuple[Path, float, float, bool]] = []
+        self.losses: list[RecorderLoss] = []  # the stretches between parts the recorder lost
         self._current = 0
 
     @property
@@ -508,6 +582,35 @@ class ChainedSource:
     @property
     def truncated(self) -> bool:
         return any(s.truncated for s in self.sources)
+
+    @property
+    def truncated_parts(self) -> list[Path]:
+        """The parts read that were cut short (a session without its footer, a text log with a
+        cut last line)."""
+        return [s.path for s in self.sources if s.truncated]
+
+    def truncation(self) -> str:
+        """Which parts were cut short, in words for a report's first line ("" when none): a
+        single file is a ``truncated session`` or a log ``cut short``; of a recording's parts,
+        the part is named, and a part the recorder gave up after a write failure is said to be
+        that (it leaves the file as it is: its cut is the loss reported between it and the
+        next, not a crash)."""
+        cut = self.truncated_parts
+        if not cut:
+            return ""
+        if len(self.sources) == 1:
+            return "truncated session" if is_session(cut[0]) else "cut short"
+        given_up = {loss.before for loss in self.losses}
+        words = []
+        for path in cut:
+            if path in given_up:
+                words.append(f"part {path.name} cut where the recorder gave it up")
+            elif path == self.sources[-1].path:
+                what = "a truncated session" if is_session(path) else "cut short"
+                words.append(f"the last part, {path.name}, is {what}")
+            else:
+                words.append(f"part {path.name} is cut short")
+        return "; ".join(words)
 
     @property
     def ended(self) -> bool:
@@ -523,13 +626,16 @@ class ChainedSource:
         return self.sources[-1].session
 
     @property
-    def losses(self) -> list[RecorderLoss]:
-        """The stretches between the parts read that the recorder lost (see the module)."""
-        out = []
-        for (before, _, last, ended), (after, first, _, _) in itertools.pairwise(self.spans):
-            if not ended and math.isfinite(last) and math.isfinite(first):
-                out.append(RecorderLoss(before, after, last, first))
-        return out
+    def drops(self) -> list[RecorderDrop]:
+        """The frames the recorder dropped inside the parts read (its queue overflowed)."""
+        return [d for s in self.sources for d in s.drops]
+
+    def lost_spans(self) -> list[tuple[float, float]]:
+        """Every stretch (start, end; s) in which the recorder lost frames, of both kinds: the
+        hole between a part given up and the next, and the frames dropped inside a part."""
+        spans = [(loss.start, loss.end) for loss in self.losses]
+        spans += [(d.start, d.end) for d in self.drops]
+        return sorted(spans)
 
     def fraction(self) -> float | None:
         """How much of the parts has been read, 0–1 (None when a reader cannot tell)."""
@@ -550,10 +656,20 @@ class ChainedSource:
             for msg in source:
                 if first != first:
                     first = msg.timestamp
+                    self._loss_before(source.path, first)
                 last = msg.timestamp
                 yield msg
             self.spans.append((source.path, first, last, source.ended))
         self._current = len(self.sources)
+
+    def _loss_before(self, path: Path, first: float) -> None:
+        """A part whose first frame is at ``first``, after one that ends without its
+        end-of-recording marker: the recorder gave that one up (see the module)."""
+        if not self.spans:
+            return
+        before, _, last, ended = self.spans[-1]
+        if not ended and math.isfinite(last) and math.isfinite(first):
+            self.losses.append(RecorderLoss(before, path, last, first))
 
 
 class RecordingContext:
@@ -603,6 +719,41 @@ def recording_context(
     if cfg is None:
         raise ReplayError(
             f"{path}: the recording names no vehicle profile; give --profile NAME|FILE "
-            f"({', '.join(PROFILE_NAMES)}) or --config FILE"
+            f"({', '.join(PROFILE_NAMES)}) or --config FILE{_profiles_beside(Path(path))}"
         )
     return RecordingContext(cfg)
+
+
+_BESIDE_MAX: Final = 20  # sessions read for the hint of a log that names no profile
+
+
+def _profiles_beside(path: Path) -> str:
+    """A hint for a CAN log that names no profile: the profiles the sessions in its folder were
+    recorded with (the daemon records both side by side). Only a hint: nothing tells which
+    drive a log is of, so no profile is taken from them."""
+    if is_session(path):
+        return ""
+    found: dict[str, list[str]] = {}
+    for session in sorted(path.parent.glob("*.mcap"))[:_BESIDE_MAX]:
+        try:
+            with SessionReader(session) as reader:
+                reader.read_metadata()
+                text = reader.config_yaml
+            name = safe_load_yaml(text or "")["vehicle"]["profile"]
+        except Exception:  # a session that does not tell: no hint from it
+            continue
+        if isinstance(name, str):
+            found.setdefault(name, []).append(session.name)
+    if len(found) == 1:
+        ((name, sessions),) = found.items()
+        which = (
+            f"the session beside it, {sessions[0]}, was"
+            if len(sessions) == 1
+            else f"the {len(sessions)} sessions beside it were"
+        )
+        hint = f"--profile {name} if the log is of the same drive"
+        return f" ({which} recorded with profile {name}: {hint})"
+    if found:
+        listed = "; ".join(f"{name}: {', '.join(s)}" for name, s in found.items())
+        return f" (the sessions beside it were recorded with several profiles: {listed})"
+    return ""

@@ -4,7 +4,11 @@ The hooks are called from the threads that see the data — the python-can Notif
 (received frames), Zenoh callback threads (inputs) and the control thread (ticks and sent
 frames). They only put an item on a bounded queue and return: a writer thread per file does
 the encoding and the disk I/O, so a slow disk never delays a control tick. When the queue is
-full, items are dropped and counted.
+full, items are dropped and counted, and the frames among them are marked in the file where
+they were lost: a drop marker (:func:`~leafgate.record.logs.drop_marker`) at the first dropped
+frame's time, with how many and over how long, written in time order with the rest (drops
+close together, while the marker is still held back to be ordered, are one marker). So a
+check of the file tells the recorder's loss from a silent bus or a skipped counter.
 
 Crash safety: the writer thread makes the file readable up to the last item every
 ``flush_period`` (≤ 1 s): the MCAP chunk in progress is closed, the BLF container in progress
@@ -51,7 +55,13 @@ from leafgate.config.recording import CAN_LOG_SUFFIXES, RecordingConfig
 from leafgate.control.base import Controller
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.messages import ControlOutput, Pose, Trajectory
-from leafgate.record.logs import end_marker, is_end_marker
+from leafgate.record.logs import (
+    DROP_MAX_FRAMES,
+    DROP_MAX_SPAN,
+    drop_marker,
+    end_marker,
+    is_end_marker,
+)
 from leafgate.record.session import SessionWriter, epoch_offset
 from leafgate.settings import LeafgateConfig
 
@@ -84,6 +94,32 @@ def _item_bytes(item: Any) -> int:
     if isinstance(item, tuple):
         return _ITEM_OVERHEAD + sum(len(x) for x in item if isinstance(x, (bytes, bytearray)))
     return _ITEM_OVERHEAD
+
+
+class _Drops:
+    """Frames dropped when the queue overflowed: how many, the first and last one's time (s).
+    One drop marker in the file; it holds at most what a marker can say."""
+
+    __slots__ = ("first", "frames", "last", "written")
+
+    def __init__(self, t: float) -> None:
+        self.first = self.last = t
+        self.frames = 1
+        self.written = False  # its marker is in the file: nothing more is added
+
+    def absorb(self, other: _Drops) -> bool:
+        """Add ``other``'s frames when one marker can say both (False: it cannot)."""
+        first, last = min(self.first, other.first), max(self.last, other.last)
+        if last - first > DROP_MAX_SPAN or self.frames + other.frames > DROP_MAX_FRAMES:
+            return False
+        self.first, self.last = first, last
+        self.frames += other.frames
+        return True
+
+    def marker(self, t: float, channel: Any = None) -> can.Message:
+        """The drop marker, written at ``t`` (its first frame's time, unless it came late)."""
+        self.written = True
+        return drop_marker(t, max(self.last, t), self.frames, channel)
 
 
 class Recorder(Protocol):
@@ -137,6 +173,11 @@ class _BackgroundWriter:
         it cannot. None: a failure is final
     :param abandon: closes the failed file without finishing it (on :meth:`close`)
     :param retry_period: s between attempts at :param:`reopen` while failing
+    :param drop_time: the time (s) of a queued item that is a CAN frame, None for others: a
+        frame dropped when the queue is full is marked in the file (the frames the recorder
+        lost are not a silent bus)
+    :param mark: called on the thread with the frames dropped since its last call, to write
+        their marker in time order; returns how many items it wrote (as ``write``)
     """
 
     def __init__(
@@ -152,8 +193,15 @@ class _BackgroundWriter:
         reopen: Callable[[], None] | None = None,
         abandon: Callable[[], None] | None = None,
         retry_period: float = DEFAULT_RETRY_PERIOD,
+        drop_time: Callable[[Any], float | None] | None = None,
+        mark: Callable[[_Drops], int] | None = None,
     ) -> None:
         self.name = name
+        self._drop_time = drop_time
+        self._mark = mark
+        self._drops: list[_Drops] = []  # frames dropped since the thread last took them
+        self._held_drops: _Drops | None = None  # the last marked, maybe not written yet
+        self.overflowed = 0  # frames dropped as the queue overflowed (each in a drop marker)
         self._reopen = reopen
         self._abandon = abandon
         self.retry_period = retry_period
@@ -200,6 +248,7 @@ class _BackgroundWriter:
             if self._bytes + size > self.queue_bytes:
                 self.dropped += 1
                 self.dropped_bytes += size
+                self._overflow(item)
                 return
             self._bytes += size
         try:
@@ -208,6 +257,39 @@ class _BackgroundWriter:
             with self._lock:
                 self._bytes -= size
                 self.dropped += 1
+                self._overflow(item)
+
+    def _overflow(self, item: Any) -> None:
+        """Note a frame dropped as the queue overflowed, for its marker (lock held)."""
+        t = None if self._drop_time is None or self._mark is None else self._drop_time(item)
+        if t is None or not math.isfinite(t):
+            return
+        self.overflowed += 1
+        drops = _Drops(t)
+        if not (self._drops and self._drops[-1].absorb(drops)):
+            self._drops.append(drops)
+
+    def _take_drops(self) -> int:
+        """Mark the frames dropped since the last call (writer thread): added to the marker
+        still held back to be ordered when it can say them too, else a new marker."""
+        if not self._drops or self._mark is None:
+            return 0
+        with self._lock:
+            taken, self._drops = self._drops, []
+        written = 0
+        for drops in taken:
+            held = self._held_drops
+            # held back at its first frame's time: it can take later frames, not earlier ones
+            if (
+                held is not None
+                and not held.written
+                and drops.first >= held.first
+                and held.absorb(drops)
+            ):
+                continue
+            self._held_drops = drops
+            written += self._mark(drops)
+        return written
 
     def fail(self, what: str, exc: BaseException) -> None:
         """Record a fault; an OSError (disk full, permissions …) gives the file up."""
@@ -216,6 +298,9 @@ class _BackgroundWriter:
         self.last_fault = self.fault
         self.errors += 1
         if isinstance(exc, OSError):
+            with self._lock:  # dropped before the outage: lost with it, between the files
+                self._drops.clear()
+            self._held_drops = None
             now = time.monotonic()
             if not self._outage:  # a new outage (a new file failing before its first flush
                 self._outage = True  # goes on with the one that made it)
@@ -252,10 +337,13 @@ class _BackgroundWriter:
             except queue.Empty:
                 item = None
             if item is _STOP:
+                self._guarded("write", self._take_drops)
                 break
             if item is not None and not isinstance(item, threading.Event):
                 with self._lock:
                     self._bytes -= _item_bytes(item)
+            if item is not None and self._drops:  # before what came after them
+                self._unflushed += self._guarded("write", self._take_drops) or 0
             if isinstance(item, threading.Event):  # a flush request
                 if self._drain is not None:
                     self._unflushed += self._guarded("write", self._drain) or 0
@@ -358,6 +446,7 @@ class _BackgroundWriter:
             "queued": self._queue.qsize(),
             "queued_bytes": self._bytes,
             "dropped_bytes": self.dropped_bytes,
+            "overflowed": self.overflowed,
             "fault": self.fault,
             "recoveries": self.recoveries,
             "lost": self.lost,
@@ -577,8 +666,9 @@ class CanLogRecorder(_FileRecorder):
         self._numbered = self.path.suffix.lower() in _NUMBERED_FORMATS
         self.reorder_window = reorder_window
         self.files: list[Path] = []
-        # frames in time order; those that came after the window are written re-stamped
-        self._order: _ReorderWindow[can.Message] = _ReorderWindow(reorder_window)
+        # frames (and drop markers) in time order; those that came after the window are
+        # written re-stamped
+        self._order: _ReorderWindow[can.Message | _Drops] = _ReorderWindow(reorder_window)
         self._writer: can.io.generic.FileIOMessageWriter[Any] | None = None
         self._part_frames = 0
         self._since_check = 0
@@ -594,6 +684,8 @@ class CanLogRecorder(_FileRecorder):
             reopen=self._reopen,
             abandon=self._abandon,
             retry_period=retry_period,
+            drop_time=lambda msg: msg.timestamp,
+            mark=self._mark_drops,
         )
         try:
             self._rotate()
@@ -686,12 +778,19 @@ class CanLogRecorder(_FileRecorder):
             msg = copy_frame(msg, channel=self.channel)
         return self._emit_all(self._order.push(msg.timestamp, msg))
 
+    def _mark_drops(self, drops: _Drops) -> int:
+        """Hold the marker of frames dropped in time order, at the first one's time."""
+        return self._emit_all(self._order.push(drops.first, drops))
+
     def _drain(self) -> int:
         return self._emit_all(self._order.release())
 
-    def _emit_all(self, frames: list[tuple[float, can.Message]]) -> int:
+    def _emit_all(self, frames: list[tuple[float, can.Message | _Drops]]) -> int:
         for t, msg in frames:
-            self._emit(msg if msg.timestamp == t else copy_frame(msg, timestamp=t))
+            if isinstance(msg, _Drops):
+                self._emit(msg.marker(t, self.channel))
+            else:
+                self._emit(msg if msg.timestamp == t else copy_frame(msg, timestamp=t))
         return len(frames)
 
     def _for_file(self, msg: can.Message) -> can.Message:
@@ -823,6 +922,8 @@ class SessionRecorder(_FileRecorder):
             reopen=self._reopen,
             abandon=self._abandon,
             retry_period=retry_period,
+            drop_time=lambda item: item[1] if item[0] == "can" else None,
+            mark=lambda drops: self._write(("drops", drops.first, drops)),
         )
         meta = {"clock": "gateway" if clock is not None else "frame timestamps"}
         meta["started"] = datetime.now().astimezone().isoformat(timespec="seconds")
@@ -939,6 +1040,8 @@ class SessionRecorder(_FileRecorder):
             ):
                 msg = copy_frame(msg, channel=self.channel)  # one bus, one channel name
             writer.can_frame(t, msg, rx)
+        elif kind == "drops":  # frames dropped when the queue overflowed: their marker
+            writer.can_frame(t, item[2].marker(t), False)
         elif kind == "tick":
             _, now, inputs, result, xy = item
             writer.tick(now, inputs, result, xy, self.record_diagnostics, log_time=t)

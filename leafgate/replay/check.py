@@ -56,7 +56,10 @@ from the numbering is an ``incomplete`` finding. A part before the last without 
 end-of-recording marker was given up by the recorder after a write failure: the stretch until
 the next part is one ``incomplete`` finding, lost by the recorder, with its length; the bus
 silence, the IDs' gaps and the skipped alive counters across it are the recorder's, not
-reported as the bus's. Several logs give one report each and a last line with the verdict over
+reported as the bus's. So are the frames the recorder dropped inside a file as its queue
+overflowed, which it marks there (:func:`~leafgate.record.logs.drop_marker`): one
+``incomplete`` finding says how many; no counter skipped across them is judged, and of a
+silence or an ID's gap only what lies outside them. Several logs give one report each and a last line with the verdict over
 all of them.
 
 Tolerances are 1.5 quantisation steps of the command signals (read from the DBC, through the
@@ -101,6 +104,7 @@ from leafgate.record.logs import (
     ChainedSource,
     FrameSource,
     LogParts,
+    RecorderDrop,
     RecorderLoss,
     group_parts,
     is_end_marker,
@@ -221,7 +225,9 @@ class CheckReport:
     worst_backwards: float = 0.0  # s
     ids: list[IdStats] = field(default_factory=list)
     findings: list[Finding] = field(default_factory=list)
-    truncated: bool = False  # a session file that ended before its footer
+    truncated: bool = False  # a session file that ended before its footer (a part of one)
+    truncation: str = ""  # which parts were cut short, in words (ChainedSource.truncation)
+    recorder_dropped: int = 0  # frames the recorder marked as dropped (its queue overflowed)
     elapsed: float = 0.0  # s of wall time spent checking
     authentication: str = ""  # what was checked of the MACs ("" for a profile without any)
 
@@ -251,6 +257,8 @@ class CheckReport:
             "backwards_timestamps": self.backwards,
             "worst_backwards_s": self.worst_backwards,
             "truncated": self.truncated,
+            "truncation": self.truncation or None,
+            "recorder_dropped_frames": self.recorder_dropped,
             "authentication": self.authentication or None,
             "ids": [s.to_dict() for s in self.ids],
             "findings": [f.to_dict() for f in self.findings],
@@ -266,7 +274,7 @@ class CheckReport:
         )
         lines = [
             f"{self.path}: {span}, profile {self.profile}"
-            + (" (truncated session)" if self.truncated else ""),
+            + (f" ({self.truncation})" if self.truncation else ""),
             f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
             f"{'gaps':>5} {'crc':>5} {'cnt':>5} {'len':>5}",
         ]
@@ -620,8 +628,8 @@ def check_frames(
     if progress is not None:
         progress.done()
     merged, names = scan.stats()
-    losses = frames.losses if isinstance(frames, ChainedSource) else []
-    ids, findings = _findings(scan, merged, names, gap_periods, require_end, losses)
+    lost = frames.lost_spans() if isinstance(frames, ChainedSource) else []
+    ids, findings = _findings(scan, merged, names, gap_periods, require_end, lost)
     return CheckReport(
         path=path,
         profile=template.profile.name,
@@ -682,31 +690,32 @@ def _findings(
     names: dict[int, str | None],
     gap_periods: float,
     require_end: bool,
-    losses: Sequence[RecorderLoss] = (),
+    lost: Sequence[_Silence] = (),
 ) -> tuple[list[IdStats], list[Finding]]:
     """The per-ID statistics and every finding of a finished scan, in time order.
 
-    What the recorder lost (``losses``: the stretches between a part it gave up after a write
-    failure and the next) is reported once, as that (:func:`_part_findings`), never as the
-    bus's: a silence, the IDs' gaps and the counters skipped across such a stretch are the
-    recorder's.
+    What the recorder lost (``lost``: the stretches between a part it gave up after a write
+    failure and the next, and those in which it dropped frames as its queue overflowed;
+    :meth:`~leafgate.record.logs.ChainedSource.lost_spans`) is reported as that
+    (:func:`_part_findings`), never as the bus's: a counter skipped across such a stretch is
+    not judged, and of a silence or an ID's gap only what lies outside it is (the frames the
+    recorder dropped were on the bus somewhere inside it).
     """
     skips = {
         (frame_id, index) for index, _, frame_id, _, error in scan.e2e if error == "bad_counter"
     }
-    ids, gaps = _timing(scan.times, scan.template, names, merged, gap_periods, skips)
+    ids, gaps = _timing(scan.times, scan.template, names, merged, gap_periods, skips, lost)
     findings = list(scan.commands.findings)
     gap_firsts = {(frame_id, index) for frame_id, index, _, _ in gaps}
-    lost = [(loss.start, loss.end) for loss in losses]
     for index, t, frame_id, name, kind in scan.e2e:
         if kind == "bad_counter" and (frame_id, index) in gap_firsts:
             continue  # the frames lost in a gap, reported as the gap
-        if kind == "bad_counter" and index and _across(scan.times[frame_id][index - 1], t, lost):
-            continue  # the frames the recorder lost
+        if kind == "bad_counter" and index and _meets(scan.times[frame_id][index - 1], t, lost):
+            continue  # maybe the frames the recorder lost: not judged
         findings.append(Finding(t, "e2e", frame_id, name, kind))
-    silences = [s for s in _bus_silences(scan.times, ids, gap_periods) if not _across(*s, lost)]
+    silences = _bus_silences(scan.times, ids, gap_periods, lost)
     findings.extend(_silence_findings(silences, gaps))
-    findings.extend(_merge_gaps(_unexplained(gaps, silences + lost, ids, gap_periods), names))
+    findings.extend(_merge_gaps(_unexplained(gaps, silences, ids, gap_periods), names))
     findings.extend(_period_findings(ids, scan.first))
     findings.extend(_coverage_findings(scan, merged))
     findings.extend(scan.judge.findings)
@@ -898,11 +907,14 @@ def _timing(
     e2e: dict[int, FrameStats],
     gap_periods: float,
     skips: set[tuple[int, int]],
+    lost: Sequence[_Silence] = (),
 ) -> tuple[list[IdStats], list[_Gap]]:
     """Per-ID period statistics and the gaps of every ID with a known or measurable period.
 
     A gap is an interval over ``gap_periods`` nominal periods, or one over 1.5 periods that
     ends in a skipped alive counter (``skips``: (ID, index of the frame)) — frames were lost.
+    An interval that meets a stretch the recorder lost (``lost``) is judged by its stretches
+    outside it alone (:func:`_outside`), each a gap when over ``gap_periods`` periods.
     """
     stats: list[IdStats] = []
     gaps: list[_Gap] = []
@@ -917,11 +929,18 @@ def _timing(
         id_gaps = 0
         if nominal is not None and nominal > 0.0 and dt.size:
             long_gap = dt > gap_periods * nominal
-            lost = dt > _LOST_FRAME_PERIODS * nominal
-            for i in np.flatnonzero(lost):
-                if long_gap[i] or (frame_id, int(i) + 1) in skips:
-                    gaps.append((frame_id, int(i) + 1, float(t[i]), float(t[i + 1])))
-                    id_gaps += 1
+            slow = dt > _LOST_FRAME_PERIODS * nominal
+            longest = gap_periods * nominal
+            for i in np.flatnonzero(slow):
+                before, after = float(t[i]), float(t[i + 1])
+                if _meets(before, after, lost):
+                    pieces = [p for p in _outside(before, after, lost) if p[1] - p[0] > longest]
+                elif long_gap[i] or (frame_id, int(i) + 1) in skips:
+                    pieces = [(before, after)]
+                else:
+                    pieces = []
+                gaps.extend((frame_id, int(i) + 1, a, b) for a, b in pieces)
+                id_gaps += len(pieces)
         stats.append(
             IdStats(
                 frame_id=frame_id,
@@ -946,22 +965,46 @@ _Silence = tuple[float, float]  # (last frame before, first frame after), s
 
 
 def _bus_silences(
-    times: dict[int, list[float]], ids: list[IdStats], gap_periods: float
+    times: dict[int, list[float]],
+    ids: list[IdStats],
+    gap_periods: float,
+    lost: Sequence[_Silence] = (),
 ) -> list[_Silence]:
     """Stretches in which no frame at all was on the bus: longer than ``gap_periods`` of the
-    fastest known period."""
+    fastest known period. Of an interval that meets a stretch the recorder lost (``lost``),
+    only its stretches outside it can be (:func:`_outside`): the bus may have been busy in it."""
     periods = [s.nominal_period for s in ids if s.nominal_period]
     if not periods or not times:
         return []
     threshold = gap_periods * min(periods)
     t = np.sort(np.concatenate([np.asarray(v, dtype=np.float64) for v in times.values()]))
     dt = np.diff(t)
-    return [(float(t[i]), float(t[i + 1])) for i in np.flatnonzero(dt > threshold)]
+    out: list[_Silence] = []
+    for i in np.flatnonzero(dt > threshold):
+        pieces = _outside(float(t[i]), float(t[i + 1]), lost)
+        out.extend(p for p in pieces if p[1] - p[0] > threshold)
+    return out
 
 
-def _across(before: float, after: float, stretches: Sequence[_Silence]) -> bool:
-    """Whether the interval from ``before`` to ``after`` (s) spans one of the stretches."""
-    return any(before <= start and after >= end for start, end in stretches)
+def _meets(before: float, after: float, stretches: Sequence[_Silence]) -> bool:
+    """Whether the interval from ``before`` to ``after`` (s) meets one of the stretches: the
+    frames missing in it may be among those the stretch lost."""
+    return any(before < end and after > start for start, end in stretches)
+
+
+def _outside(before: float, after: float, stretches: Sequence[_Silence]) -> list[_Silence]:
+    """The pieces of the interval from ``before`` to ``after`` (s) outside the stretches (the
+    recorder's losses, in time order): where it is known that no frame was there."""
+    pieces = []
+    for start, end in sorted(stretches):
+        if end <= before or start >= after:
+            continue
+        if start > before:
+            pieces.append((before, start))
+        before = max(before, end)
+    if after > before:
+        pieces.append((before, after))
+    return pieces
 
 
 def _overlaps(gap: _Gap, silence: _Silence) -> bool:
@@ -1081,6 +1124,8 @@ def check_log(
         key=tool_key(key_file, cfg if config is not None else None),
     )
     report.truncated = source.truncated
+    report.truncation = source.truncation()
+    report.recorder_dropped = sum(d.frames for d in source.drops)
     extra = _part_findings(parts, source)
     if extra:
         report.findings = sorted(report.findings + extra, key=lambda f: (f.time, f.kind))
@@ -1122,6 +1167,7 @@ def _part_findings(parts: LogParts, source: ChainedSource) -> list[Finding]:
             )
         )
     out.extend(_loss_finding(loss) for loss in source.losses)
+    out.extend(_drop_findings(source.drops))
     lost = {loss.before for loss in source.losses}
     for span_path, _, last, ended in spans[:-1]:
         if not ended and span_path not in lost:  # a part without frames
@@ -1154,6 +1200,44 @@ def _loss_finding(loss: RecorderLoss) -> Finding:
         "between were lost by the recorder, not checked",
         loss.end - loss.start,
     )
+
+
+def _drop_findings(drops: Sequence[RecorderDrop]) -> list[Finding]:
+    """The frames the recorder dropped as its queue overflowed, said as that: one finding for
+    the recording, with how many, in how many stretches and over how long."""
+    if not drops:
+        return []
+    frames = sum(d.frames for d in drops)
+    start, end = min(d.start for d in drops), max(d.end for d in drops)
+    covered = sum(b - a for a, b in _union((d.start, d.end) for d in drops))
+    where = (
+        f"from {start:.3f} s over {covered * 1e3:.0f} ms"
+        if len(drops) == 1
+        else f"in {len(drops)} stretches from {start:.3f} s to {end:.3f} s ({covered:.3f} s in all)"
+    )
+    return [
+        Finding(
+            start,
+            "incomplete",
+            None,
+            "recorder",
+            f"the recorder dropped {plural(frames, 'frame')} {where}: its queue overflowed (the "
+            "writer fell behind), not the bus: those frames were not checked, and no gap, "
+            "silence or counter of the bus is judged across them",
+            covered,
+        )
+    ]
+
+
+def _union(spans: Iterable[_Silence]) -> list[_Silence]:
+    """Overlapping stretches joined."""
+    out: list[_Silence] = []
+    for a, b in sorted(spans):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out
 
 
 def main_check(

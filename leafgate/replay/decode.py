@@ -8,7 +8,10 @@ each check. The frames are read with a vehicle profile (``--profile``, ``--confi
 session's recorded configuration), whose checks include the car's own counters and checksums
 (0x002, 0x176, 0x284, 0x285 on the AZE0). The E2E checks are those of the gateway (:class:`~leafgate.can.codec.CanCodec`),
 run with one codec per recorded channel, so a dropped frame in the log shows up as a
-``bad_counter`` on the frame after it.
+``bad_counter`` on the frame after it — unless the recorder lost frames in between (a part
+given up after a write failure, frames dropped as its queue overflowed: its markers say so),
+when the line says ``counter not judged: the recorder lost frames before it`` and the summary
+counts it apart from ``bad_cnt``.
 
 A line reads::
 
@@ -25,8 +28,9 @@ verified)``, and the summary says that no MAC was checked.
 Several files: the parts of a rotated log (``can-…_000.blf``, ``can-…_001.blf`` …) are
 decoded in order as one log (one summary; a part missing from the numbering is named in it),
 other files each alone. The summary's first line says when the recording is incomplete: a
-session cut before its footer "(truncated session)", a log or session without the recorder's
-end-of-recording marker "no end-of-recording marker".
+session cut before its footer "(truncated session)" (of several parts, the part named:
+:meth:`~leafgate.record.logs.ChainedSource.truncation`), a log or session without the
+recorder's end-of-recording marker "no end-of-recording marker", frames the recorder dropped.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TextIO
 
@@ -52,8 +57,11 @@ def _value_text(value: object, unit: str | None) -> str:
     return f"{text} {unit}" if unit else text
 
 
-def format_frame(codec: CanCodec, msg: can.Message, decoded: Decoded) -> str:
-    """One log line for a frame and its decode result (see the module docstring)."""
+def format_frame(
+    codec: CanCodec, msg: can.Message, decoded: Decoded, status: str | None = None
+) -> str:
+    """One log line for a frame and its decode result (see the module docstring); ``status``
+    in place of the result's ``ok`` or error."""
     channel = "-" if msg.channel is None else str(msg.channel)
     width = 8 if msg.is_extended_id else 3
     data = bytes(msg.data)
@@ -78,7 +86,7 @@ def format_frame(codec: CanCodec, msg: can.Message, decoded: Decoded) -> str:
     if body is None:
         name = decoded.name or "unknown"
         body = f"{name} {data.hex(' ').upper()}".rstrip()
-    return f"{head}  {body}  {decoded.error or 'ok'}"
+    return f"{head}  {body}  {status or decoded.error or 'ok'}"
 
 
 def format_summary(stats: dict[int, FrameStats], names: dict[int, str | None]) -> list[str]:
@@ -171,11 +179,17 @@ def decode_log(
     return 0
 
 
+#: The status of a frame whose counter skipped across frames the recorder lost (``bad_counter``
+#: to the codec): not an error of the bus, and not judged either.
+AFTER_RECORDER_LOSS = "counter not judged: the recorder lost frames before it"
+
+
 def _incomplete_note(parts: LogParts, source: ChainedSource) -> str:
     """What the summary's first line says of an incomplete recording ("" for a complete one)."""
     notes = []
-    if source.truncated:
-        notes.append(" (truncated session)" if source.session is not None else " (cut short)")
+    truncation = source.truncation()
+    if truncation:
+        notes.append(f" ({truncation})")
     if source.frames and not source.ended:
         notes.append("; no end-of-recording marker: the recording stops early")
     lost = {loss.before for loss in source.losses}
@@ -187,6 +201,12 @@ def _incomplete_note(parts: LogParts, source: ChainedSource) -> str:
     for span_path, _, _, ended in source.spans[:-1]:
         if not ended and span_path not in lost:
             notes.append(f"; part {span_path.name} has no end-of-recording marker")
+    drops = source.drops
+    if drops:
+        notes.append(
+            f"; the recorder dropped {plural(sum(d.frames for d in drops), 'frame')} "
+            f"({plural(len(drops), 'drop marker')}: its queue overflowed)"
+        )
     after = unread_next_part(parts, source.continues)
     if after is not None:
         notes.append(f"; the recording goes on in part {after.name}, missing")
@@ -226,11 +246,21 @@ def _decode_parts(
     latest = -math.inf
     backwards = 0
     worst = 0.0
+    previous: dict[tuple[object, int], float] = {}  # (channel, ID) → its last frame's time
+    not_judged: dict[int, int] = {}  # ID → counter skips across the recorder's losses
     source = ChainedSource(parts.paths)  # the one reader of logs and sessions
     for msg in source:
         codec = codec_for(msg.channel)
         decoded = codec.decode(msg)
-        line = format_frame(codec, msg, decoded)
+        slot = (msg.channel, msg.arbitration_id)
+        status = None
+        if decoded.error == "bad_counter" and slot in previous:
+            before = previous[slot]
+            if any(before < end and msg.timestamp > start for start, end in source.lost_spans()):
+                status = AFTER_RECORDER_LOSS
+                not_judged[msg.arbitration_id] = not_judged.get(msg.arbitration_id, 0) + 1
+        previous[slot] = msg.timestamp
+        line = format_frame(codec, msg, decoded, status)
         if decoded.valid and not codec.verifies and codec.authenticates(msg.arbitration_id):
             line += " (MAC not verified)"
         if msg.timestamp < latest:
@@ -256,6 +286,10 @@ def _decode_parts(
                 if s.frames:
                     merged[frame_id] = merged.get(frame_id, FrameStats()) + s
                     names[frame_id] = codec.name_of(frame_id)
+        for frame_id, n in not_judged.items():  # not the bus's: counted apart
+            merged[frame_id] = replace(
+                merged[frame_id], bad_counter=merged[frame_id].bad_counter - n
+            )
         out.write(
             f"# {path.name}: {plural(sum(s.frames for s in merged.values()), 'frame')}, "
             f"profile {template.profile.name}{note}\n"
@@ -265,3 +299,9 @@ def _decode_parts(
         auth = authentication_summary(template, merged)
         if auth:
             out.write(f"# {auth}\n")
+        skipped = sum(not_judged.values())
+        if skipped:
+            out.write(
+                f"# {plural(skipped, 'counter skip')} across frames the recorder lost: not "
+                "judged, not counted in bad_cnt\n"
+            )

@@ -1,0 +1,256 @@
+"""A recorder whose writer falls behind drops frames: the tools say the recorder lost them, and
+never blame the bus (a silence, gaps, E2E counter errors) for the hole.
+
+One s-curve drive is recorded once per module into a BLF log and a session while both writers
+are stalled from 8.0 s to 8.5 s of simulated time with room for ``ROOM`` items in their queues:
+every item after that is dropped until the stall ends. The simulation runs on one thread and
+each writer has caught up before the stall begins and after it ends, so which items are
+dropped does not depend on timing.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from leafgate.gateway.core import GatewayInputs, StepResult
+from leafgate.record.logs import ChainedSource, drop_marker, is_recorder_marker
+from leafgate.record.recorder import CanLogRecorder, Recording, SessionRecorder
+from leafgate.replay.check import check_log, main_check
+from leafgate.replay.decode import AFTER_RECORDER_LOSS, decode_log
+from leafgate.settings import LeafgateConfig
+from leafgate.sim.runner import run
+from leafgate.sim.scenarios import get_scenario
+from tests.conftest import wait_for
+
+EPOCH = 1.8e9  # s: simulated time 0 in Unix time
+STALL_FROM, STALL_UNTIL = 8.0, 8.5  # s of simulated time the writers are stalled
+ROOM = 100  # items each queue takes during the stall
+
+
+class _Stalled:
+    """One recorder's writer, stalled on its first item from the stall's start on."""
+
+    def __init__(self, recorder: CanLogRecorder | SessionRecorder) -> None:
+        self.bg = recorder._bg
+        self.puts = 0
+        self.stalling = False
+        self.entered = threading.Event()
+        self.gate = threading.Event()
+        put, write = self.bg.put, self.bg._write
+
+        def counted_put(item: Any) -> None:
+            self.puts += 1
+            put(item)
+
+        def gated_write(item: Any) -> int:
+            if self.stalling:
+                self.entered.set()
+                self.gate.wait(30.0)
+            return write(item)
+
+        self.bg.put = counted_put  # type: ignore[method-assign]
+        self.bg._write = gated_write
+
+    def caught_up(self) -> bool:
+        """Every item handed in is written or dropped (the writer holds none)."""
+        return self.bg.written + self.bg.dropped == self.puts
+
+
+class _StalledRecording(Recording):
+    def __init__(self, recorders: list[Any]) -> None:
+        super().__init__(recorders)
+        self.writers = [_Stalled(r) for r in recorders]
+        self.phase = "before"
+
+    def on_tick(self, now: float, inputs: GatewayInputs, result: StepResult, frames: Any) -> None:
+        if self.phase == "before" and now >= STALL_FROM:
+            assert wait_for(lambda: all(w.caught_up() for w in self.writers))
+            for w in self.writers:
+                w.bg._queue.maxsize = ROOM
+                w.stalling = True
+            super().on_tick(now, inputs, result, frames)
+            assert wait_for(lambda: all(w.entered.is_set() for w in self.writers))
+            self.phase = "stalled"
+            return
+        if self.phase == "stalled" and now >= STALL_UNTIL:
+            for w in self.writers:
+                w.stalling = False
+                w.gate.set()
+            assert wait_for(lambda: all(w.caught_up() for w in self.writers))
+            for w in self.writers:
+                w.bg._queue.maxsize = 20_000
+            self.phase = "after"
+        super().on_tick(now, inputs, result, frames)
+
+
+@dataclass(frozen=True)
+class Overflow:
+    log: Path
+    session: Path
+    diagnostics: dict[str, dict[str, Any]]
+
+
+@pytest.fixture(scope="module")
+def overflow(tmp_path_factory: pytest.TempPathFactory) -> Overflow:
+    directory = tmp_path_factory.mktemp("overflow")
+    config = LeafgateConfig()
+    log = CanLogRecorder(directory / "can.blf", time_offset=EPOCH)
+    session = SessionRecorder(directory / "session.mcap", config, epoch=EPOCH)
+    with _StalledRecording([log, session]) as recording:
+        run(config, get_scenario("s-curve"), recorder=recording)
+    assert recording.phase == "after"
+    (path,) = log.files
+    return Overflow(
+        path, session.path, {"can_log": log.diagnostics(), "session": session.diagnostics()}
+    )
+
+
+def _findings(report: dict[str, Any], kind: str) -> list[dict[str, Any]]:
+    return [f for f in report["findings"] if f["kind"] == kind]
+
+
+@pytest.mark.parametrize("which", ["log", "session"])
+def test_the_recorder_marks_the_frames_it_dropped_where_it_dropped_them(
+    overflow: Overflow, which: str
+) -> None:
+    """Old code counted the drops in diagnostics only: the file held a hole and nothing else."""
+    diagnostics = overflow.diagnostics["can_log" if which == "log" else "session"]
+    assert diagnostics["fault"] == "" and diagnostics["recoveries"] == 0  # nothing failed
+    assert diagnostics["overflowed"] > 50, diagnostics
+    source = ChainedSource([getattr(overflow, which)])
+    frames = list(source)
+    assert not any(is_recorder_marker(m) for m in frames)  # never a frame of the drive
+    assert source.drops, "no drop marker"
+    assert sum(d.frames for d in source.drops) == diagnostics["overflowed"]
+    start = min(d.start for d in source.drops) - EPOCH
+    end = max(d.end for d in source.drops) - EPOCH
+    assert start >= STALL_FROM and end <= STALL_UNTIL + 0.03, (start, end)
+    # nothing recorded inside a stretch the marker covers but what was queued before the drops
+    inside = [m for m in frames if source.drops[0].start < m.timestamp < source.drops[-1].end]
+    assert len(inside) < ROOM
+
+
+@pytest.mark.parametrize("which", ["log", "session"])
+def test_a_hole_the_recorder_made_is_its_loss_not_a_silent_bus_or_e2e_errors(
+    overflow: Overflow, which: str
+) -> None:
+    """Old code: 'the whole bus silent for 4xx ms', gaps of every ID and a bad_counter per ID
+    after the hole, and not a word of the recorder. The bus was busy; the recorder dropped the
+    frames. The check still FAILS: it did not see those frames."""
+    out = io.StringIO()
+    code = main_check([getattr(overflow, which)], profile="leafgate-dbw", as_json=True, out=out)
+    assert code == 1  # the hole is a finding: the check cannot claim it saw everything
+    report = json.loads(out.getvalue())
+    for kind in ("silence", "gap", "e2e"):
+        assert not _findings(report, kind), _findings(report, kind)
+    (dropped,) = _findings(report, "incomplete")
+    diagnostics = overflow.diagnostics["can_log" if which == "log" else "session"]
+    n = diagnostics["overflowed"]
+    assert f"the recorder dropped {n} frames" in dropped["detail"], dropped["detail"]
+    assert "queue overflowed" in dropped["detail"] and "not the bus" in dropped["detail"]
+    assert report["recorder_dropped_frames"] == n
+    assert report["engaged_command_frames"] > 1500  # both sides of the hole were checked
+    text = io.StringIO()
+    main_check([getattr(overflow, which)], profile="leafgate-dbw", out=text)
+    verdict = text.getvalue().strip().splitlines()[-1]
+    assert verdict.startswith("FAILED") and "0 bus silences" in verdict, verdict
+    assert "1 incomplete finding" in verdict and "0 E2E errors" in verdict, verdict
+
+
+@pytest.mark.parametrize("which", ["log", "session"])
+def test_decode_does_not_call_the_counter_after_the_recorders_loss_a_bus_error(
+    overflow: Overflow, which: str
+) -> None:
+    """Old code: a ``bad_counter`` line for each ID's first frame after the hole, and as many
+    in the summary's bad_cnt column."""
+    out = io.StringIO()
+    decode_log(getattr(overflow, which), out, profile="leafgate-dbw")
+    lines = out.getvalue().splitlines()
+    frames = [line for line in lines if not line.startswith("#")]
+    assert not [line for line in frames if line.endswith("bad_counter")]
+    after = [line for line in frames if line.endswith(AFTER_RECORDER_LOSS)]
+    assert len(after) >= 3, "the first frame of each counted ID after the hole"
+    summary = [line for line in lines if line.startswith("#")]
+    total = next(line for line in summary if line.split()[1] == "total").split()
+    assert total[4] == "0", total  # bad_cnt
+    assert (
+        f"the recorder dropped {overflow.diagnostics['can_log' if which == 'log' else 'session']['overflowed']} frames"
+        in summary[0]
+    )
+    assert any(f"{len(after)} counter skips across frames the recorder lost" in s for s in summary)
+
+
+def test_a_frame_lost_beside_the_recorders_loss_but_not_across_it_is_still_the_buses(
+    overflow: Overflow, tmp_path: Path
+) -> None:
+    """The recorder's loss excuses what lies inside it only: a frame missing from the bus four
+    seconds later is a gap of its ID (its counter skip part of it), as before."""
+    source = ChainedSource([overflow.log])
+    frames = list(source)
+    lost = next(
+        k for k, m in enumerate(frames) if m.timestamp > EPOCH + 12.0 and m.arbitration_id == 0x0A0
+    )
+    markers = [drop_marker(d.start, d.end, d.frames, 0) for d in source.drops]
+    path = tmp_path / "can_000.blf"
+    writer = can.BLFWriter(str(path))
+    kept = [m for k, m in enumerate(frames) if k != lost]
+    for m in sorted(kept + markers, key=lambda m: m.timestamp):
+        writer.on_message_received(m)
+    writer.stop()
+    report = check_log(path, profile="leafgate-dbw").to_dict()
+    assert not _findings(report, "silence") and not _findings(report, "e2e")
+    (gap,) = _findings(report, "gap")
+    assert gap["id"] == "0x0A0" and gap["time"] < frames[lost].timestamp < gap["time"] + 0.03
+    assert any("recorder dropped" in f["detail"] for f in _findings(report, "incomplete"))
+
+
+def test_old_files_without_drop_markers_read_as_before_and_a_marker_parses() -> None:
+    marker = drop_marker(10.0, 10.4567, 321, "can0")
+    assert is_recorder_marker(marker)
+    assert marker.arbitration_id == 0x1FFFFFFF and marker.is_extended_id
+    assert bytes(marker.data) == b"LGL" + (321).to_bytes(3, "big") + (457).to_bytes(2, "big")
+    frame = can.Message(arbitration_id=0x1FFFFFFF, is_extended_id=True, data=b"LGX" + bytes(5))
+    assert not is_recorder_marker(frame)
+
+
+def test_a_drop_earlier_than_the_held_marker_gets_its_own_marker(tmp_path: Path) -> None:
+    """Frames reach the recorder from several threads, out of order by up to its window. Old
+    code added a later-taken drop with an earlier time to the marker held back at 10.05 s,
+    which was still written there: the frame dropped at 10.03 s was outside every marker."""
+    rec = CanLogRecorder(tmp_path / "can.log")
+    stalled = _Stalled(rec)
+
+    def frame(t: float) -> can.Message:
+        return can.Message(timestamp=t, arbitration_id=0x123, data=b"\x01", is_extended_id=False)
+
+    def stall(first: float, queued: tuple[float, ...], dropped: float) -> None:
+        assert wait_for(stalled.caught_up)
+        stalled.gate, stalled.entered = threading.Event(), threading.Event()
+        stalled.bg._queue.maxsize = len(queued)
+        stalled.stalling = True
+        rec.on_can_frame(frame(first), "rx")  # the writer takes it and waits
+        assert wait_for(stalled.entered.is_set)
+        for t in queued:
+            rec.on_can_frame(frame(t), "rx")
+        rec.on_can_frame(frame(dropped), "rx")  # the queue is full: dropped
+        stalled.stalling = False
+        stalled.gate.set()
+        assert wait_for(stalled.caught_up)
+        stalled.bg._queue.maxsize = 1000
+
+    stall(10.00, (10.01, 10.02), 10.05)
+    stall(10.06, (10.07, 10.08), 10.03)  # from another thread, later than its time
+    rec.close()
+    assert stalled.bg.overflowed == 2
+    source = ChainedSource(rec.files)
+    list(source)
+    for t in (10.03, 10.05):
+        assert any(d.start <= t <= d.end for d in source.drops), (t, source.drops)
