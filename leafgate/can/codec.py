@@ -644,6 +644,7 @@ class _TxEntry:
     sources: tuple[str, ...]
     modulo: int  # of the frame's counter (0: none); but for leafgate's, the encoder's last value
     params: Mapping[str, int]  # of the checksum scheme
+    unencodable: str | None = None  # why no value can ever be encoded (the DBC, the profile)
 
 
 @dataclass(frozen=True, slots=True)
@@ -889,8 +890,9 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
     if spec.checksum_signal is not None:
         filled.add(spec.checksum_signal)
     unknown = sorted(sig.name for sig in message.signals if sig.name not in filled)
+    reason: str | None = None
     if unknown:
-        encode = _unencodable(
+        reason = (
             f"{message.name} (0x{message.frame_id:03X}): the profile fills no value for "
             f"signal(s) {', '.join(unknown)} of the DBC"
         )
@@ -898,7 +900,9 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
         try:
             encode = _compile_encoder(message, names + counter)  # type: ignore[operator]
         except CanCodecError as exc:
-            encode = _unencodable(str(exc))
+            reason = str(exc)
+    if reason is not None:
+        encode = _unencodable(reason)
     return _TxEntry(
         name=spec.name,
         frame_id=message.frame_id,
@@ -909,6 +913,7 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
         sources=spec.sources,
         modulo=modulo,
         params=MappingProxyType(dict(spec.e2e_params)),
+        unencodable=reason,
     )
 
 
@@ -1029,6 +1034,19 @@ class CanCodec:
         return cls(cfg.can.dbw_dbc, cfg.can.car_dbc, profile, key=key, clock=clock)
 
     # --- encode ---------------------------------------------------------------------------
+
+    def cannot_encode(self, name: str) -> str | None:
+        """Why frame ``name`` of the profile can never be encoded, whatever the values (its
+        DBC message has a signal the profile fills no value for, or a layout leafgate cannot
+        encode), or None. The gateway only decodes the reports, so a DBC may carry more
+        signals in them than the profile maps; a sender of them (the simulated ECU) cannot.
+
+        :raises EncodeError: the profile has no frame ``name``
+        """
+        entry = self._encoders.get(name)
+        if entry is None:
+            raise EncodeError(f"profile {self.profile.name} has no frame {name}")
+        return entry.unencodable
 
     def encode_commands(self, commands: Any, timestamp: float = 0.0) -> list[can.Message]:
         """The profile's command frames for one tick's :class:`~leafgate.messages.Commands`.
