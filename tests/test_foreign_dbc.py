@@ -54,7 +54,7 @@ def test_the_ecu_refuses_a_report_frame_it_can_never_send(tmp_path: Path) -> Non
     with pytest.raises(CanCodecError) as info:
         SimulatedEcu(EcuConfig(), plant, VehicleConfig(), codec)
     text = str(info.value)
-    assert str(path) in text
+    assert str(path) in text and str(tmp_path / "leaf_ze1_lkas.dbc") in text
     assert "STEER_TORQUE_SENSOR (0x185)" in text and "LKAS_STATUS" in text
 
 

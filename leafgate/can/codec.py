@@ -832,7 +832,7 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
             )
         try:
             _check_e2e(message, spec, where)
-            encoders[spec.name] = _tx_entry(message, spec, profile)
+            encoders[spec.name] = _tx_entry(message, spec, profile, where)
             checked = spec.e2e in COUNTER_CHECKED and spec.counter_signal is not None
             rx[message.frame_id] = _RxEntry(
                 name=spec.name,
@@ -879,9 +879,10 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
     )
 
 
-def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntry:
-    """The compiled encoder of a frame. Strict as cantools: every signal of the message must
-    be filled, by the profile or by the frame's E2E scheme; otherwise encoding it raises."""
+def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile, where: str) -> _TxEntry:
+    """The compiled encoder of a frame (``where``: its DBC file). Strict as cantools: every
+    signal of the message must be filled, by the profile or by the frame's E2E scheme;
+    otherwise encoding it raises."""
     names, getter = _compile_getter(spec, profile)
     modulo = _counter_modulo(message, spec)
     counter = (spec.counter_signal,) if modulo and spec.e2e != "leafgate" else ()
@@ -894,7 +895,7 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
     if unknown:
         reason = (
             f"{message.name} (0x{message.frame_id:03X}): the profile fills no value for "
-            f"signal(s) {', '.join(unknown)} of the DBC"
+            f"signal(s) {', '.join(unknown)} of the DBC {where}"
         )
     else:
         try:
