@@ -570,8 +570,20 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     from leafgate.can.codec import CanCodec
     from leafgate.control import make_controller
 
+    if Path(args.file).suffix.lower() == ".dbc":  # a common slip: not a YAML syntax error
+        raise ConfigError(
+            f"{args.file}: a DBC file, not a leafgate config: name it in a vehicle profile's "
+            "dbc: list, or as can.dbw_dbc / can.car_dbc in a config"
+        )
     cfg = load_config(args.file)
-    CanCodec.for_config(cfg)  # the profile and its DBCs load
+    codec = CanCodec.for_config(cfg)  # the profile and its DBCs load
+    for spec in cfg.profile.frames_of("report"):  # the gateway only decodes these
+        why = codec.cannot_encode(spec.name)
+        if why is not None:
+            print(
+                f"leafgate: warning: the simulated ECU (sim, sim-ecu) cannot send {why}",
+                file=sys.stderr,
+            )
     try:
         make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
     except ConfigError as exc:  # a check across sections: name the file too

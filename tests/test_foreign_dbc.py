@@ -67,3 +67,33 @@ def test_sim_names_the_report_frame_the_ecu_could_not_encode(tmp_path: Path) -> 
     text = str(info.value)
     assert "simulated ECU" in text and "STEER_TORQUE_SENSOR (0x185) STEER_ANGLE" in text
     assert "outside its range [0, 262143]" in text
+
+
+def test_check_config_warns_the_simulated_ecu_cannot_send_a_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: `ok offline` and nothing else, then `sim` and `sim-ecu` failed on it."""
+    from leafgate import cli
+
+    extra = ANGLE + ' SG_ LKAS_STATUS : 55|4@0+ (1,0) [0|15] "" GATEWAY\n'
+    profile = ze1_profile(tmp_path, packaged_ze1_dbc().replace(ANGLE, extra))
+    config = tmp_path / "car.yaml"
+    config.write_text(f"vehicle: {{profile: {profile}}}\ngateway: {{rate_hz: 100}}\n")
+    assert cli.main(["check-config", str(config)]) == 0
+    out, err = capsys.readouterr()
+    assert "ok offline" in out
+    assert "simulated ECU (sim, sim-ecu) cannot send STEER_TORQUE_SENSOR (0x185)" in err
+    assert "LKAS_STATUS" in err
+
+
+def test_check_config_of_a_dbc_says_it_is_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: "invalid YAML at line 5, column 25: mapping values are not allowed here"."""
+    from leafgate import cli
+
+    dbc = tmp_path / "nissan_leaf_2018_generated.dbc"
+    dbc.write_text(packaged_ze1_dbc())
+    assert cli.main(["check-config", str(dbc)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{dbc}: a DBC file, not a leafgate config" in err
