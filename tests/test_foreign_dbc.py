@@ -97,3 +97,23 @@ def test_check_config_of_a_dbc_says_it_is_one(
     assert cli.main(["check-config", str(dbc)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{dbc}: a DBC file, not a leafgate config" in err
+
+
+def test_a_car_dbc_without_a_checked_signal_names_the_frame_id_and_why(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """opendbc's 0x002 has no CHECKSUM (leafgate found it in recordings and checks it).
+    Old code: "STEER_ANGLE_SENSOR.CHECKSUM is missing", no ID and no reason."""
+    from leafgate import cli
+
+    car = (ROOT / "dbc" / "leaf_aze0_car.dbc").read_text()
+    line = ' SG_ CHECKSUM : 36|4@1+ (1,0) [0|15] "" GATEWAY\n'
+    assert line in car
+    dbc = tmp_path / "nissan_leaf_2018_generated.dbc"
+    dbc.write_text(car.replace(line, "", 1))
+    config = tmp_path / "car.yaml"
+    config.write_text(f"can: {{car_dbc: {dbc.name}}}\n")
+    assert cli.main(["check-config", str(config)]) != 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(dbc) in err
+    assert "STEER_ANGLE_SENSOR (0x002) has no signal CHECKSUM" in err and "checksum" in err

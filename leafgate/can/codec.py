@@ -707,9 +707,12 @@ def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
                     f"{where}: {message.name}.{sig_name} must be {length} bits little-endian at "
                     f"bit {start}, as leafgate.can.{spec.e2e.replace('leafgate', 'e2e')} computes it"
                 )
-    for protection in (spec.counter_signal, spec.checksum_signal):
+    for role, protection in (("counter", spec.counter_signal), ("checksum", spec.checksum_signal)):
         if protection is not None and protection not in {s.name for s in message.signals}:
-            raise CanCodecError(f"{where}: {message.name}.{protection} is missing")
+            raise CanCodecError(
+                f"{where}: {message.name} (0x{message.frame_id:03X}) has no signal {protection}, "
+                f"the {role} the profile checks (e2e {spec.e2e})"
+            )
     for scheme, place in _SCHEME_PLACES.items():
         if spec.e2e != scheme:
             continue
