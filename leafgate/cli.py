@@ -13,6 +13,7 @@ import json
 import logging
 import math
 import os
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -569,8 +570,20 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     from leafgate.can.codec import CanCodec
     from leafgate.control import make_controller
 
+    if Path(args.file).suffix.lower() == ".dbc":  # a common slip: not a YAML syntax error
+        raise ConfigError(
+            f"{args.file}: a DBC file, not a leafgate config: name it in a vehicle profile's "
+            "dbc: list, or as can.dbw_dbc / can.car_dbc in a config"
+        )
     cfg = load_config(args.file)
-    CanCodec.for_config(cfg)  # the profile and its DBCs load
+    codec = CanCodec.for_config(cfg)  # the profile and its DBCs load
+    for spec in cfg.profile.frames_of("report"):  # the gateway only decodes these
+        why = codec.cannot_encode(spec.name)
+        if why is not None:
+            print(
+                f"leafgate: warning: the simulated ECU (sim, sim-ecu) cannot send {why}",
+                file=sys.stderr,
+            )
     try:
         make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
     except ConfigError as exc:  # a check across sections: name the file too
@@ -1133,6 +1146,28 @@ def _prepare_outputs(args: argparse.Namespace) -> None:
             output_folder(Path(value).parent, f"--{name}")
 
 
+def _negative_start(argv: Sequence[str]) -> list[str]:
+    """``argv`` with ``--start -5,2,90`` joined into ``--start=-5,2,90``.
+
+    argparse (before Python 3.13) takes a value that starts with ``-`` and is not a plain
+    number for an option, so a start pose with a negative X was "expected one argument".
+    """
+    out: list[str] = []
+    args = iter(argv)
+    for arg in args:
+        if arg == "--start":
+            value = next(args, None)
+            if value is not None and re.match(r"-\.?\d", value):
+                out.append(f"--start={value}")
+                continue
+            out.append(arg)
+            if value is not None:
+                out.append(value)
+            continue
+        out.append(arg)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one ``leafgate`` command; every way it can end is one line and an exit status.
 
@@ -1151,9 +1186,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("leafgate: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    argv = _negative_start(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
     if args.command is None:
-        args = parser.parse_args(["sim", *(argv or [])])
+        args = parser.parse_args(["sim", *argv])
     if args.command not in STOP_SIGNAL_COMMANDS:
         from leafgate.runtime.signals import release
 

@@ -152,6 +152,24 @@ def test_sim_drives_a_yaml_trajectory_from_a_given_start(tmp_path: Path) -> None
     assert float(first["heading_deg"]) == pytest.approx(10.0, abs=1e-3)
 
 
+def test_sim_takes_a_start_pose_with_a_negative_x_as_written(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: `--start -3,0.3,-5` was argparse's "argument --start: expected one argument"
+    (Python 3.11 reads a value starting with "-" as an option unless it is a plain number)."""
+    route = tmp_path / "route.csv"
+    rows = [f"{x:.1f},0,0,{0.0 if x == 5 else 1.0}" for x in range(-3, 6)]
+    route.write_text("\n".join(["x,y,heading,speed", *rows]) + "\n", encoding="utf-8")
+    out = tmp_path / "out"
+    rc = _sim("--trajectory", str(route), "--start", "-3,0.3,-5", "--out", str(out))
+    assert rc == 0, capsys.readouterr().err
+    with (out / "trace.csv").open() as f:
+        first = next(csv.DictReader(f))
+    assert float(first["x_m"]) == pytest.approx(-3.0, abs=1e-3)
+    assert float(first["y_m"]) == pytest.approx(0.3, abs=1e-3)
+    assert float(first["heading_deg"]) == pytest.approx(-5.0, abs=1e-3)
+
+
 def test_sim_exits_non_zero_with_the_reason_when_the_maneuver_does_not_finish(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

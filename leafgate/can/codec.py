@@ -644,6 +644,7 @@ class _TxEntry:
     sources: tuple[str, ...]
     modulo: int  # of the frame's counter (0: none); but for leafgate's, the encoder's last value
     params: Mapping[str, int]  # of the checksum scheme
+    unencodable: str | None = None  # why no value can ever be encoded (the DBC, the profile)
 
 
 @dataclass(frozen=True, slots=True)
@@ -706,9 +707,12 @@ def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
                     f"{where}: {message.name}.{sig_name} must be {length} bits little-endian at "
                     f"bit {start}, as leafgate.can.{spec.e2e.replace('leafgate', 'e2e')} computes it"
                 )
-    for protection in (spec.counter_signal, spec.checksum_signal):
+    for role, protection in (("counter", spec.counter_signal), ("checksum", spec.checksum_signal)):
         if protection is not None and protection not in {s.name for s in message.signals}:
-            raise CanCodecError(f"{where}: {message.name}.{protection} is missing")
+            raise CanCodecError(
+                f"{where}: {message.name} (0x{message.frame_id:03X}) has no signal {protection}, "
+                f"the {role} the profile checks (e2e {spec.e2e})"
+            )
     for scheme, place in _SCHEME_PLACES.items():
         if spec.e2e != scheme:
             continue
@@ -831,7 +835,7 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
             )
         try:
             _check_e2e(message, spec, where)
-            encoders[spec.name] = _tx_entry(message, spec, profile)
+            encoders[spec.name] = _tx_entry(message, spec, profile, where)
             checked = spec.e2e in COUNTER_CHECKED and spec.counter_signal is not None
             rx[message.frame_id] = _RxEntry(
                 name=spec.name,
@@ -878,9 +882,10 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
     )
 
 
-def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntry:
-    """The compiled encoder of a frame. Strict as cantools: every signal of the message must
-    be filled, by the profile or by the frame's E2E scheme; otherwise encoding it raises."""
+def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile, where: str) -> _TxEntry:
+    """The compiled encoder of a frame (``where``: its DBC file). Strict as cantools: every
+    signal of the message must be filled, by the profile or by the frame's E2E scheme;
+    otherwise encoding it raises."""
     names, getter = _compile_getter(spec, profile)
     modulo = _counter_modulo(message, spec)
     counter = (spec.counter_signal,) if modulo and spec.e2e != "leafgate" else ()
@@ -889,16 +894,19 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
     if spec.checksum_signal is not None:
         filled.add(spec.checksum_signal)
     unknown = sorted(sig.name for sig in message.signals if sig.name not in filled)
+    reason: str | None = None
     if unknown:
-        encode = _unencodable(
+        reason = (
             f"{message.name} (0x{message.frame_id:03X}): the profile fills no value for "
-            f"signal(s) {', '.join(unknown)} of the DBC"
+            f"signal(s) {', '.join(unknown)} of the DBC {where}"
         )
     else:
         try:
             encode = _compile_encoder(message, names + counter)  # type: ignore[operator]
         except CanCodecError as exc:
-            encode = _unencodable(str(exc))
+            reason = str(exc)
+    if reason is not None:
+        encode = _unencodable(reason)
     return _TxEntry(
         name=spec.name,
         frame_id=message.frame_id,
@@ -909,6 +917,7 @@ def _tx_entry(message: DbcMessage, spec: FrameSpec, profile: Profile) -> _TxEntr
         sources=spec.sources,
         modulo=modulo,
         params=MappingProxyType(dict(spec.e2e_params)),
+        unencodable=reason,
     )
 
 
@@ -1029,6 +1038,19 @@ class CanCodec:
         return cls(cfg.can.dbw_dbc, cfg.can.car_dbc, profile, key=key, clock=clock)
 
     # --- encode ---------------------------------------------------------------------------
+
+    def cannot_encode(self, name: str) -> str | None:
+        """Why frame ``name`` of the profile can never be encoded, whatever the values (its
+        DBC message has a signal the profile fills no value for, or a layout leafgate cannot
+        encode), or None. The gateway only decodes the reports, so a DBC may carry more
+        signals in them than the profile maps; a sender of them (the simulated ECU) cannot.
+
+        :raises EncodeError: the profile has no frame ``name``
+        """
+        entry = self._encoders.get(name)
+        if entry is None:
+            raise EncodeError(f"profile {self.profile.name} has no frame {name}")
+        return entry.unencodable
 
     def encode_commands(self, commands: Any, timestamp: float = 0.0) -> list[can.Message]:
         """The profile's command frames for one tick's :class:`~leafgate.messages.Commands`.

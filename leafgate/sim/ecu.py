@@ -63,7 +63,7 @@ from leafgate.can import e2e
 from leafgate.can.codec import CanCodec, Decoded
 from leafgate.config import VehicleConfig
 from leafgate.config.sim import EcuConfig
-from leafgate.errors import ConfigError, InjectionError, LeafgateError
+from leafgate.errors import CanCodecError, ConfigError, InjectionError, LeafgateError
 from leafgate.geometry import clip_abs as _clip
 from leafgate.messages import (
     EcuState,
@@ -201,6 +201,23 @@ class SimulatedEcu:
             )
         self.counters = EcuCounters()
         profile = self.codec.profile
+        # The gateway only decodes the reports (a DBC may have more signals in them than the
+        # profile maps); the ECU sends them: one it can never encode is a start-up error, not a
+        # report that silently never comes (the gateway would then say it is "missing").
+        never = [
+            why
+            for f in profile.frames_of("report")
+            if (why := self.codec.cannot_encode(f.name)) is not None
+        ]
+        if never:
+            raise CanCodecError(
+                f"{profile.where}: the simulated ECU cannot send report frame "
+                f"{'; '.join(never)} (give each such signal a value in the frame's signals, "
+                "e.g. NAME: {value: 0})"
+            )
+        #: why the last report frame that could not be encoded was left out (None: none was)
+        self.last_encode_error: str | None = None
+        self._encode_warned: set[str] = set()  # frames whose encode error was logged
         self._command_ids = self.codec.receive_ids("commands")
         # frames whose counter and CRC the E2E injections break (leafgate's own protection)
         self._report_ids = frozenset(
@@ -665,8 +682,12 @@ class SimulatedEcu:
         for name in due:
             try:
                 msg = self.codec.encode_frame(name, values, timestamp=now)
-            except LeafgateError:  # out-of-range values: count, never raise in the loop
+            except LeafgateError as exc:  # out-of-range values: count, never raise in the loop
                 self.counters.encode_errors += 1
+                self.last_encode_error = str(exc)
+                if name not in self._encode_warned:  # once per frame: the loop runs at 1 kHz
+                    self._encode_warned.add(name)
+                    log.warning("simulated ECU: report frame not sent: %s", exc)
                 continue
             if msg.arbitration_id in self._report_ids:
                 msg = self._e2e_faults(msg, corrupt, stuck)

@@ -499,8 +499,11 @@ class _Vehicle:
     def step(self, now: float, dt: float) -> None:
         """Actuate the plant for one ECU tick and send the reports due now."""
         self.ecu.step(now, dt)
+        errors = self.ecu.counters.encode_errors
         for msg in self.ecu.reports(now):
             self.bus.send(msg)
+        if self.ecu.counters.encode_errors > errors:  # a report the gateway would miss: say why
+            raise EncodeError(f"simulated ECU: report frame not sent: {self.ecu.last_encode_error}")
 
     def take_commands(self, now: float, lost: bool) -> None:
         """Hand the frames on the bus to the ECU; ``lost``: none reach it (command-dropout)."""
