@@ -577,13 +577,11 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         )
     cfg = load_config(args.file)
     codec = CanCodec.for_config(cfg)  # the profile and its DBCs load
-    for spec in cfg.profile.frames_of("report"):  # the gateway only decodes these
-        why = codec.cannot_encode(spec.name)
-        if why is not None:
-            print(
-                f"leafgate: warning: the simulated ECU (sim, sim-ecu) cannot send {why}",
-                file=sys.stderr,
-            )
+    for why in codec.unsendable_reports():  # the gateway runs with them; sim and sim-ecu not
+        print(
+            f"leafgate: warning: the simulated ECU (sim, sim-ecu) cannot send {why}",
+            file=sys.stderr,
+        )
     try:
         make_controller(cfg.controller, cfg.vehicle, cfg.gateway.period)
     except ConfigError as exc:  # a check across sections: name the file too

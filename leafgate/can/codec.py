@@ -1052,6 +1052,13 @@ class CanCodec:
             raise EncodeError(f"profile {self.profile.name} has no frame {name}")
         return entry.unencodable
 
+    def unsendable_reports(self) -> list[str]:
+        """Why each of the profile's report frames that can never be encoded cannot be (see
+        :meth:`cannot_encode`): the gateway, which only decodes them, runs with such a DBC;
+        the simulated ECU, which sends them, cannot."""
+        reports = self.profile.frames_of("report")
+        return [why for f in reports if (why := self.cannot_encode(f.name)) is not None]
+
     def encode_commands(self, commands: Any, timestamp: float = 0.0) -> list[can.Message]:
         """The profile's command frames for one tick's :class:`~leafgate.messages.Commands`.
 

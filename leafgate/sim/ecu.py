@@ -204,11 +204,7 @@ class SimulatedEcu:
         # The gateway only decodes the reports (a DBC may have more signals in them than the
         # profile maps); the ECU sends them: one it can never encode is a start-up error, not a
         # report that silently never comes (the gateway would then say it is "missing").
-        never = [
-            why
-            for f in profile.frames_of("report")
-            if (why := self.codec.cannot_encode(f.name)) is not None
-        ]
+        never = self.codec.unsendable_reports()
         if never:
             raise CanCodecError(
                 f"{profile.where}: the simulated ECU cannot send report frame "
