@@ -108,6 +108,23 @@ def test_sim_refuses_a_file_whose_plan_stops_short_naming_the_waypoint(
     assert "still.csv: row 1: the plan comes to rest here" in capsys.readouterr().err
 
 
+def test_a_speed_against_the_leg_is_named_as_that_not_as_speed_0(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Reported from outside: a straight forward line with a speed of −1 m/s at row 2 was
+    refused as "the plan comes to rest here … (speed 0 …)": the check clamps speeds against the
+    leg to 0. The value the file has is named, and why it stops the car."""
+    route = _write(
+        tmp_path / "minus.csv",
+        [(0.0, 0.0, 0.0, 1.0), (1.0, 0.0, 0.0, -1.0), (2.0, 0.0, 0.0, 1.0), (3.0, 0, 0, 0)],
+    )
+    out = tmp_path / "out"
+    assert cli.main(["sim", "--no-plots", "--trajectory", str(route), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "minus.csv: row 2: speed -1 m/s runs against the forward leg" in err
+    assert "speed 0" not in err
+
+
 def test_publish_trajectory_refuses_the_file_sim_refuses_with_the_same_reason(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

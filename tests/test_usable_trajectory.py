@@ -125,7 +125,10 @@ def test_headings_that_disagree_with_the_path_are_refused_naming_the_row() -> No
     assert trajectory_problem(CASES["a sparse arc (7 m between waypoints)"]) is None
     degrees = trajectory_problem(CASES["an arc, headings in degrees"])
     assert degrees is not None and degrees.startswith("trajectory: row 2: heading 0.955 rad is")
-    assert degrees.endswith("driven forward; headings are the vehicle's, in radians")
+    assert degrees.endswith(
+        "driven forward; headings are the vehicle's, in radians, and these look like degrees "
+        "(read as degrees they run along the path; up to 27.69)"
+    )
     tangent = trajectory_problem(CASES["an arc in reverse, the path's tangent as heading"])
     assert tangent is not None and tangent.startswith("trajectory: row 1: heading 0.000 rad is")
     assert "180° off the way the path runs from it to the next waypoint, driven backward" in (
@@ -174,12 +177,26 @@ def test_headings_in_degrees_that_flip_name_the_first_row_and_say_radians() -> N
     degrees = Trajectory(x=arc.x, y=arc.y, heading=np.degrees(arc.heading), speed=arc.speed)
     assert trajectory_problem(degrees) == (
         "trajectory: row 2: heading turns 164° from the waypoint before (a flip); headings are "
-        "the vehicle's, in radians, and these look like degrees (up to 68.75, a flip at 24 of "
-        "24 steps)"
+        "the vehicle's, in radians, and these look like degrees (read as degrees they run along "
+        "the path; up to 68.75)"
     )
     # flips the plan has twice, headings in range: the first is named, not the larger
     turned = arc.heading + np.select([np.arange(25) >= 15, np.arange(25) >= 7], [-0.9, 2.0])
     flipped = Trajectory(x=arc.x, y=arc.y, heading=turned, speed=arc.speed)
     assert trajectory_problem(flipped) == (
         "trajectory: row 8: heading turns 117° from the waypoint before (a flip)"
+    )
+
+
+def test_unwrapped_headings_in_radians_with_one_flip_are_not_called_degrees() -> None:
+    """Reported from outside: headings past 2π (PythonRobotics' ``smooth_yaw`` unwraps them)
+    with one real flip read "these look like degrees": the size decided. Now the geometry does:
+    read as degrees, 6.5° and 8.4° are near the path's 12°, but read as radians every chord but
+    the flip's runs along them."""
+    x = np.arange(6) * 0.9766
+    y = np.arange(6) * 0.2151  # the path runs at 0.217 rad = 6.5 − 2π
+    heading = np.array([6.5, 6.5, 6.5, 8.4, 6.5, 6.5])
+    traj = Trajectory(x=x, y=y, heading=heading, speed=np.array([1.0, 1, 1, 1, 1, 0]))
+    assert trajectory_problem(traj) == (
+        "trajectory: row 4: heading turns 109° from the waypoint before (a flip)"
     )

@@ -29,7 +29,7 @@ import math
 import threading
 import weakref
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -147,6 +147,14 @@ def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | Non
         i = int(kept[seg.start + stop])
         row = int(rows[i]) if rows is not None else i + 1
         leg = "forward" if seg.direction > 0 else "reverse"
+        speed = float(traj.speed[i])
+        if speed != 0.0:  # a sign against the leg the geometry says: no cusp here, no motion
+            raise TrajectoryError(
+                f"{source}: row {row}: speed {speed:g} m/s runs against the {leg} leg the path "
+                f"drives here (the chords run {leg} along the headings; a change of direction is "
+                "a cusp, where the path turns back): the car would stop here and wait for "
+                "another plan; give each leg's waypoints speeds of its sign up to its end"
+            )
         raise TrajectoryError(
             f"{source}: row {row}: the plan comes to rest here, before the end of its {leg} "
             "leg (speed 0: the car stops at the first waypoint at rest, as at a planner's stop "
@@ -381,23 +389,50 @@ def trajectory_problem(
         return (
             f"{source}: row {row_of(int(kept[i + 1]))}: heading turns "
             f"{math.degrees(float(steps[i])):.0f}° from the waypoint before (a flip)"
-            + _in_degrees(heading, flips.size)
+            + _in_degrees(_subset(traj, kept))
         )
     return _heading_problem(_subset(traj, kept), kept, source, row_of)
 
 
-def _in_degrees(heading: FloatArray, flips: int) -> str:
-    """``"; headings are … radians …"`` when headings with ``flips`` flips between neighbours
-    look like degrees: some beyond ±2π, or a flip at half the steps or more (a path turning a
-    degree or more per waypoint, read as radians); "" otherwise."""
-    largest = float(np.abs(heading).max())
-    steps = len(heading) - 1
-    if largest <= 2.0 * math.pi and 2 * flips < steps:
+def _in_degrees(traj: Trajectory) -> str:
+    """``"; headings are … radians …"`` when the headings of ``traj`` (without overlapping
+    points) read as degrees are the vehicle's along the path — no flip between neighbours and
+    every chord of at least :data:`HEADING_CHORD` along them (:func:`_chord_offsets`) — and
+    read as radians, fewer than half the chords are; "" otherwise. The geometry decides, not
+    the size: unwrapped headings in radians pass 2π (a loop driven twice, PythonRobotics'
+    ``smooth_yaw``), and headings of a few degrees, read as radians, are near the path's."""
+    as_radians = np.radians(traj.heading)
+    steps = np.abs(np.angle(np.exp(1j * np.diff(as_radians))))
+    if (steps > MAX_HEADING_STEP).any():
         return ""
+    off, long = _chord_offsets(replace(traj, heading=as_radians))
+    if not long.any() or (off > MAX_HEADING_OFF).any():
+        return ""
+    off, _ = _chord_offsets(traj)
+    if 2 * np.count_nonzero(off[long] <= MAX_HEADING_OFF) >= np.count_nonzero(long):
+        return ""  # as radians half the chords or more run along them: radians, flipped
+    largest = float(np.abs(traj.heading).max())
     return (
-        f"; headings are the vehicle's, in radians, and these look like degrees (up to "
-        f"{largest:.4g}, a flip at {flips} of {steps} steps)"
+        "; headings are the vehicle's, in radians, and these look like degrees (read as "
+        f"degrees they run along the path; up to {largest:.4g})"
     )
+
+
+def _chord_offsets(traj: Trajectory) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """How far (rad, 0–π) each chord's direction is from the way its waypoints' headings say
+    the vehicle faces on it, driven forward or in reverse (:func:`chord_directions`), 0 for a
+    chord shorter than :data:`HEADING_CHORD`; and which chords are that long. ``traj`` is
+    without overlapping points, and its neighbours' headings differ by under 90° (no flip)."""
+    dx, dy = np.diff(traj.x), np.diff(traj.y)
+    along = np.arctan2(dy, dx)  # the chord's direction
+    # the heading half way: the mean of the two (their difference is under 90°, no flip)
+    mid = traj.heading[:-1] + 0.5 * np.angle(np.exp(1j * np.diff(traj.heading)))
+    reverse = chord_directions(traj) < 0.0
+    facing = np.where(reverse, along + math.pi, along)  # where the vehicle faces on the chord
+    off = np.abs(np.angle(np.exp(1j * (facing - mid))))
+    long = np.hypot(dx, dy) >= HEADING_CHORD
+    off[~long] = 0.0
+    return off, long
 
 
 def _heading_problem(
@@ -406,23 +441,18 @@ def _heading_problem(
     """The first chord whose direction disagrees with its waypoints' headings
     (:func:`trajectory_problem`), or None. ``traj`` is without overlapping points, ``kept``
     their indices in the trajectory as given."""
-    dx, dy = np.diff(traj.x), np.diff(traj.y)
-    along = np.arctan2(dy, dx)  # the chord's direction
-    # the heading half way: the mean of the two (their difference is under 90°, no flip)
-    mid = traj.heading[:-1] + 0.5 * np.angle(np.exp(1j * np.diff(traj.heading)))
-    reverse = chord_directions(traj) < 0.0
-    facing = np.where(reverse, along + math.pi, along)  # where the vehicle faces on the chord
-    off = np.abs(np.angle(np.exp(1j * (facing - mid))))
-    off[np.hypot(dx, dy) < HEADING_CHORD] = 0.0
+    off, _ = _chord_offsets(traj)
     bad = np.flatnonzero(off > MAX_HEADING_OFF)
     if not bad.size:
         return None
     i = int(bad[0])
-    way = "backward (reverse: the speed is negative)" if reverse[i] else "forward"
+    reverse = chord_directions(traj)[i] < 0.0
+    way = "backward (reverse: the speed is negative)" if reverse else "forward"
     return (
         f"{source}: row {row_of(int(kept[i]))}: heading {float(traj.heading[i]):.3f} rad is "
         f"{math.degrees(float(off[i])):.0f}° off the way the path runs from it to the next "
-        f"waypoint, driven {way}; headings are the vehicle's, in radians"
+        f"waypoint, driven {way}"
+        + (_in_degrees(traj) or "; headings are the vehicle's, in radians")
     )
 
 
