@@ -98,6 +98,42 @@ def test_frames_of_two_channels_have_separate_counter_state(tmp_path: Path) -> N
     assert all(line.endswith("  ok") for line in out.getvalue().splitlines())
 
 
+def test_a_candump_log_of_extended_ids_error_frames_and_oversized_frames(tmp_path: Path) -> None:
+    """Reported from outside, with a ``candump -L`` log as the car's bus gives it: the summary
+    showed 29-bit ID 12345678 as ``92345678`` (the key's internal flag), an error frame as the
+    extended ID ``80000000``, and a classic frame of 10 data bytes decoded as a good one."""
+    codec = CanCodec(profile="leafgate-dbw")
+    good = bytes(codec.encode(SteerCommand(0.1, enable=True)).data).hex().upper()
+    path = tmp_path / "car.log"
+    path.write_text(
+        "(1600000000.000000) can0 12345678#0011\n"
+        f"(1600000000.010000) can0 0A0#{good}0000\n"  # a classic frame cannot carry 10 bytes
+        "(1600000000.020000) can0 20000080#0000000000000000\n"  # an error frame
+        f"(1600000000.030000) can0 0A0#{good}\n",
+        encoding="utf-8",
+    )
+    out = io.StringIO()
+    decode_log(path, out, profile="leafgate-dbw")
+    lines = out.getvalue().splitlines()
+    assert lines[0].split("  ")[2] == "12345678"
+    assert lines[1].endswith("  wrong_length") and "[10]" in lines[1]
+    assert lines[2].split("  ")[2] == "error"
+    assert lines[3].endswith("  ok")
+    summary = [line for line in lines if line.startswith("#")]
+    rows = {line.split()[1]: line.split()[2:] for line in summary[2:]}
+    assert rows["12345678"] == ["?", "1", "0", "0", "0", "1", "0"]
+    assert rows["error"] == ["error", "frames", "1", "0", "0", "0", "1", "0"]
+    assert rows["0A0"] == ["DBW_STEER_CMD", "2", "0", "0", "1", "0", "0"]
+    assert not any(key.startswith(("8", "9")) for key in rows)
+
+
+def test_a_screen_dump_of_candump_is_refused_naming_the_log_format(tmp_path: Path) -> None:
+    path = tmp_path / "screen.log"
+    path.write_text("  can0  284   [8]  05 A0 05 A0 00 00 00 00\n", encoding="utf-8")
+    with pytest.raises(ReplayError, match=r"screen.log: unreadable: not a candump -L log"):
+        decode_log(path, io.StringIO(), profile="leafgate-dbw")
+
+
 def test_missing_file_is_a_replay_error(tmp_path: Path) -> None:
     with pytest.raises(ReplayError, match=r"nothing\.log: no such file"):
         decode_log(tmp_path / "nothing.log", io.StringIO(), profile="leafgate-dbw")

@@ -119,6 +119,20 @@ _E2E_SIGNALS: Final = {"ALIVE_COUNTER": (48, 4), "CRC": (56, 8)}  # start bit, l
 _SECOC_SIGNALS: Final = {"FRESHNESS": (32, 8), "MAC": (40, 24)}  # start bit, length (secoc.py)
 _FIXED_SIGNALS: Final = {"leafgate": _E2E_SIGNALS, "secoc": _SECOC_SIGNALS}
 EXTENDED_KEY: Final = 1 << 31  # added to a 29-bit ID's key in :attr:`CanCodec.stats`
+ERROR_FRAME_KEY: Final = 1 << 30  # the key of error frames (no ID) in :attr:`CanCodec.stats`
+CLASSIC_MAX_DATA: Final = 8  # bytes of a classic CAN frame (more only with CAN FD)
+
+
+def stats_label(key: int) -> str:
+    """A key of :attr:`CanCodec.stats` as a log shows it: ``284``, a 29-bit ID in 8 digits
+    (``12345678``), ``error`` for error frames."""
+    if key == ERROR_FRAME_KEY:
+        return "error"
+    if key & EXTENDED_KEY:
+        return f"{key & ~EXTENDED_KEY:08X}"
+    return f"{key:03X}"
+
+
 _MAX_TRACKED_UNKNOWN_IDS: Final = 1024  # beyond this, unknown IDs are only counted globally
 
 ErrorKind = Literal[
@@ -1200,16 +1214,20 @@ class CanCodec:
     def decode(self, msg: can.Message) -> Decoded:
         """Decode one received frame; never raises.
 
-        Checks, in order: known standard ID (``unknown_id``), length (``wrong_length``:
-        protected frames exactly their DBC length; others at least it, as model years differ
-        in trailing bytes), checksum (``bad_crc``), alive counter (``bad_counter``), content
+        Checks, in order: known standard ID (``unknown_id``; an error frame has none), length
+        (``wrong_length``: protected frames exactly their DBC length; others at least it, as
+        model years differ in trailing bytes; never over 8 bytes but for a CAN FD frame), checksum (``bad_crc``), alive counter (``bad_counter``), content
         (``decode_error``). Every outcome is counted in :attr:`stats`.
         """
         frame_id = msg.arbitration_id
-        entry = None if msg.is_extended_id else self._rx.get(frame_id)
+        entry = None if msg.is_extended_id or msg.is_error_frame else self._rx.get(frame_id)
         if entry is None:
-            # an extended ID is kept apart from the standard ID of the same number
-            self._count_unknown(frame_id | EXTENDED_KEY if msg.is_extended_id else frame_id)
+            # an extended ID is kept apart from the standard ID of the same number; an error
+            # frame (a controller's report of a bus error) has no ID at all
+            if msg.is_error_frame:
+                self._count_unknown(ERROR_FRAME_KEY)
+            else:
+                self._count_unknown(frame_id | EXTENDED_KEY if msg.is_extended_id else frame_id)
             return Decoded(frame_id, None, None, False, "unknown_id")
         counts = self._counts[frame_id]
         counts[_FRAMES] += 1
@@ -1217,8 +1235,8 @@ class CanCodec:
             data = msg.data
             size = len(data)
             if (
-                msg.is_error_frame
-                or msg.is_remote_frame
+                msg.is_remote_frame
+                or (size > CLASSIC_MAX_DATA and not msg.is_fd)  # no classic frame holds more
                 or (size != entry.length if entry.exact else size < entry.length)
             ):
                 counts[_WRONG_LENGTH] += 1
@@ -1298,8 +1316,8 @@ class CanCodec:
     @property
     def stats(self) -> Mapping[int, FrameStats]:
         """Receive counters per CAN ID (a snapshot). Unknown IDs are listed too, up to 1024
-        distinct ones (29-bit IDs as ``ID | EXTENDED_KEY``); :attr:`unknown_id_count` counts
-        all of them."""
+        distinct ones (29-bit IDs as ``ID | EXTENDED_KEY``, error frames as ``ERROR_FRAME_KEY``;
+        :func:`stats_label` shows a key); :attr:`unknown_id_count` counts all of them."""
         return {frame_id: FrameStats(*counts) for frame_id, counts in list(self._counts.items())}
 
     @property

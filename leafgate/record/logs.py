@@ -115,7 +115,7 @@ _TEXT_READERS: dict[str, Any] = {
 # The text formats: what each is called in an error, and how a file of it may begin without a
 # frame (a header); a file with text but neither a frame nor such a start is not of the format.
 _TEXT_FORMATS: dict[str, tuple[str, tuple[str, ...]]] = {
-    ".log": ("candump", ()),
+    ".log": ("candump -L", ()),  # candump's log format; its screen output does not read
     ".asc": ("ASC", ("date ", "base ", "internal events", "begin triggerblock", "//")),
     ".csv": ("CSV", ("timestamp,",)),
     ".trc": ("TRC", (";",)),

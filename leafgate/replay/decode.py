@@ -44,7 +44,7 @@ from typing import TextIO
 
 import can
 
-from leafgate.can.codec import CanCodec, Decoded, FrameStats
+from leafgate.can.codec import ERROR_FRAME_KEY, CanCodec, Decoded, FrameStats, stats_label
 from leafgate.can.profile import Profile
 from leafgate.record.logs import ChainedSource, LogParts, group_parts, unread_next_part
 from leafgate.text import plural
@@ -65,7 +65,8 @@ def format_frame(
     channel = "-" if msg.channel is None else str(msg.channel)
     width = 8 if msg.is_extended_id else 3
     data = bytes(msg.data)
-    head = f"{msg.timestamp:.6f}  {channel}  {msg.arbitration_id:0{width}X}  [{len(data)}]"
+    label = "error" if msg.is_error_frame else f"{msg.arbitration_id:0{width}X}"
+    head = f"{msg.timestamp:.6f}  {channel}  {label}  [{len(data)}]"
     message = (
         None
         if decoded.error in ("unknown_id", "wrong_length")
@@ -99,8 +100,8 @@ def format_summary(stats: dict[int, FrameStats], names: dict[int, str | None]) -
     total = FrameStats()
     for frame_id in sorted(stats):
         s = stats[frame_id]
-        name = names.get(frame_id) or "?"
-        label = f"{frame_id:03X}"
+        name = names.get(frame_id) or ("error frames" if frame_id == ERROR_FRAME_KEY else "?")
+        label = stats_label(frame_id)
         lines.append(
             f"{label:>8}  {name:<20} {s.frames:>8} {s.bad_crc:>8} {s.bad_counter:>8} "
             f"{s.wrong_length:>8} {s.unknown_id:>8} {s.decode_error:>8}"

@@ -384,10 +384,20 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
     wall0 = time.perf_counter()
     t = 0.0
     finished = False
+    limit = config.gateway.watchdog.max_path_deviation
+    left_plan = ""  # where the car first went farther off the plan than the gateway allows
     for k in range(steps):
         t = k * period
         pose = plant.pose()
         out = controller.step(pose, plant.steer_angle, traj)
+        if out.deviation > limit and not left_plan:  # False for NaN, as in the watchdog
+            left_plan = (
+                f"off the plan at t = {t:.2f} s: {out.deviation:.2f} m from it at "
+                f"{out.progress:.1f} of {out.route_length:.1f} m (limit {limit:g} m, "
+                "watchdog.max_path_deviation): the gateway would have stopped the car there; "
+                "--direct has no gateway and drove on"
+            )
+            timeline.append((t, left_plan))
         not_converged += 0 if out.converged else 1
         clips += out.clips
         solve_times.append(out.solve_time)
@@ -419,6 +429,8 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
     why_not = (
         "" if finished else f"the controller did not reach the end within {scenario.duration:.0f} s"
     )
+    if left_plan:  # the end was reached where the car would not have been let drive
+        extra["finished"], why_not = False, left_plan
     return _finish(config, scenario, rec, solve_times, extra, timeline, label, why_not)
 
 
