@@ -168,7 +168,7 @@ def test_sim_refuses_at_load_what_the_gateway_would_refuse(
     many = _write(tmp_path / "many.csv", [(0.1 * i, 0.0, 0.0, 1.0) for i in range(30)])
     args = ["sim", "--no-plots", "--trajectory", str(many), "--set", "zenoh.max_plan_points=20"]
     assert cli.main([*args, "--out", str(out)]) == 1
-    assert "many.csv: 30 waypoints, at most 20" in capsys.readouterr().err
+    assert "many.csv: 30 waypoints, at most 20 (zenoh.max_plan_points)" in capsys.readouterr().err
     assert not (out / "metrics.json").exists()
     # publish-trajectory neither sends a plan the gateway would drop (before any session opens)
     config = tmp_path / "z.yaml"

@@ -365,7 +365,7 @@ def trajectory_problem(
     :param rows: the row of the file each waypoint came from (:func:`validate`)
     """
     if max_points is not None and len(traj) > max_points:
-        return f"{source}: {len(traj)} waypoints, at most {max_points}"
+        return f"{source}: {len(traj)} waypoints, at most {max_points} (zenoh.max_plan_points)"
     try:
         validate(traj, source, rows)
     except TrajectoryError as exc:
