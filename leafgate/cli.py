@@ -504,15 +504,18 @@ def cmd_status(args: argparse.Namespace) -> int:
     seen: list[dict[str, Any]] = []
 
     closed: list[BrokenPipeError] = []
+    watch = DiagnosticsWatch()
 
     def show(diag: dict[str, Any]) -> None:
-        # On a Zenoh thread: a closed stdout is noted here and raised in the main thread.
+        # On a Zenoh thread: a closed stdout is noted here and raised in the main thread, which
+        # stops watching at once (it watched on for the whole --duration after `| head -1`).
         if closed:
             return
         try:
             _show(diag)
         except BrokenPipeError as exc:
             closed.append(exc)
+            watch.done.set()
 
     def _show(diag: dict[str, Any]) -> None:
         seen.append(diag)
@@ -537,7 +540,6 @@ def cmd_status(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    watch = DiagnosticsWatch()
     watch_diagnostics(tool_view(cfg.zenoh), show, args.duration, watch=watch)
     if closed:
         raise closed[0]

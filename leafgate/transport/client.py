@@ -211,6 +211,10 @@ class DiagnosticsWatch:
     #: every Zenoh ID seen holding the token while watched
     holders: set[str] = dataclasses.field(default_factory=set)
 
+    #: set to end the watch before its duration (the callback may set it on its Zenoh thread:
+    #: ``leafgate status`` does when its reader has gone, ``… | head -1``)
+    done: threading.Event = dataclasses.field(default_factory=threading.Event)
+
     def foreign(self) -> dict[str, int]:
         """The ignored records of publishers that never held the token while watched (a
         gateway's records that arrived just before its token was seen are not foreign)."""
@@ -238,7 +242,8 @@ def watch_diagnostics(
     state the gateway is not in. The gateway's publisher names itself with Zenoh's source
     info; records without it, or from another session, are skipped and counted in ``watch``,
     as are the gateways heard (more than one: a conflict). Payloads that are not JSON objects
-    are skipped. The callback runs on a Zenoh thread.
+    are skipped. The callback runs on a Zenoh thread; setting ``watch.done`` ends the watch
+    early.
 
     :returns: the number of diagnostics objects delivered
     """
@@ -288,7 +293,7 @@ def watch_diagnostics(
         try:
             subscriber = s.declare_subscriber(cfg.key(keys.DIAGNOSTICS), on_sample)
             try:
-                time.sleep(max(0.0, duration))
+                seen.done.wait(max(0.0, duration))
             finally:
                 subscriber.undeclare()
         finally:
