@@ -1148,24 +1148,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     closed = _closed_standard_streams()
     if closed:
         return closed
-    try:
+    try:  # Ctrl-C before the command runs (a traceback of argparse's, once): one line too
         parser = build_parser()  # imports what the subcommands' options list
+        args = parser.parse_args(argv)
+        if args.command is None:
+            args = parser.parse_args(["sim", *(argv or [])])
+        if args.command not in STOP_SIGNAL_COMMANDS:
+            from leafgate.runtime.signals import release
+
+            release()  # the default actions back (a signal held meanwhile acts now)
+        if args.bench is not None:
+            from leafgate.settings import BENCH_ENV
+
+            os.environ[BENCH_ENV] = str(args.bench)  # every config this process loads
+        # The daemon logs from its control thread: through a queue, so stdout never delays a
+        # tick.
+        setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     except KeyboardInterrupt:
         print("leafgate: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    args = parser.parse_args(argv)
-    if args.command is None:
-        args = parser.parse_args(["sim", *(argv or [])])
-    if args.command not in STOP_SIGNAL_COMMANDS:
-        from leafgate.runtime.signals import release
-
-        release()  # the default actions back (a signal held meanwhile acts now)
-    if args.bench is not None:
-        from leafgate.settings import BENCH_ENV
-
-        os.environ[BENCH_ENV] = str(args.bench)  # every config this process loads
-    # The daemon logs from its control thread: through a queue, so stdout never delays a tick.
-    setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     try:
         _prepare_outputs(args)
         try:
