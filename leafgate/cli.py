@@ -47,8 +47,8 @@ except KeyboardInterrupt:
 log = logging.getLogger("leafgate")
 
 EXIT_ERROR = 1
-#: the commands that stop in a controlled way on SIGTERM and SIGHUP (runtime.signals)
-STOP_SIGNAL_COMMANDS = frozenset({"run", "sim-ecu"})
+#: the commands that stop in a controlled way on SIGINT, SIGTERM and SIGHUP (runtime.signals)
+STOP_SIGNAL_COMMANDS = frozenset({"run", "sim-ecu", "publish-trajectory"})
 EXIT_USAGE = 2
 ENGAGE_WAIT = 15.0  # s, how long `engage` waits for a starting gateway's inputs by default
 
@@ -614,9 +614,18 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_publish_trajectory(args: argparse.Namespace) -> int:
+    """Publish until --count or a stop signal (SIGINT, SIGTERM, SIGHUP), then close in order.
+
+    A stop signal sets an event (runtime.signals) instead of raising KeyboardInterrupt: a Ctrl-C
+    that came while Python ran a finaliser (an import's lock, on the first publication) was
+    swallowed there ("Exception ignored in … KeyboardInterrupt") and the command published on,
+    and a second one could cut the closing of the publisher and session short.
+    """
+    import threading
     import time
 
     from leafgate.runtime.daemon import tool_view
+    from leafgate.runtime.signals import signals_set
     from leafgate.transport.client import TrajectoryPublisher
     from leafgate.transport.session import open_session
 
@@ -638,25 +647,26 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
     else:
         trajectory = _scenario(args.scenario).trajectory
     zcfg = tool_view(cfg.zenoh)
-    session = open_session(zcfg)
+    stop = threading.Event()
     sent = 0
-    try:
-        with TrajectoryPublisher(session, zcfg) as publisher:
-            if not publisher.wait_for_subscriber(args.wait):
-                print(
-                    f"leafgate: warning: no subscriber on {publisher.key} yet; publishing anyway",
-                    file=sys.stderr,
-                )
-            next_t = time.monotonic()
-            while args.count == 0 or sent < args.count:
-                publisher.publish(trajectory)
-                sent += 1
-                next_t += args.period
-                time.sleep(max(0.0, next_t - time.monotonic()))
-    except KeyboardInterrupt:
-        pass
-    finally:
-        session.close()
+    with signals_set(stop):
+        session = open_session(zcfg)
+        try:
+            with TrajectoryPublisher(session, zcfg) as publisher:
+                if not publisher.wait_for_subscriber(args.wait, stop=stop) and not stop.is_set():
+                    print(
+                        f"leafgate: warning: no subscriber on {publisher.key} yet; "
+                        "publishing anyway",
+                        file=sys.stderr,
+                    )
+                next_t = time.monotonic()
+                while not stop.is_set() and (args.count == 0 or sent < args.count):
+                    publisher.publish(trajectory)
+                    sent += 1
+                    next_t += args.period
+                    stop.wait(max(0.0, next_t - time.monotonic()))
+        finally:
+            session.close()
     print(f"published the trajectory {sent} times")
     return 0
 

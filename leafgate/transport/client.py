@@ -55,14 +55,22 @@ def _matching(entity: zenoh.Publisher | zenoh.Querier) -> bool:
     return bool(getattr(status, "matching", status))
 
 
-def _wait_matching(entity: zenoh.Publisher | zenoh.Querier, deadline: float) -> bool:
-    """Wait until Zenoh knows a subscriber/queryable for the entity's key, or the deadline."""
+def _wait_matching(
+    entity: zenoh.Publisher | zenoh.Querier,
+    deadline: float,
+    stop: threading.Event | None = None,
+) -> bool:
+    """Wait until Zenoh knows a subscriber/queryable for the entity's key, or the deadline (or
+    ``stop`` is set)."""
     while True:
         if _matching(entity):
             return True
-        if time.monotonic() >= deadline:
+        if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
             return False
-        time.sleep(_POLL)
+        if stop is None:
+            time.sleep(_POLL)
+        else:
+            stop.wait(_POLL)
 
 
 def gateway_ids(cfg: ZenohConfig, session: zenoh.Session, timeout: float) -> set[str]:
@@ -328,9 +336,10 @@ class _InputPublisher(Generic[T]):
         """Whether a subscriber for the key is known (the gateway is listening)."""
         return _matching(self._publisher)
 
-    def wait_for_subscriber(self, timeout: float) -> bool:
-        """Wait up to ``timeout`` s for a subscriber; True if one is known."""
-        return _wait_matching(self._publisher, time.monotonic() + timeout)
+    def wait_for_subscriber(self, timeout: float, stop: threading.Event | None = None) -> bool:
+        """Wait up to ``timeout`` s (or until ``stop`` is set) for a subscriber; True if one is
+        known."""
+        return _wait_matching(self._publisher, time.monotonic() + timeout, stop)
 
     def _put(self, value: T) -> None:
         self._ros.put(self._codec.encode(value))
