@@ -48,8 +48,8 @@ except KeyboardInterrupt:
 log = logging.getLogger("leafgate")
 
 EXIT_ERROR = 1
-#: the commands that stop in a controlled way on SIGTERM and SIGHUP (runtime.signals)
-STOP_SIGNAL_COMMANDS = frozenset({"run", "sim-ecu"})
+#: the commands that stop in a controlled way on SIGINT, SIGTERM and SIGHUP (runtime.signals)
+STOP_SIGNAL_COMMANDS = frozenset({"run", "sim-ecu", "publish-trajectory"})
 EXIT_USAGE = 2
 ENGAGE_WAIT = 15.0  # s, how long `engage` waits for a starting gateway's inputs by default
 
@@ -505,15 +505,18 @@ def cmd_status(args: argparse.Namespace) -> int:
     seen: list[dict[str, Any]] = []
 
     closed: list[BrokenPipeError] = []
+    watch = DiagnosticsWatch()
 
     def show(diag: dict[str, Any]) -> None:
-        # On a Zenoh thread: a closed stdout is noted here and raised in the main thread.
+        # On a Zenoh thread: a closed stdout is noted here and raised in the main thread, which
+        # stops watching at once (it watched on for the whole --duration after `| head -1`).
         if closed:
             return
         try:
             _show(diag)
         except BrokenPipeError as exc:
             closed.append(exc)
+            watch.done.set()
 
     def _show(diag: dict[str, Any]) -> None:
         seen.append(diag)
@@ -538,7 +541,6 @@ def cmd_status(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    watch = DiagnosticsWatch()
     watch_diagnostics(tool_view(cfg.zenoh), show, args.duration, watch=watch)
     if closed:
         raise closed[0]
@@ -623,9 +625,18 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_publish_trajectory(args: argparse.Namespace) -> int:
+    """Publish until --count or a stop signal (SIGINT, SIGTERM, SIGHUP), then close in order.
+
+    A stop signal sets an event (runtime.signals) instead of raising KeyboardInterrupt: a Ctrl-C
+    that came while Python ran a finaliser (an import's lock, on the first publication) was
+    swallowed there ("Exception ignored in … KeyboardInterrupt") and the command published on,
+    and a second one could cut the closing of the publisher and session short.
+    """
+    import threading
     import time
 
     from leafgate.runtime.daemon import tool_view
+    from leafgate.runtime.signals import signals_set
     from leafgate.transport.client import TrajectoryPublisher
     from leafgate.transport.session import open_session
 
@@ -647,25 +658,26 @@ def cmd_publish_trajectory(args: argparse.Namespace) -> int:
     else:
         trajectory = _scenario(args.scenario).trajectory
     zcfg = tool_view(cfg.zenoh)
-    session = open_session(zcfg)
+    stop = threading.Event()
     sent = 0
-    try:
-        with TrajectoryPublisher(session, zcfg) as publisher:
-            if not publisher.wait_for_subscriber(args.wait):
-                print(
-                    f"leafgate: warning: no subscriber on {publisher.key} yet; publishing anyway",
-                    file=sys.stderr,
-                )
-            next_t = time.monotonic()
-            while args.count == 0 or sent < args.count:
-                publisher.publish(trajectory)
-                sent += 1
-                next_t += args.period
-                time.sleep(max(0.0, next_t - time.monotonic()))
-    except KeyboardInterrupt:
-        pass
-    finally:
-        session.close()
+    with signals_set(stop):
+        session = open_session(zcfg)
+        try:
+            with TrajectoryPublisher(session, zcfg) as publisher:
+                if not publisher.wait_for_subscriber(args.wait, stop=stop) and not stop.is_set():
+                    print(
+                        f"leafgate: warning: no subscriber on {publisher.key} yet; "
+                        "publishing anyway",
+                        file=sys.stderr,
+                    )
+                next_t = time.monotonic()
+                while not stop.is_set() and (args.count == 0 or sent < args.count):
+                    publisher.publish(trajectory)
+                    sent += 1
+                    next_t += args.period
+                    stop.wait(max(0.0, next_t - time.monotonic()))
+        finally:
+            session.close()
     print(f"published the trajectory {sent} times")
     return 0
 
@@ -1179,25 +1191,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     closed = _closed_standard_streams()
     if closed:
         return closed
-    try:
+    try:  # Ctrl-C before the command runs (a traceback of argparse's, once): one line too
         parser = build_parser()  # imports what the subcommands' options list
+        argv = _negative_start(sys.argv[1:] if argv is None else argv)
+        args = parser.parse_args(argv)
+        if args.command is None:
+            args = parser.parse_args(["sim", *argv])
+        if args.command not in STOP_SIGNAL_COMMANDS:
+            from leafgate.runtime.signals import release
+
+            release()  # the default actions back (a signal held meanwhile acts now)
+        if args.bench is not None:
+            from leafgate.settings import BENCH_ENV
+
+            os.environ[BENCH_ENV] = str(args.bench)  # every config this process loads
+        # The daemon logs from its control thread: through a queue, so stdout never delays a
+        # tick.
+        setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     except KeyboardInterrupt:
         print("leafgate: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    argv = _negative_start(sys.argv[1:] if argv is None else argv)
-    args = parser.parse_args(argv)
-    if args.command is None:
-        args = parser.parse_args(["sim", *argv])
-    if args.command not in STOP_SIGNAL_COMMANDS:
-        from leafgate.runtime.signals import release
-
-        release()  # the default actions back (a signal held meanwhile acts now)
-    if args.bench is not None:
-        from leafgate.settings import BENCH_ENV
-
-        os.environ[BENCH_ENV] = str(args.bench)  # every config this process loads
-    # The daemon logs from its control thread: through a queue, so stdout never delays a tick.
-    setup_logging(args.log_format, args.verbose, queued=args.command == "run")
     try:
         _prepare_outputs(args)
         try:

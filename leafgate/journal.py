@@ -121,9 +121,19 @@ _listener: logging.handlers.QueueListener | None = None
 
 
 def _stop_listener() -> None:
+    """Write what is still queued and stop the listener (at exit, and before a new set-up).
+
+    A Ctrl-C meanwhile (the daemon's second or third, once it has stopped) drops the lines
+    still queued instead of ending in "Exception ignored in atexit callback" and a traceback:
+    the exit status is decided by then.
+    """
     global _listener
-    if _listener is not None:
-        _listener.stop()  # writes what is still queued
+    try:
+        if _listener is not None:
+            _listener.stop()  # writes what is still queued
+    except KeyboardInterrupt:
+        pass
+    finally:
         _listener = None
 
 

@@ -7,6 +7,8 @@ import io
 import json
 import logging
 import os
+import signal
+import time
 from typing import Any
 
 import pytest
@@ -178,3 +180,34 @@ def test_a_closed_log_stream_goes_quiet_without_a_traceback(
         assert "Logging error" not in capsys.readouterr().err
     finally:
         logging.getLogger().removeHandler(handler)
+
+
+class _SlowReader(io.StringIO):
+    """A stdout that Ctrl-C interrupts while the last queued lines are written at exit."""
+
+    def write(self, text: str) -> int:
+        signal.raise_signal(signal.SIGINT)  # noted now, raised on the main thread (its join)
+        time.sleep(0.05)
+        return super().write(text)
+
+
+def test_a_ctrl_c_while_the_queued_log_is_written_at_exit_is_no_traceback() -> None:
+    """``leafgate run`` writes its queued log lines at exit (atexit); a Ctrl-C then (the
+    daemon's third, once stopped: 1 in 30 trials) ended in "Exception ignored in atexit
+    callback" and KeyboardInterrupt's traceback. The lines still queued are dropped instead."""
+    from leafgate.journal import _stop_listener, setup_logging
+
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        setup_logging("text", stream=_SlowReader(), queued=True)
+        logging.getLogger("leafgate.test").info("the last line")
+        try:
+            _stop_listener()
+            time.sleep(0.2)  # a KeyboardInterrupt still pending is raised here
+        except KeyboardInterrupt:
+            pytest.fail("Ctrl-C while the log was written escaped the atexit callback")
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        root.handlers[:], root.level = handlers, level

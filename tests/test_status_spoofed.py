@@ -8,6 +8,7 @@ Every test opens its own sessions on a free loopback port with multicast scoutin
 
 from __future__ import annotations
 
+import io
 import json
 import threading
 import time
@@ -190,3 +191,41 @@ def test_a_request_waits_for_a_starting_gateways_token(port: int, tool_cfg: Zeno
         queryable.undeclare()
         session.close()
     assert reply["reason"] == "starting"
+
+
+class _ReaderGone:
+    """stdout of ``leafgate status | head -1`` once head has its line: every write fails."""
+
+    def write(self, _text: str) -> int:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self) -> None:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def fileno(self) -> int:
+        raise io.UnsupportedOperation("fileno")  # as pytest's capture: no descriptor
+
+
+WATCHED = 120.0  # s of --duration: a status that watches on after its reader left takes this
+
+
+def test_status_stops_watching_when_its_reader_is_gone(
+    gateway: GatewayTransport,
+    port: int,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``leafgate status --duration 120 | head -1`` ends once head has gone (status 141), not
+    after the two minutes: the closed pipe was noted on Zenoh's thread and the main thread
+    slept on to the end of --duration, the pipeline hanging with it."""
+    config = tmp_path / "status.yaml"
+    config.write_text(yaml.safe_dump({"zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]}}))
+    capsys.readouterr()
+    monkeypatch.setattr("sys.stdout", _ReaderGone())
+    start = time.monotonic()
+    code = cli.main(["status", "--config", str(config), "--duration", str(WATCHED), "--json"])
+    took = time.monotonic() - start
+    assert code == cli.EXIT_PIPE
+    assert took < WATCHED / 2, f"status watched on for {took:.0f} s after its reader left"
+    assert "output closed by the reader" in capsys.readouterr().err

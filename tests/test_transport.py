@@ -778,3 +778,26 @@ def test_a_peer_whose_connect_endpoints_do_not_answer_is_named(
     assert unanswered_connect(SimpleNamespace(), configs[0]) == ()  # type: ignore[arg-type]
     client_cfg = ZenohConfig(mode="client", connect=nobody.connect)
     assert unanswered_connect(SimpleNamespace(), client_cfg) == ()  # type: ignore[arg-type]
+
+
+def test_closing_a_session_whose_peer_never_answers_the_handshake_is_prompt() -> None:
+    """A ``connect`` endpoint that accepts the connection and then says nothing (another
+    service on the port, a hung process): closing the session waited for the pending Zenoh
+    handshake, 10 s by default, so every tool took ~10 s to exit (``status --duration 1``: 11 s)
+    and a Ctrl-C waited with it. The handshake is now bounded (OPEN_TIMEOUT_MS)."""
+    from leafgate.transport.session import OPEN_TIMEOUT_MS
+
+    mute = socket.socket()
+    mute.bind(("127.0.0.1", 0))
+    mute.listen(8)  # the kernel accepts the connections; nobody ever reads or writes them
+    endpoint = f"tcp/127.0.0.1:{mute.getsockname()[1]}"
+    try:
+        session = open_session(ZenohConfig(connect=(endpoint,)))
+        time.sleep(0.2)  # the handshake has begun
+        start = time.monotonic()
+        session.close()
+        took = time.monotonic() - start
+    finally:
+        mute.close()
+    # Zenoh's default held it ~9.8 s; the bound leaves room for a loaded machine
+    assert took < OPEN_TIMEOUT_MS / 1000 + 4.0, f"close waited {took:.1f} s for the handshake"

@@ -34,7 +34,7 @@ from leafgate.runtime.hold import held_handlers, hold_handler, take_held
 
 log = logging.getLogger(__name__)
 
-#: what stops the daemon (and ``sim-ecu``) in a controlled way
+#: what stops the daemon (and ``sim-ecu``, ``publish-trajectory``) in a controlled way
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 

@@ -55,14 +55,22 @@ def _matching(entity: zenoh.Publisher | zenoh.Querier) -> bool:
     return bool(getattr(status, "matching", status))
 
 
-def _wait_matching(entity: zenoh.Publisher | zenoh.Querier, deadline: float) -> bool:
-    """Wait until Zenoh knows a subscriber/queryable for the entity's key, or the deadline."""
+def _wait_matching(
+    entity: zenoh.Publisher | zenoh.Querier,
+    deadline: float,
+    stop: threading.Event | None = None,
+) -> bool:
+    """Wait until Zenoh knows a subscriber/queryable for the entity's key, or the deadline (or
+    ``stop`` is set)."""
     while True:
         if _matching(entity):
             return True
-        if time.monotonic() >= deadline:
+        if time.monotonic() >= deadline or (stop is not None and stop.is_set()):
             return False
-        time.sleep(_POLL)
+        if stop is None:
+            time.sleep(_POLL)
+        else:
+            stop.wait(_POLL)
 
 
 def gateway_ids(cfg: ZenohConfig, session: zenoh.Session, timeout: float) -> set[str]:
@@ -211,6 +219,10 @@ class DiagnosticsWatch:
     #: every Zenoh ID seen holding the token while watched
     holders: set[str] = dataclasses.field(default_factory=set)
 
+    #: set to end the watch before its duration (the callback may set it on its Zenoh thread:
+    #: ``leafgate status`` does when its reader has gone, ``… | head -1``)
+    done: threading.Event = dataclasses.field(default_factory=threading.Event)
+
     def foreign(self) -> dict[str, int]:
         """The ignored records of publishers that never held the token while watched (a
         gateway's records that arrived just before its token was seen are not foreign)."""
@@ -238,7 +250,8 @@ def watch_diagnostics(
     state the gateway is not in. The gateway's publisher names itself with Zenoh's source
     info; records without it, or from another session, are skipped and counted in ``watch``,
     as are the gateways heard (more than one: a conflict). Payloads that are not JSON objects
-    are skipped. The callback runs on a Zenoh thread.
+    are skipped. The callback runs on a Zenoh thread; setting ``watch.done`` ends the watch
+    early.
 
     :returns: the number of diagnostics objects delivered
     """
@@ -288,7 +301,7 @@ def watch_diagnostics(
         try:
             subscriber = s.declare_subscriber(cfg.key(keys.DIAGNOSTICS), on_sample)
             try:
-                time.sleep(max(0.0, duration))
+                seen.done.wait(max(0.0, duration))
             finally:
                 subscriber.undeclare()
         finally:
@@ -323,9 +336,10 @@ class _InputPublisher(Generic[T]):
         """Whether a subscriber for the key is known (the gateway is listening)."""
         return _matching(self._publisher)
 
-    def wait_for_subscriber(self, timeout: float) -> bool:
-        """Wait up to ``timeout`` s for a subscriber; True if one is known."""
-        return _wait_matching(self._publisher, time.monotonic() + timeout)
+    def wait_for_subscriber(self, timeout: float, stop: threading.Event | None = None) -> bool:
+        """Wait up to ``timeout`` s (or until ``stop`` is set) for a subscriber; True if one is
+        known."""
+        return _wait_matching(self._publisher, time.monotonic() + timeout, stop)
 
     def _put(self, value: T) -> None:
         self._ros.put(self._codec.encode(value))

@@ -26,6 +26,7 @@ TLS_LISTEN_FILES = ("root_ca_certificate", "listen_certificate", "listen_private
 TLS_CONNECT_FILES = ("root_ca_certificate", "connect_certificate", "connect_private_key")
 _TLS_SCHEMES = ("tls/", "quic/")  # endpoints that use the TLS settings
 TX_DATA_BATCHES = 16  # batches of the data priority in the transmit queue (Zenoh's maximum)
+OPEN_TIMEOUT_MS = 2000  # ms a peer has to complete Zenoh's handshake (Zenoh's default: 10000)
 
 # Zenoh's messages end with " at /path/to/file.rs:123." and may span lines; keep the gist.
 _RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
@@ -78,6 +79,12 @@ def build_config(cfg: ZenohConfig) -> zenoh.Config:
         # the later statuses on a loaded machine). 16 is Zenoh's maximum. ``extra`` may
         # set it back.
         _insert(config, "transport/link/tx/queue/size/data", str(TX_DATA_BATCHES), "tx queue")
+        # A ``connect`` endpoint that accepts the connection but never answers Zenoh's handshake
+        # (another service on the port, a hung process) leaves the handshake pending, and
+        # closing the session waits for it: up to Zenoh's 10 s, which every tool and the
+        # daemon's stop waited at exit (measured: `status --duration 1` took 11 s). A handshake
+        # takes milliseconds on loopback or the car's network. ``extra`` may set it back.
+        _insert(config, "transport/unicast/open_timeout", str(OPEN_TIMEOUT_MS), "open timeout")
     for name in ("listen", "connect"):
         endpoints: tuple[str, ...] = getattr(cfg, name)
         if cfg.ros == "rmw_zenoh" and cfg.config_file is None and not endpoints:
