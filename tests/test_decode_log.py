@@ -190,3 +190,30 @@ def test_the_readable_suffixes_are_one_list_with_what_each_needs(
         f"leafgate: error: {log}: unreadable: a .mf4 log needs the asammdf package, which is "
         "not installed (pip install asammdf)\n"
     )
+
+
+def test_replay_check_keeps_29_bit_ids_and_error_frames_apart_from_11_bit_ids(
+    tmp_path: Path,
+) -> None:
+    """``replay check`` keyed its ID table by the raw ID: an error frame was ID 0, and a 29-bit
+    ID shared the row of the 11-bit ID of the same number (whose E2E counts are kept apart by
+    the codec). One key rule now, :func:`~leafgate.can.codec.frame_key`, for both tools."""
+    from leafgate.replay.check import check_log
+
+    codec = CanCodec(profile="leafgate-dbw")
+    good = bytes(codec.encode(SteerCommand(0.1, enable=True)).data).hex().upper()
+    path = tmp_path / "car.log"
+    path.write_text(
+        f"(1600000000.000000) can0 0A0#{good}\n"
+        "(1600000000.010000) can0 000000A0#0011\n"  # 29-bit 0xA0, not the steering command
+        "(1600000000.020000) can0 20000080#0000000000000000\n",  # an error frame
+        encoding="utf-8",
+    )
+    report = check_log(path, profile="leafgate-dbw")
+    rows = {row["id"]: row for row in report.to_dict()["ids"]}
+    assert set(rows) == {"0x0A0", "0x000000A0", "error"}
+    assert rows["0x0A0"]["frames"] == 1 and rows["0x0A0"]["name"] == "DBW_STEER_CMD"
+    assert rows["error"]["name"] == "error frames"
+    table = report.format()
+    assert any(line.split()[:3] == ["error", "error", "frames"] for line in table)
+    assert any(line.split()[:2] == ["000000A0", "?"] for line in table)

@@ -120,7 +120,17 @@ _SECOC_SIGNALS: Final = {"FRESHNESS": (32, 8), "MAC": (40, 24)}  # start bit, le
 _FIXED_SIGNALS: Final = {"leafgate": _E2E_SIGNALS, "secoc": _SECOC_SIGNALS}
 EXTENDED_KEY: Final = 1 << 31  # added to a 29-bit ID's key in :attr:`CanCodec.stats`
 ERROR_FRAME_KEY: Final = 1 << 30  # the key of error frames (no ID) in :attr:`CanCodec.stats`
+ERROR_FRAMES_NAME: Final = "error frames"  # what a log's statistics call that key's row
 CLASSIC_MAX_DATA: Final = 8  # bytes of a classic CAN frame (more only with CAN FD)
+
+
+def frame_key(msg: can.Message) -> int:
+    """The key of a received frame in :attr:`CanCodec.stats` and in a log's statistics: its ID
+    for an 11-bit one, ``ID | EXTENDED_KEY`` for a 29-bit one (apart from the 11-bit ID of the
+    same number), ``ERROR_FRAME_KEY`` for an error frame (it has no ID)."""
+    if msg.is_error_frame:
+        return ERROR_FRAME_KEY
+    return msg.arbitration_id | EXTENDED_KEY if msg.is_extended_id else msg.arbitration_id
 
 
 def stats_label(key: int) -> str:
@@ -1222,12 +1232,7 @@ class CanCodec:
         frame_id = msg.arbitration_id
         entry = None if msg.is_extended_id or msg.is_error_frame else self._rx.get(frame_id)
         if entry is None:
-            # an extended ID is kept apart from the standard ID of the same number; an error
-            # frame (a controller's report of a bus error) has no ID at all
-            if msg.is_error_frame:
-                self._count_unknown(ERROR_FRAME_KEY)
-            else:
-                self._count_unknown(frame_id | EXTENDED_KEY if msg.is_extended_id else frame_id)
+            self._count_unknown(frame_key(msg))
             return Decoded(frame_id, None, None, False, "unknown_id")
         counts = self._counts[frame_id]
         counts[_FRAMES] += 1

@@ -84,7 +84,14 @@ from typing import Any, Final, TextIO
 import can
 import numpy as np
 
-from leafgate.can.codec import CanCodec, FrameStats
+from leafgate.can.codec import (
+    ERROR_FRAME_KEY,
+    ERROR_FRAMES_NAME,
+    CanCodec,
+    FrameStats,
+    frame_key,
+    stats_label,
+)
 from leafgate.can.profile import Profile
 from leafgate.can.secoc import tool_key
 from leafgate.config import VehicleConfig
@@ -161,7 +168,7 @@ class Finding:
         return {
             "time": _num(self.time),
             "kind": self.kind,
-            "id": None if self.frame_id is None else f"0x{self.frame_id:03X}",
+            "id": None if self.frame_id is None else _json_id(self.frame_id),
             "name": self.name,
             "detail": self.detail,
             "value": _num(self.value),
@@ -189,7 +196,7 @@ class IdStats:
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "id": f"0x{self.frame_id:03X}",
+            "id": _json_id(self.frame_id),
             "name": self.name,
             "frames": self.frames,
             "nominal_period_s": _num(self.nominal_period),
@@ -286,13 +293,13 @@ class CheckReport:
             )
         for s in self.ids:
             lines.append(
-                f"{s.frame_id:>5X}  {(s.name or '?'):<20} {s.frames:>8} {_ms(s.nominal_period):>8} "
+                f"{stats_label(s.frame_id):>5}  {(s.name or '?'):<20} {s.frames:>8} {_ms(s.nominal_period):>8} "
                 f"{_ms(s.median_period):>8} {_ms(s.max_period):>8} {s.gaps:>5} "
                 f"{s.e2e.bad_crc:>5} {s.e2e.bad_counter:>5} {s.e2e.wrong_length:>5}"
             )
         lines.append("(periods in ms)")
         for f in self.findings:
-            where = "" if f.frame_id is None else f"{f.frame_id:03X} "
+            where = "" if f.frame_id is None else f"{stats_label(f.frame_id)} "
             extra = ""
             if f.kind == "limit":
                 extra = f": {f.value:.6g} beyond {f.bound:.6g}"
@@ -336,6 +343,13 @@ _VERDICT_KINDS = frozenset({"limit", "e2e", "gap", "silence", "period", "coverag
 
 def _num(value: float | None) -> float | None:
     return value if value is not None and math.isfinite(value) else None
+
+
+def _json_id(key: int) -> str:
+    """A frame key (:func:`~leafgate.can.codec.frame_key`) in the JSON report: ``0x0A0``,
+    ``0x12345678`` for a 29-bit ID, ``error`` for error frames."""
+    label = stats_label(key)
+    return label if label == "error" else f"0x{label}"
 
 
 def _ms(value: float | None) -> str:
@@ -517,13 +531,13 @@ class _Scan:
         self.frames += 1
         t = msg.timestamp
         self._clock(t)
-        frame_id = msg.arbitration_id
+        frame_id = frame_key(msg)  # a 29-bit ID and an error frame apart from the 11-bit IDs
         stamps = self.times.get(frame_id)
         if stamps is None:
             stamps = self.times[frame_id] = []
         stamps.append(t)
         decoded = self._codec(msg.channel).decode(msg)
-        if frame_id in self.command_ids and not msg.is_extended_id:
+        if frame_id in self.command_ids:
             self.command_frames += 1
         if not decoded.valid:
             self._e2e(len(stamps) - 1, t, frame_id, decoded.name or "?", decoded.error or "?")
@@ -944,7 +958,9 @@ def _timing(
         stats.append(
             IdStats(
                 frame_id=frame_id,
-                name=names.get(frame_id) or (message.name if message is not None else None),
+                name=names.get(frame_id)
+                or (message.name if message is not None else None)
+                or (ERROR_FRAMES_NAME if frame_id == ERROR_FRAME_KEY else None),
                 frames=int(t.size),
                 nominal_period=nominal,
                 mean_period=float(dt.mean()) if dt.size else math.nan,
@@ -1016,7 +1032,7 @@ def _silence_findings(silences: list[_Silence], gaps: list[_Gap]) -> list[Findin
     out = []
     for silence in silences:
         ids = sorted({g[0] for g in gaps if _overlaps(g, silence)})
-        label = ", ".join(f"{i:03X}" for i in ids) or "none overdue"
+        label = ", ".join(stats_label(i) for i in ids) or "none overdue"
         length = silence[1] - silence[0]
         out.append(
             Finding(
@@ -1059,7 +1075,7 @@ def _merge_gaps(gaps: list[_Gap], names: dict[int, str | None]) -> list[Finding]
         stop = max(g[3] for g in group)
         ids = sorted({g[0] for g in group})
         frame_id = ids[0] if len(ids) == 1 else None
-        label = ", ".join(f"{i:03X}" for i in ids)
+        label = ", ".join(stats_label(i) for i in ids)
         name = (names.get(ids[0]) or "?") if len(ids) == 1 else f"{len(ids)} IDs"
         out.append(
             Finding(
