@@ -117,7 +117,7 @@ def test_a_candump_log_of_extended_ids_error_frames_and_oversized_frames(tmp_pat
     lines = out.getvalue().splitlines()
     assert lines[0].split("  ")[2] == "12345678"
     assert lines[1].endswith("  wrong_length") and "[10]" in lines[1]
-    assert lines[2].split("  ")[2] == "error"
+    assert lines[2].split("  ")[2] == "error" and lines[2].endswith("  error_frame")
     assert lines[3].endswith("  ok")
     summary = [line for line in lines if line.startswith("#")]
     rows = {line.split()[1]: line.split()[2:] for line in summary[2:]}

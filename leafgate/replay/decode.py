@@ -18,7 +18,10 @@ A line reads::
     12.345678  can0  0A0  [8]  DBW_STEER_CMD(STEER_ANGLE_CMD: 0.1 rad, ...)  ok
 
 i.e. timestamp (s), channel, ID, length, then the signals in the style of ``cantools decode
---single-line`` (value-table names for enums), then ``ok`` or the error.
+--single-line`` (value-table names for enums), then ``ok`` or the error. An error frame (a
+controller's report of a bus error) has ``error`` for its ID and ``error_frame`` for its
+status; the summary counts error frames in a row of their own, and 29-bit IDs apart from the
+11-bit ID of the same number (:func:`~leafgate.can.codec.frame_key`).
 
 Authenticated frames (profile ``leafgate-dbw-auth``) are verified only with the key
 (``--key-file``, or the ``--config``'s ``can.auth_key_file``): a bad MAC or a stale freshness
@@ -91,6 +94,8 @@ def format_frame(
                 if sig.name in signals:
                     parts.append(f"{sig.name}: {_value_text(signals[sig.name], sig.unit)}")
             body = f"{message.name}({', '.join(parts)})"
+    if msg.is_error_frame:  # a controller's report of a bus error: no ID, no message
+        return f"{head}  {data.hex(' ').upper()}".rstrip() + f"  {status or 'error_frame'}"
     if body is None:
         name = decoded.name or "unknown"
         body = f"{name} {data.hex(' ').upper()}".rstrip()
