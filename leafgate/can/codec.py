@@ -1226,7 +1226,8 @@ class CanCodec:
 
         Checks, in order: known standard ID (``unknown_id``; an error frame has none), length
         (``wrong_length``: protected frames exactly their DBC length; others at least it, as
-        model years differ in trailing bytes; never over 8 bytes but for a CAN FD frame), checksum (``bad_crc``), alive counter (``bad_counter``), content
+        model years differ in trailing bytes; never over 8 bytes but for a CAN FD frame),
+        checksum (``bad_crc``), alive counter (``bad_counter``), content
         (``decode_error``). Every outcome is counted in :attr:`stats`.
         """
         frame_id = msg.arbitration_id
@@ -1346,7 +1347,10 @@ class CanCodec:
         return None if entry is None else self._tables.messages[entry.name]
 
     def name_of(self, frame_id: int) -> str | None:
-        """The DBC name of a known ID, else None."""
+        """The DBC name of a known ID (a key of :attr:`stats`), ``error frames`` for the error
+        frames' key, else None."""
+        if frame_id == ERROR_FRAME_KEY:
+            return ERROR_FRAMES_NAME
         entry = self._rx.get(frame_id)
         return None if entry is None else entry.name
 

@@ -148,10 +148,11 @@ def _refuse_stop_points(traj: Trajectory, source: str, rows: Sequence[int] | Non
         row = int(rows[i]) if rows is not None else i + 1
         leg = "forward" if seg.direction > 0 else "reverse"
         speed = float(traj.speed[i])
+        way = "forward" if seg.direction > 0 else "backward"
         if speed != 0.0:  # a sign against the leg the geometry says: no cusp here, no motion
             raise TrajectoryError(
                 f"{source}: row {row}: speed {speed:g} m/s runs against the {leg} leg the path "
-                f"drives here (the chords run {leg} along the headings; a change of direction is "
+                f"drives here (the chords run {way} along the headings; a change of direction is "
                 "a cusp, where the path turns back): the car would stop here and wait for "
                 "another plan; give each leg's waypoints speeds of its sign up to its end"
             )

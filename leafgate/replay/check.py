@@ -85,8 +85,6 @@ import can
 import numpy as np
 
 from leafgate.can.codec import (
-    ERROR_FRAME_KEY,
-    ERROR_FRAMES_NAME,
     CanCodec,
     FrameStats,
     frame_key,
@@ -958,9 +956,7 @@ def _timing(
         stats.append(
             IdStats(
                 frame_id=frame_id,
-                name=names.get(frame_id)
-                or (message.name if message is not None else None)
-                or (ERROR_FRAMES_NAME if frame_id == ERROR_FRAME_KEY else None),
+                name=names.get(frame_id) or (message.name if message is not None else None),
                 frames=int(t.size),
                 nominal_period=nominal,
                 mean_period=float(dt.mean()) if dt.size else math.nan,

@@ -48,8 +48,6 @@ from typing import TextIO
 import can
 
 from leafgate.can.codec import (
-    ERROR_FRAME_KEY,
-    ERROR_FRAMES_NAME,
     CanCodec,
     Decoded,
     FrameStats,
@@ -112,7 +110,7 @@ def format_summary(stats: dict[int, FrameStats], names: dict[int, str | None]) -
     total = FrameStats()
     for frame_id in sorted(stats):
         s = stats[frame_id]
-        name = names.get(frame_id) or (ERROR_FRAMES_NAME if frame_id == ERROR_FRAME_KEY else "?")
+        name = names.get(frame_id) or "?"
         label = stats_label(frame_id)
         lines.append(
             f"{label:>8}  {name:<20} {s.frames:>8} {s.bad_crc:>8} {s.bad_counter:>8} "
