@@ -117,3 +117,156 @@ def test_a_car_dbc_without_a_checked_signal_names_the_frame_id_and_why(
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(dbc) in err
     assert "STEER_ANGLE_SENSOR (0x002) has no signal CHECKSUM" in err and "checksum" in err
+
+
+# --- a foreign DBC is refused only for the frames leafgate uses ----------------------------
+# Old code loaded every DBC with cantools' strict mode, so one overlap anywhere refused the whole
+# file: dalathegreat's CAR-can_AZE0.dbc (0x180 has two signals on byte 0), opendbc's Xterra DBC.
+
+CAR_DBC = ROOT / "dbc" / "leaf_aze0_car.dbc"
+# A frame the profiles do not use, shaped as dalathegreat's 0x180 (written here, not copied):
+# two signals on the same byte.
+UNUSED_OVERLAP = (
+    "BO_ 384 TORQUE_CONTROL: 8 VCM\n"
+    ' SG_ TORQUE_A : 0|8@1+ (1,0) [0|255] "" GATEWAY\n'
+    ' SG_ TORQUE_B : 8|8@1+ (1,0) [0|255] "" GATEWAY\n'
+    ' SG_ TORQUE_C : 0|8@1+ (1,0) [0|255] "" GATEWAY\n\n'
+)
+FRONT = (
+    ' SG_ WHEEL_SPEED_FR : 7|16@0+ (0.005,0) [0|300] "km/h" GATEWAY\n'
+    ' SG_ WHEEL_SPEED_FL : 23|16@0+ (0.005,0) [0|300] "km/h" GATEWAY\n'
+)
+# opendbc's nissan_xterra_2011.dbc (MIT, commaai/opendbc) ABS_1 0x284 lays the wheel speeds out
+# as "WHEEL_1 : 0|16@1+" and "WHEEL_2 : 15|16@1+": bit 15 is in both. The same layout on the
+# names leafgate's profile reads:
+XTERRA_FRONT = (
+    ' SG_ WHEEL_SPEED_FR : 0|16@1+ (0.01,0) [0|300] "km/h" GATEWAY\n'
+    ' SG_ WHEEL_SPEED_FL : 15|16@1+ (0.01,0) [0|300] "km/h" GATEWAY\n'
+)
+
+
+def car_dbc_with(tmp_path: Path, old: str, new: str) -> Path:
+    text = CAR_DBC.read_text()
+    assert old in text
+    path = tmp_path / "car_foreign.dbc"
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
+def unused_overlap_dbc(tmp_path: Path) -> Path:
+    return car_dbc_with(
+        tmp_path, "BO_ 1057 GEAR_POSITION", UNUSED_OVERLAP + "BO_ 1057 GEAR_POSITION"
+    )
+
+
+def test_overlap_in_a_frame_leafgate_does_not_use_loads_and_is_reported(tmp_path: Path) -> None:
+    """Old code: CanCodecError "invalid DBC: ... TORQUE_C and TORQUE_A are overlapping"."""
+    dbc = unused_overlap_dbc(tmp_path)
+    codec = CanCodec(car_dbc=dbc, profile="leafgate-dbw")
+    (problem,) = codec.layout_problems
+    assert (problem.name, problem.frame_id, problem.key) == ("TORQUE_CONTROL", 0x180, 0x180)
+    assert problem.signals == ("TORQUE_A", "TORQUE_C")  # TORQUE_B is sound
+    assert problem.where == str(dbc)
+    (line,) = codec.layout_warnings()
+    assert line.startswith(f"{dbc}: TORQUE_CONTROL (0x180): signals TORQUE_A and TORQUE_C overlap")
+    assert "leafgate-dbw does not use this frame" in line and "TORQUE_A, TORQUE_C" in line
+    # the frames leafgate uses work as with the packaged DBC
+    packaged = CanCodec(profile="leafgate-dbw")
+    assert codec.receive_ids("car") == packaged.receive_ids("car")
+    assert packaged.layout_problems == () and packaged.layout_warnings() == []
+
+
+def test_multiplexed_signals_on_different_values_are_no_overlap(tmp_path: Path) -> None:
+    muxed = (
+        "BO_ 1468 MUXED: 8 LBC\n"
+        ' SG_ PAGE M : 0|8@1+ (1,0) [0|255] "" GATEWAY\n'
+        ' SG_ ON_PAGE_1 m1 : 8|8@1+ (1,0) [0|255] "" GATEWAY\n'
+        ' SG_ ON_PAGE_2 m2 : 8|16@1+ (1,0) [0|65535] "" GATEWAY\n\n'
+    )
+    dbc = car_dbc_with(tmp_path, "BO_ 1057 GEAR_POSITION", muxed + "BO_ 1057 GEAR_POSITION")
+    assert CanCodec(car_dbc=dbc, profile="leafgate-dbw").layout_problems == ()
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "frame", "problem"),
+    [
+        pytest.param(
+            FRONT,
+            XTERRA_FRONT,
+            "WHEEL_SPEEDS_FRONT (0x284)",
+            "signals WHEEL_SPEED_FR and WHEEL_SPEED_FL overlap (bit 15)",
+            id="overlap",
+        ),
+        pytest.param(
+            "BO_ 2 STEER_ANGLE_SENSOR: 5 STRG",
+            "BO_ 2 STEER_ANGLE_SENSOR: 4 STRG",
+            "STEER_ANGLE_SENSOR (0x002)",
+            "signal COUNTER does not fit in its 4 bytes (it reaches bit 35); "
+            "signal CHECKSUM does not fit in its 4 bytes (it reaches bit 39)",
+            id="does-not-fit",
+        ),
+    ],
+)
+def test_a_bad_layout_in_a_frame_leafgate_reads_is_refused_in_one_line(
+    tmp_path: Path, old: str, new: str, frame: str, problem: str
+) -> None:
+    """Old code: 'invalid DBC: DBC: "The signals WHEEL_SPEED_FL and WHEEL_SPEED_FR are
+    overlapping in message WHEEL_SPEEDS_FRONT."' (no ID), and the same for an overlap anywhere."""
+    dbc = car_dbc_with(tmp_path, old, new)
+    with pytest.raises(CanCodecError) as info:
+        CanCodec(car_dbc=dbc, profile="leafgate-dbw")
+    text = str(info.value)
+    assert "\n" not in text
+    assert text == (
+        f"{dbc}: {frame}: {problem}: profile leafgate-dbw reads this frame, so its signals must "
+        "fit and must not overlap"
+    )
+
+
+def test_a_bad_layout_in_a_frame_leafgate_sends_says_it_sends_it(tmp_path: Path) -> None:
+    dbw = (ROOT / "dbc" / "leafgate_dbw.dbc").read_text()
+    line = next(x for x in dbw.splitlines() if x.startswith(" SG_ STEER_ANGLE_CMD "))
+    clash = line.replace("STEER_ANGLE_CMD", "STEER_SHADOW", 1)
+    dbc = tmp_path / "dbw.dbc"
+    dbc.write_text(dbw.replace(line, f"{line}\n{clash}", 1))
+    with pytest.raises(CanCodecError) as info:
+        CanCodec(dbw_dbc=dbc, profile="leafgate-dbw")
+    text = str(info.value)
+    assert text.startswith(f"{dbc}: DBW_STEER_CMD (0x0A0): signals STEER_ANGLE_CMD and ")
+    assert "STEER_SHADOW overlap" in text and "leafgate-dbw sends this frame" in text
+
+
+def test_check_config_warns_about_an_overlap_in_an_unused_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: exit 2, "error: …: invalid DBC: DBC: "The signals TORQUE_C and TORQUE_A are
+    overlapping in message TORQUE_CONTROL."" for a frame leafgate never reads."""
+    from leafgate import cli
+
+    dbc = unused_overlap_dbc(tmp_path)
+    config = tmp_path / "car.yaml"
+    config.write_text(f"can: {{car_dbc: {dbc.name}}}\n")
+    assert cli.main(["check-config", str(config)]) == 0
+    out, err = capsys.readouterr()
+    assert "ok offline" in out
+    (warning,) = [line for line in err.splitlines() if "TORQUE_CONTROL" in line]
+    assert warning == (
+        f"leafgate: warning: {dbc}: TORQUE_CONTROL (0x180): signals TORQUE_A and TORQUE_C "
+        "overlap (bits 0..7): loaded, as profile leafgate-dbw does not use this frame; "
+        "TORQUE_A, TORQUE_C not to be trusted"
+    )
+
+
+def test_check_config_refuses_an_overlap_in_a_used_frame_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from leafgate import cli
+
+    dbc = car_dbc_with(tmp_path, FRONT, XTERRA_FRONT)
+    config = tmp_path / "car.yaml"
+    config.write_text(f"can: {{car_dbc: {dbc.name}}}\n")
+    assert cli.main(["check-config", str(config)]) == 1
+    out, err = capsys.readouterr()
+    assert "ok offline" not in out
+    assert err.count("\n") == 1 and err.startswith(f"leafgate: error: {dbc}: ")
+    assert "WHEEL_SPEEDS_FRONT (0x284): signals WHEEL_SPEED_FR and WHEEL_SPEED_FL overlap" in err

@@ -99,6 +99,7 @@ __all__ = [
     "EncodableMessage",
     "EncodeError",
     "FrameStats",
+    "LayoutProblem",
 ]
 
 Direction = Literal["reports", "commands", "car"]
@@ -695,12 +696,98 @@ def _load_database(path: str | Path) -> tuple[Database, str]:
     except OSError as exc:
         raise CanCodecError(f"{where}: cannot read: {exc.strerror}") from None
     try:
-        db = cantools.database.load_string(text, database_format="dbc", strict=True)
+        # Not strict: a DBC often has signals that overlap in frames leafgate never touches
+        # (dalathegreat's Leaf DBCs, opendbc's Xterra). The frames the profile uses are checked
+        # strictly one by one (_layout_problem); the others are reported, not refused.
+        db = cantools.database.load_string(text, database_format="dbc", strict=False)
     except Exception as exc:  # cantools raises several parse error types
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CanCodecError(f"{where}: invalid DBC: {first}") from None
     assert isinstance(db, Database)
     return db, where
+
+
+@dataclass(frozen=True)
+class LayoutProblem:
+    """A DBC frame whose layout cantools' strict mode refuses: signals that overlap, or a signal
+    that does not fit in the frame. A frame the profile uses with such a layout is refused at
+    start-up; any other frame is loaded and reported (:attr:`CanCodec.layout_problems`), its
+    named signals not to be trusted (their values share bits, so at most one reads them right).
+    """
+
+    where: str  # the DBC file
+    name: str  # the frame's DBC name
+    frame_id: int
+    is_extended: bool
+    signals: tuple[str, ...]  # the signals at fault, in the DBC's order
+    problem: str  # e.g. "signals WHEEL_1 and WHEEL_2 overlap (bit 15)"
+
+    @property
+    def frame(self) -> str:
+        """The frame as messages name it: ``ABS_1 (0x284)``."""
+        return f"{self.name} (0x{self.frame_id:{'08X' if self.is_extended else '03X'}})"
+
+    @property
+    def key(self) -> int:
+        """The frame's key in :attr:`CanCodec.stats` (see :func:`frame_key`)."""
+        return self.frame_id | EXTENDED_KEY if self.is_extended else self.frame_id
+
+    def __str__(self) -> str:
+        return f"{self.where}: {self.frame}: {self.problem}"
+
+
+def _bit_span(bits: frozenset[int]) -> str:
+    low, high = min(bits), max(bits)
+    return f"bit {low}" if low == high else f"bits {low}..{high}"
+
+
+def _exclusive(a: Signal, b: Signal) -> bool:
+    """Whether two signals are never in one frame: multiplexed by the same multiplexer on
+    disjoint multiplexer values."""
+    return (
+        a.multiplexer_signal is not None
+        and a.multiplexer_signal == b.multiplexer_signal
+        and bool(a.multiplexer_ids)
+        and bool(b.multiplexer_ids)
+        and not set(a.multiplexer_ids or ()) & set(b.multiplexer_ids or ())
+    )
+
+
+def _layout_problem(message: DbcMessage, where: str) -> LayoutProblem | None:
+    """What cantools' strict mode refuses in ``message`` (the test is cantools' own), with every
+    signal at fault named, or None."""
+    try:
+        message.refresh(strict=True)
+    except cantools.database.Error as exc:
+        refused = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    else:
+        return None
+    size = 8 * message.length  # bits
+    bits = {sig.name: _bits(message, sig.name) for sig in message.signals}
+    named: list[str] = []
+    problems: list[str] = []
+    for sig in message.signals:
+        if max(bits[sig.name]) >= size:
+            named.append(sig.name)
+            problems.append(
+                f"signal {sig.name} does not fit in its {message.length} bytes "
+                f"(it reaches bit {max(bits[sig.name])})"
+            )
+    for i, a in enumerate(message.signals):
+        for b in message.signals[i + 1 :]:
+            common = bits[a.name] & bits[b.name]
+            if common and not _exclusive(a, b):
+                named += [n for n in (a.name, b.name) if n not in named]
+                problems.append(f"signals {a.name} and {b.name} overlap ({_bit_span(common)})")
+    order = [sig.name for sig in message.signals]
+    return LayoutProblem(
+        where=where,
+        name=message.name,
+        frame_id=message.frame_id,
+        is_extended=message.is_extended_frame,
+        signals=tuple(sorted(named, key=order.index)),
+        problem="; ".join(problems) or refused,  # cantools' words when ours find nothing
+    )
 
 
 def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
@@ -807,6 +894,7 @@ class _Tables:
     ids: Mapping[str, frozenset[int]]  # direction → IDs
     by_type: Mapping[type, tuple[str, str]]  # message type → (frame, source) it alone fills
     shared: Mapping[str, frozenset[str]]  # direction → sources folded from several frames
+    layout_problems: tuple[LayoutProblem, ...]  # of frames the profile does not use
 
 
 _TABLES: dict[tuple[int, tuple[_SourceKey, ...]], tuple[Profile, _Tables]] = {}
@@ -851,6 +939,13 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
                 f"({', '.join(where for _, where in loaded)})"
             )
         message, where = found[spec.name]
+        problem = _layout_problem(message, where)
+        if problem is not None:  # the frame is used: a layout cantools' strict mode refuses
+            role = "sends" if spec.direction == "command" else "reads"
+            raise CanCodecError(
+                f"{problem}: profile {profile.name} {role} this frame, so its signals must "
+                "fit and must not overlap"
+            )
         if message.is_extended_frame:
             raise CanCodecError(f"{where}: {spec.name} must use a standard 11-bit ID")
         if message.frame_id in rx:
@@ -894,9 +989,17 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
                 by_type[(WheelSpeeds, spec.sources[0])] = (spec.name, spec.sources[0])  # type: ignore[index]
                 continue
             by_type[key_type] = (spec.name, spec.sources[0])
+    used = {id(message) for message in messages.values()}
+    layout_problems = tuple(
+        problem
+        for db, where in loaded
+        for message in db.messages
+        if id(message) not in used and (problem := _layout_problem(message, where)) is not None
+    )
     return _Tables(
         profile=profile,
         databases=tuple(db for db, _ in loaded),
+        layout_problems=layout_problems,
         messages=MappingProxyType(messages),
         encoders=MappingProxyType(encoders),
         rx=MappingProxyType(rx),
@@ -971,7 +1074,9 @@ class CanCodec:
         frame's own timestamp as the receive time (a recorded log) and the ``timestamp`` given
         to encode as the send time
     :raises CanCodecError: a DBC is unreadable, invalid, or lacks a frame or signal the
-        profile maps (the message names the file and the frame)
+        profile maps, or a frame the profile uses has signals that overlap or do not fit (the
+        message names the file and the frame); such a frame the profile does not use is only
+        reported, in :attr:`layout_problems`
     :raises ConfigError: the profile is missing or invalid
 
     One instance per sender/receiver: it owns the alive counters of the frames it encodes and
@@ -1082,6 +1187,23 @@ class CanCodec:
         the simulated ECU, which sends them, cannot."""
         reports = self.profile.frames_of("report")
         return [why for f in reports if (why := self.cannot_encode(f.name)) is not None]
+
+    @property
+    def layout_problems(self) -> tuple[LayoutProblem, ...]:
+        """The frames of the DBCs that the profile does not use and whose layout cantools'
+        strict mode refuses (signals that overlap or do not fit), in DBC order. They are loaded
+        (a used frame with such a layout is refused at start-up), and the signals each names
+        are not to be trusted: ``leafgate check-config`` and the daemon warn about each."""
+        return self._tables.layout_problems
+
+    def layout_warnings(self) -> list[str]:
+        """One line per :attr:`layout_problems` frame, naming the DBC, the frame and its signals,
+        for ``check-config`` and the daemon's start-up to warn with."""
+        return [
+            f"{p}: loaded, as profile {self.profile.name} does not use this frame; "
+            f"{', '.join(p.signals) or 'its signals'} not to be trusted"
+            for p in self._tables.layout_problems
+        ]
 
     def encode_commands(self, commands: Any, timestamp: float = 0.0) -> list[can.Message]:
         """The profile's command frames for one tick's :class:`~leafgate.messages.Commands`.
