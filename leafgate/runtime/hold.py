@@ -9,7 +9,9 @@ it means (the daemon's controlled stop, or the default action for every other co
 
 from __future__ import annotations
 
+import os
 import signal
+import sys
 
 #: held from the command's first line (SIGINT has its KeyboardInterrupt meanwhile)
 HELD_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
@@ -49,3 +51,33 @@ def take_held() -> list[int]:
     pending = list(_held)
     _held.clear()
     return pending
+
+
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+
+
+def exit_interrupted(_signum: int = signal.SIGINT, _frame: object = None) -> None:
+    """A SIGINT handler where nothing is left to close in order (or a second Ctrl-C asks not
+    to wait for it): what was printed is flushed, one line, and the process exits at once with
+    status 130. No exception unwinds, so nothing is cut half-way through Python code, and no
+    thread is ended inside native code (see :func:`leafgate.runtime.signals.interrupt_deferred`).
+    """
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            if stream is not None:
+                stream.flush()
+        except Exception:  # a reentrant flush, a closed pipe: exit anyway
+            pass
+    try:  # noqa: SIM105 (contextlib is not loaded yet when the command starts)
+        os.write(2, b"leafgate: interrupted\n")  # not through sys.stderr: it may be mid-write
+    except OSError:
+        pass
+    os._exit(EXIT_INTERRUPTED)
+
+
+def interrupt_once(_signum: int, _frame: object) -> None:
+    """A SIGINT handler: the first Ctrl-C raises KeyboardInterrupt (the command closes what it
+    opened on its way out), any further one exits at once (:func:`exit_interrupted`) instead of
+    raising again inside that closing (a Zenoh session left half-closed)."""
+    signal.signal(signal.SIGINT, exit_interrupted)
+    raise KeyboardInterrupt
