@@ -14,6 +14,7 @@ import logging
 import math
 import os
 import re
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -50,6 +51,9 @@ log = logging.getLogger("leafgate")
 EXIT_ERROR = 1
 #: the commands that stop in a controlled way on SIGINT, SIGTERM and SIGHUP (runtime.signals)
 STOP_SIGNAL_COMMANDS = frozenset({"run", "sim-ecu", "publish-trajectory"})
+#: the operator tools: the first Ctrl-C ends them through KeyboardInterrupt, closing their Zenoh
+#: session on the way out; a second one exits at once (runtime.hold.interrupt_once)
+INTERRUPT_ONCE_COMMANDS = frozenset({"status", "engage", "disengage", "reset"})
 EXIT_USAGE = 2
 ENGAGE_WAIT = 15.0  # s, how long `engage` waits for a starting gateway's inputs by default
 
@@ -1158,6 +1162,20 @@ def _prepare_outputs(args: argparse.Namespace) -> None:
             output_folder(Path(value).parent, f"--{name}")
 
 
+def _from_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised because of a Ctrl-C: a native module whose initialisation a
+    KeyboardInterrupt broke says "ImportError: initialization failed" (scipy's HiGHS, loaded
+    when the MPC is built), with the KeyboardInterrupt as its cause."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
 def _negative_start(argv: Sequence[str]) -> list[str]:
     """``argv`` with ``--start -5,2,90`` joined into ``--start=-5,2,90``.
 
@@ -1193,6 +1211,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     closed = _closed_standard_streams()
     if closed:
         return closed
+    previous_sigint: Any = None  # SIGINT's handler before the command's own (restored after)
     try:  # Ctrl-C before the command runs (a traceback of argparse's, once): one line too
         parser = build_parser()  # imports what the subcommands' options list
         argv = _negative_start(sys.argv[1:] if argv is None else argv)
@@ -1203,6 +1222,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from leafgate.runtime.signals import release
 
             release()  # the default actions back (a signal held meanwhile acts now)
+        if args.command in INTERRUPT_ONCE_COMMANDS:
+            from leafgate.runtime.hold import interrupt_once
+
+            previous_sigint = signal.signal(signal.SIGINT, interrupt_once)
         if args.bench is not None:
             from leafgate.settings import BENCH_ENV
 
@@ -1232,6 +1255,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as exc:
         print(f"leafgate: error: {_one_line(exc)}{_written(exc, args)}", file=sys.stderr)
         return EXIT_ERROR
+    except Exception as exc:
+        if not _from_interrupt(exc):
+            raise
+        print("leafgate: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if previous_sigint is not None:  # main() may be called again (tests): as it was
+            signal.signal(signal.SIGINT, previous_sigint)
 
 
 if __name__ == "__main__":
