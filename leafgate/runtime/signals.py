@@ -11,8 +11,8 @@ daemon longer to open its buses. The ``leafgate`` command therefore *holds* SIGT
 from its first line (:func:`~leafgate.runtime.hold.hold`, a module that imports ``signal``
 only), before the heavy imports; the daemon's :func:`signals_set` takes over what was held, and
 every other command gets the default actions back (:func:`release`), a signal held meanwhile
-delivered then. SIGINT is not held: Ctrl-C while Python loads leafgate is ``KeyboardInterrupt``
-("interrupted", status 130), as before.
+delivered then. SIGINT is not held: Ctrl-C while Python loads leafgate ends the process at once
+("interrupted", status 130; ``leafgate.__main__``), as does one after the command returned.
 
 What comes before that first line cannot be held from Python: the interpreter's start, its
 ``site`` and the console script's ``import re``, some 19 ms after exec on an idle machine
