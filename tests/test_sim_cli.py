@@ -54,6 +54,7 @@ def test_sim_drives_a_csv_trajectory_file_and_writes_trace_csv(
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["finished"] is True
     assert metrics["route_length_m"] == pytest.approx(12.0, abs=0.01)
+    assert metrics["start_progress_m"] == pytest.approx(0.0, abs=1e-9)
     assert metrics["progress_m"] == pytest.approx(metrics["route_length_m"], abs=0.2)
     assert metrics["final_position_error_m"] < 0.1
     with (out / "trace.csv").open() as f:

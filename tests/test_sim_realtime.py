@@ -108,6 +108,7 @@ def test_a_controlled_stop_is_not_read_as_the_end_reached() -> None:
         "final_state": "STANDBY",
         "final_reason": "at rest after a controlled stop (localization age 0.101 s > 0.1 s)",
         "route_length_m": 32.3,
+        "start_progress_m": 0.0,
         "progress_m": 5.9,
         "final_position_error_m": 20.0,
     }

@@ -40,6 +40,7 @@ SIM_METRICS = (
     "steer_rate_sign_changes",
     "path_steer_sign_changes",
     "overspeed_max_mps",
+    "start_progress_m",
     "progress_m",
     "route_length_m",
     "plan_min_turn_radius_m",

@@ -972,12 +972,10 @@ class Progress:
     with or beyond its end point (:attr:`beyond` ≥ 0), or has come within ``goal_tolerance`` of
     the end with the progress there (:meth:`at_end`).
 
-    On a new plan the first segment is searched in full for the waypoints whose heading is within
-    90° of the car's; the earliest one within :attr:`REACH` m of the car (or within :attr:`TIE` m
-    of the nearest distance, when none is that close), moved on to the nearest of its
-    neighbourhood, is taken: the pass nearest in progress to the plan's start, not merely the
-    nearest in space. A closed loop starts at its start, not at its end, and a car engaged beside
-    a figure-eight's crossing starts on the first pass through it, not the later one.
+    On a new plan the car starts from :func:`start_waypoint` on the first segment: the pass
+    nearest in progress to the plan's start, not merely the nearest in space. A closed loop
+    starts at its start, not at its end, and a car engaged beside a figure-eight's crossing
+    starts on the first pass through it, not the later one.
 
     A plan that continues the previous one (a planner's rolling window re-sent with the same
     waypoints over the overlap) keeps the progress, mapped onto the new plan
@@ -988,9 +986,6 @@ class Progress:
     """
 
     BASIN = 2.0  # m, the search stops once the path is this much farther than the best point
-    TIE = 0.5  # m, on a new plan the earliest waypoint this close to the nearest distance wins
-    REACH = 1.5  # m, on a new plan the earliest waypoint this close to the car wins (the engage
-    # envelope is 1 m from the path: a car engaged there is on the earliest pass within reach)
     MATCH_HEADING = 0.01  # rad, a continued plan's waypoints match the previous plan's this well
     RESUME_DISTANCE = 0.1  # m, a re-sampled plan passes this close to the previous progress
     RESUME_HEADING = 0.2  # rad, and heads the same way there within this
@@ -1213,17 +1208,34 @@ class Progress:
 
     def _first_nearest(self, seg: Segment, x: float, y: float, heading: float) -> int:
         """The waypoint of ``seg`` the car starts from on a new plan (see the class notes)."""
-        sl = slice(seg.start, seg.end + 1)
-        p = self.path
-        d = np.hypot(p.traj.x[sl] - x, p.traj.y[sl] - y)
-        aligned = np.cos(p.values[sl, 2] - heading) > 0.0
-        if aligned.any():
-            d = np.where(aligned, d, np.inf)
-        best = float(d.min())
-        k = int(np.argmax(d <= max(best + self.TIE, self.REACH)))
-        while k + 1 < d.shape[0] and d[k + 1] < d[k]:
-            k += 1  # down to the bottom of that waypoint's basin
-        return seg.start + k
+        return start_waypoint(self.path.traj, seg, x, y, heading)
+
+
+START_TIE = 0.5  # m, the earliest waypoint this close to the nearest distance is the start
+START_REACH = 1.5  # m, the earliest waypoint this close to the car is the start (the engage
+# envelope is 1 m from the path: a car engaged there is on the earliest pass within reach)
+
+
+def start_waypoint(traj: Trajectory, seg: Segment, x: float, y: float, heading: float) -> int:
+    """The waypoint of ``seg`` a car at ``(x, y)``, heading ``heading`` (rad), starts from on a
+    new plan: the one rule for where a drive starts on a route, the controller's
+    (:class:`Progress`) and the simulator's metrics'.
+
+    Of the waypoints whose heading is within 90° of the car's, the earliest one within
+    :data:`START_REACH` m of the car (or within :data:`START_TIE` m of the nearest distance,
+    when none is that close), moved on to the nearest of its neighbourhood: the pass nearest in
+    progress to the segment's start, not merely the nearest in space.
+    """
+    sl = slice(seg.start, seg.end + 1)
+    d = np.hypot(traj.x[sl] - x, traj.y[sl] - y)
+    aligned = np.cos(traj.heading[sl] - heading) > 0.0
+    if aligned.any():
+        d = np.where(aligned, d, np.inf)
+    best = float(d.min())
+    k = int(np.argmax(d <= max(best + START_TIE, START_REACH)))
+    while k + 1 < d.shape[0] and d[k + 1] < d[k]:
+        k += 1  # down to the bottom of that waypoint's basin
+    return seg.start + k
 
 
 class _PathLimits(Protocol):

@@ -13,7 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from leafgate.control.reference import chord_directions, remove_overlap_points, tightest_turn
+from leafgate.control.reference import (
+    chord_directions,
+    remove_overlap_points,
+    split_segments,
+    start_waypoint,
+    tightest_turn,
+)
 from leafgate.geometry import wrap_angle
 from leafgate.messages import FloatArray, Trajectory
 from leafgate.sim.scenarios import clearance
@@ -50,7 +56,9 @@ def _segment_distances(
 class Projector:
     """Follows a vehicle along a reference polyline in time order: its projection, arc length.
 
-    The projection starts at the trajectory's first segment (a drive starts there) and then only
+    The projection starts at the trajectory's first segment, or, placed with :meth:`start_at`,
+    where the controller starts a car on a new plan (a start mid-route is not a drive from the
+    first waypoint, nor a jump to a later pass of the same place); it then only
     moves along the path (a little back for noise, up to a window ahead): routes double back on
     themselves at cusps, cross themselves and close on their start, and a plain nearest-segment
     search would jump to another part of the route. With a speed given, only segments planned
@@ -75,6 +83,13 @@ class Projector:
     def length(self) -> float:
         """The route's length, m."""
         return float(self.s[-1])
+
+    def start_at(self, x: float, y: float, heading: float) -> None:
+        """Place the projection where a car at ``(x, y)``, heading ``heading`` (rad), starts on
+        the route: the controller's rule (:func:`~leafgate.control.reference.start_waypoint`,
+        on the first direction segment)."""
+        i = start_waypoint(self.traj, split_segments(self.traj)[0], x, y, heading)
+        self.k = min(i, self.n_seg - 1)
 
     def project(
         self, x: float, y: float, speed: float | None = None
@@ -106,12 +121,14 @@ def path_errors(
     speed: FloatArray | None = None,
 ) -> PathErrors:
     """Project each sample onto the reference polyline, following the path in time order
-    (:class:`Projector`).
+    (:class:`Projector`) from where the first sample starts on it.
 
     For reversing segments the heading reference is the vehicle heading stored in the
     trajectory, so the same formula holds in both directions.
     """
     proj = Projector(traj)
+    if x.shape[0]:
+        proj.start_at(float(x[0]), float(y[0]), float(heading[0]))
     # the planned speed along each segment, and zero at a cusp (where the car stands) also
     # when the plan gives no waypoint at rest there (the same rule as the controller's)
     v_from, v_to = traj.speed[:-1].copy(), traj.speed[1:].copy()
@@ -231,8 +248,16 @@ def tracking_metrics(
     speed: FloatArray,
     steer_angle: FloatArray,
 ) -> dict[str, Any]:
-    """Lateral/heading/speed errors and steering smoothness of a run (true plant states)."""
+    """Lateral/heading/speed errors and steering smoothness of a run (true plant states).
+
+    ``start_progress_m`` is where the car's start projects on the route (0 from its first
+    waypoint); ``progress_m`` how far along the route the car got from there: the farthest
+    projection less the start's, so the part of the route before a start mid-route does not
+    count, and a car that never moved made none.
+    """
     errors = path_errors(traj, x, y, heading, speed)
+    sampled = errors.progress.size > 0
+    start_progress = float(errors.progress[0]) if sampled else 0.0
     steer_rate = np.gradient(steer_angle, t) if t.shape[0] > 1 else np.zeros_like(t)
     final_pos = math.hypot(x[-1] - traj.x[-1], y[-1] - traj.y[-1])
     final_heading = float(abs(wrap_angle(heading[-1] - traj.heading[-1])))
@@ -251,7 +276,9 @@ def tracking_metrics(
         "path_steer_sign_changes": path_steer_sign_changes(traj),
         # m/s, how far the speed ran above the plan's at the car's place on the route
         "overspeed_max_mps": float(np.max(np.abs(speed) - np.abs(errors.speed_ref))),
-        "progress_m": float(np.max(errors.progress)) if errors.progress.size else 0.0,
+        # m, where the start projects on the route, and how far along it the car got from there
+        "start_progress_m": start_progress,
+        "progress_m": float(np.max(errors.progress)) - start_progress if sampled else 0.0,
         "route_length_m": route_length,
         # m, the radius of the plan's tightest turn (inf: straight), and where it starts
         "plan_min_turn_radius_m": tightest[0],

@@ -235,6 +235,8 @@ class _Planner:
 
     def plan_at(self, now: float, pose: Pose) -> Stamped[Trajectory]:
         """The plan the gateway holds at ``now`` (a new one every period)."""
+        if self.plan is None:  # the car's start, as the controller takes it
+            self.projector.start_at(pose.x, pose.y, pose.heading)
         k, _, _, _, _ = self.projector.project(pose.x, pose.y, pose.speed)  # every tick: in order
         due = self.last_sent is None or now - self.last_sent >= self.window.period - 1e-9
         if self.plan is not None and not due:
@@ -309,15 +311,30 @@ FINISH_TOLERANCE = 0.5  # m: a run finished only when it ended this close to the
 
 def finish_verdict(metrics: dict[str, Any], claimed: bool, why_not: str) -> tuple[bool, str]:
     """Did the run finish the maneuver? Checked against the route, not only taken from the
-    gateway: the car must have got along the whole route and stopped on its end."""
-    length, progress = metrics["route_length_m"], metrics["progress_m"]
-    final = metrics["final_position_error_m"]
+    gateway: the car must have driven the route from where its start projects
+    (``start_progress_m``; 0 from the first waypoint) to the end, within
+    :data:`FINISH_TOLERANCE`, and stopped on the end.
+
+    A start within :data:`FINISH_TOLERANCE` of the route's end leaves nothing to drive: such a
+    run is not finished (a car that never moved would pass every other check). So a finished
+    run always made progress.
+    """
+    length, start = metrics["route_length_m"], metrics["start_progress_m"]
+    progress, final = metrics["progress_m"], metrics["final_position_error_m"]
+    left = length - start  # m, the route from the start's projection to the end
     if not claimed:
         return False, why_not
-    if progress < length - FINISH_TOLERANCE or final > FINISH_TOLERANCE:
+    if left <= FINISH_TOLERANCE:
+        return False, (
+            f"the gateway reported the end reached, but the car started {left:.2f} m before "
+            f"the route's end (at {start:.1f} of {length:.1f} m), within the "
+            f"{FINISH_TOLERANCE:g} m that counts as there: nothing was left to drive"
+        )
+    if progress < left - FINISH_TOLERANCE or final > FINISH_TOLERANCE:
+        started = f" from its start at {start:.1f} m" if start >= 0.05 else ""
         return False, (
             f"the gateway reported the end reached, but the car got {progress:.1f} of "
-            f"{length:.1f} m along the route and stopped {final:.2f} m from its end"
+            f"{left:.1f} m along the route{started} and stopped {final:.2f} m from its end"
         )
     return True, ""
 
