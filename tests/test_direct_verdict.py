@@ -52,8 +52,8 @@ def test_a_direct_drive_that_left_the_plan_is_not_finished(
     args = ["sim", "--no-plots", "--direct", "--trajectory", str(route), "--out", str(out)]
     assert cli.main(args) == 1
     err = capsys.readouterr().err
-    assert "not finished: off the plan at t = " in err
-    assert "(limit 2 m, watchdog.max_path_deviation)" in err and "--direct has no gateway" in err
+    assert "not finished: off the plan: " in err and "(limit 2 m) at t = " in err
+    assert "(watchdog.max_path_deviation)" in err and "--direct has no gateway" in err
     metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
     assert metrics["finished"] is False
     assert metrics["lateral_error_max_m"] > 2.0

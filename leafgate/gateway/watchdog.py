@@ -724,6 +724,20 @@ STEER_SETTLE_TIME = 0.5  # s, steering still within the band this long has stopp
 STOP_COMMAND_SPEED = 0.05  # m/s, a target speed below this while moving is a stop being made
 
 
+def off_plan(deviation: float, progress: float, route_length: float, limit: float) -> str | None:
+    """The one rule for a car that has left its plan: farther than ``limit`` (m,
+    ``max_path_deviation``) from it (``deviation``, m; NaN: unknown, not judged). The reason,
+    naming where along the plan (``progress`` of ``route_length``, m), or None when on the plan.
+    The progress watchdog stops the car on it; ``sim --direct``, which has no gateway, reports it.
+    """
+    if not deviation > limit:  # NaN: not judged
+        return None
+    return (
+        f"off the plan: {deviation:.2f} m from it at {progress:.1f} of {route_length:.1f} m "
+        f"(limit {limit:g} m)"
+    )
+
+
 class ProgressWatchdog:
     """No progress along the plan: ENGAGED, commanded to move, yet stuck → STOP.
 
@@ -804,16 +818,10 @@ class ProgressWatchdog:
         """
         if not (route_length > 0.0 and math.isfinite(progress)):
             return self.idle()
-        if deviation > self.max_deviation:  # False for NaN
+        left = off_plan(deviation, progress, route_length, self.max_deviation)
+        if left is not None:
             return Check(
-                self.name,
-                Status.OFF_PLAN,
-                None,
-                self.max_deviation,
-                Reaction.STOP,
-                f"off the plan: {deviation:.2f} m from it at {progress:.1f} of "
-                f"{route_length:.1f} m (limit {self.max_deviation:g} m)",
-                deviation,
+                self.name, Status.OFF_PLAN, None, self.max_deviation, Reaction.STOP, left, deviation
             )
         if self._steer_anchor is None:
             self._steer_anchor = steer_angle

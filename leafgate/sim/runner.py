@@ -36,6 +36,7 @@ from leafgate.control import make_controller
 from leafgate.control.reference import MIN_POINTS, split_segments
 from leafgate.errors import ConfigError
 from leafgate.gateway.core import END_REACHED, Gateway, GatewayInputs, StepResult
+from leafgate.gateway.watchdog import off_plan
 from leafgate.messages import (
     GatewayState,
     Gear,
@@ -407,12 +408,11 @@ def run_direct(config: LeafgateConfig, scenario: Scenario, label: str = "") -> S
         t = k * period
         pose = plant.pose()
         out = controller.step(pose, plant.steer_angle, traj)
-        if out.deviation > limit and not left_plan:  # False for NaN, as in the watchdog
+        off = None if left_plan else off_plan(out.deviation, out.progress, out.route_length, limit)
+        if off is not None:  # the watchdog's rule and words
             left_plan = (
-                f"off the plan at t = {t:.2f} s: {out.deviation:.2f} m from it at "
-                f"{out.progress:.1f} of {out.route_length:.1f} m (limit {limit:g} m, "
-                "watchdog.max_path_deviation): the gateway would have stopped the car there; "
-                "--direct has no gateway and drove on"
+                f"{off} at t = {t:.2f} s: the gateway (watchdog.max_path_deviation) would have "
+                "stopped the car there; --direct has no gateway and drove on"
             )
             timeline.append((t, left_plan))
         not_converged += 0 if out.converged else 1
