@@ -188,6 +188,7 @@ FIGURES = (
     "overspeed_max_mps",
     "steer_rate_sign_changes",
     "path_steer_sign_changes",
+    "start_progress_m",
     "progress_m",
     "route_length_m",
 )

@@ -51,6 +51,7 @@ KEEP = (
     "steer_rate_sign_changes",
     "path_steer_sign_changes",
     "overspeed_max_mps",
+    "start_progress_m",
     "progress_m",
     "route_length_m",
     "duration_s",
