@@ -11,6 +11,7 @@ dropped does not depend on timing.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import threading
 from dataclasses import dataclass
@@ -23,6 +24,12 @@ import pytest
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.record.logs import ChainedSource, drop_marker, is_recorder_marker
 from leafgate.record.recorder import CanLogRecorder, Recording, SessionRecorder
+from leafgate.record.session import (
+    TOPIC_LOST,
+    TOPIC_TICK,
+    LostItems,
+    SessionReader,
+)
 from leafgate.replay.check import check_log, main_check
 from leafgate.replay.decode import AFTER_RECORDER_LOSS, decode_log
 from leafgate.settings import LeafgateConfig
@@ -33,6 +40,7 @@ from tests.conftest import wait_for
 EPOCH = 1.8e9  # s: simulated time 0 in Unix time
 STALL_FROM, STALL_UNTIL = 8.0, 8.5  # s of simulated time the writers are stalled
 ROOM = 100  # items each queue takes during the stall
+INPUT_KEY = "/localization/kinematic_state"
 
 
 class _Stalled:
@@ -71,6 +79,8 @@ class _StalledRecording(Recording):
         self.phase = "before"
 
     def on_tick(self, now: float, inputs: GatewayInputs, result: StepResult, frames: Any) -> None:
+        # a Zenoh input per tick, as the daemon's localization sample would be
+        super().on_zenoh_input(INPUT_KEY, b'{"x": 0.0}', now)
         if self.phase == "before" and now >= STALL_FROM:
             assert wait_for(lambda: all(w.caught_up() for w in self.writers))
             for w in self.writers:
@@ -254,3 +264,37 @@ def test_a_drop_earlier_than_the_held_marker_gets_its_own_marker(tmp_path: Path)
     list(source)
     for t in (10.03, 10.05):
         assert any(d.start <= t <= d.end for d in source.drops), (t, source.drops)
+
+
+# --- ticks and Zenoh inputs: the session marks them, the re-run stops at the gap ------------
+
+
+def _session_records(path: Path, topic: str) -> list[dict[str, Any]]:
+    with SessionReader(path) as reader:
+        return [r.json() for r in reader.records(frozenset({topic}))]
+
+
+def test_the_session_marks_the_ticks_and_inputs_it_dropped_and_numbers_its_ticks(
+    overflow: Overflow,
+) -> None:
+    """Old code marked the frames only: the ticks and inputs dropped in the stall left a hole
+    that read as a continuous drive (ticks 10 ms apart, then 400 ms apart, and no word why)."""
+    diagnostics = overflow.diagnostics["session"]
+    dropped_ticks, dropped_inputs = (
+        diagnostics["overflowed_ticks"],
+        diagnostics["overflowed_inputs"],
+    )
+    assert dropped_ticks > 10 and dropped_inputs > 10, diagnostics
+    lost = [LostItems.from_record(d) for d in _session_records(overflow.session, TOPIC_LOST)]
+    ticks = [x for x in lost if x.what == "tick"]
+    inputs = [x for x in lost if x.what == "input"]
+    assert sum(x.count for x in ticks) == dropped_ticks
+    assert sum(x.count for x in inputs) == dropped_inputs
+    assert {k for x in inputs for k in x.topics} == {INPUT_KEY}
+    for x in lost:
+        assert STALL_FROM <= x.first <= x.last <= STALL_UNTIL + 0.03, x
+    # the ticks written are numbered as handed in: one jump, as long as the ticks dropped
+    seqs = [d["seq"] for d in _session_records(overflow.session, TOPIC_TICK)]
+    jumps = [(a, b) for a, b in itertools.pairwise(seqs) if b != a + 1]
+    assert seqs[0] == 0 and len(jumps) == 1, jumps
+    assert jumps[0][1] - jumps[0][0] - 1 == dropped_ticks
