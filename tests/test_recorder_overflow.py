@@ -29,9 +29,12 @@ from leafgate.record.session import (
     TOPIC_TICK,
     LostItems,
     SessionReader,
+    TickContinuity,
 )
 from leafgate.replay.check import check_log, main_check
 from leafgate.replay.decode import AFTER_RECORDER_LOSS, decode_log
+from leafgate.replay.plot import main_plot
+from leafgate.replay.rerun import main_rerun, rerun_session
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import run
 from leafgate.sim.scenarios import get_scenario
@@ -298,3 +301,90 @@ def test_the_session_marks_the_ticks_and_inputs_it_dropped_and_numbers_its_ticks
     jumps = [(a, b) for a, b in itertools.pairwise(seqs) if b != a + 1]
     assert seqs[0] == 0 and len(jumps) == 1, jumps
     assert jumps[0][1] - jumps[0][0] - 1 == dropped_ticks
+
+
+def test_rerun_ends_at_the_ticks_the_recorder_dropped_and_says_where(overflow: Overflow) -> None:
+    """Old code fed the ticks on both sides of the hole to one gateway as if they followed each
+    other, and printed IDENTICAL (or a DIVERGED blamed on the code) over 400 ms it never saw."""
+    report = rerun_session(overflow.session)
+    assert report.gap is not None and not report.identical and not report.diverged
+    dropped = overflow.diagnostics["session"]["overflowed_ticks"]
+    assert report.gap.missing == report.gap.dropped == dropped
+    assert report.gap.before is not None and STALL_FROM <= report.gap.before < report.gap.after
+    assert report.ticks > 0 and report.not_rerun > 0
+    # every tick before the gap re-run, none after it
+    assert report.ticks == report.gap.seq - report.gap.missing
+    out = io.StringIO()
+    assert main_rerun(overflow.session, out=out) == 1
+    lines = out.getvalue().strip().splitlines()
+    assert lines[0].endswith(f"; not the {report.not_rerun} ticks after a gap"), lines[0]
+    verdict = lines[-1]
+    first, last = report.gap.seq - dropped, report.gap.seq - 1
+    assert verdict.startswith(
+        f"INCOMPLETE: {dropped} ticks missing (#{first}–#{last}) between the ticks at "
+        f"{report.gap.before:.3f} s and {report.gap.after:.3f} s: the recorder dropped them"
+    ), verdict
+    assert f"the {report.ticks} ticks before it reproduced bit for bit" in verdict
+    assert "IDENTICAL" not in out.getvalue()
+    (note,) = [line for line in lines if line.startswith("note: ")]
+    n = overflow.diagnostics["session"]["overflowed_inputs"]
+    assert note.startswith(f"note: {n} Zenoh inputs ({INPUT_KEY} {n}) lost between"), note
+    as_json = io.StringIO()
+    main_rerun(overflow.session, as_json=True, out=as_json)
+    data = json.loads(as_json.getvalue())
+    assert data["identical"] is False and data["gap"]["missing_ticks"] == dropped
+    assert data["ticks_not_rerun"] == report.not_rerun
+    assert sum(x["count"] for x in data["lost_inputs"]) == n
+
+
+def test_plot_of_the_session_names_the_ticks_it_bridges(overflow: Overflow, tmp_path: Path) -> None:
+    out = io.StringIO()
+    assert main_plot(overflow.session, out=tmp_path, stdout=out) == 0
+    notes = [line for line in out.getvalue().splitlines() if line.startswith("note: ")]
+    dropped = overflow.diagnostics["session"]["overflowed_ticks"]
+    assert any(
+        n.startswith(f"note: {dropped} ticks missing (#") and "the recorder dropped them" in n
+        for n in notes
+    ), notes
+    assert any("Zenoh inputs" in n for n in notes), notes
+
+
+def test_a_tick_gap_without_a_lost_record_is_still_a_gap_and_old_sessions_say_unchecked(
+    overflow: Overflow, tmp_path: Path
+) -> None:
+    """Ticks numbered 0, 1, 5: three missing, whoever lost them (no lost record says why)."""
+    continuity = TickContinuity()
+    assert continuity.take_tick({"seq": 0, "now": 1.0}) is None
+    assert continuity.take_tick({"seq": 1, "now": 1.01}) is None
+    gap = continuity.take_tick({"seq": 5, "now": 1.05})
+    assert gap is not None and gap.missing == 3 and gap.dropped == 0
+    assert gap.text() == (
+        "3 ticks missing (#2–#4) between the ticks at 1.010 s and 1.050 s: the recorder lost them"
+    )
+    late = TickContinuity()
+    gap = late.take_tick({"seq": 2, "now": 0.5})
+    assert gap is not None and gap.before is None and "before the first tick" in gap.text()
+    unnumbered = TickContinuity()
+    assert unnumbered.take_tick({"now": 1.0}) is None and unnumbered.numbered is False
+    assert unnumbered.take_tick({"now": 9.0}) is None  # a clock jump alone is not judged
+
+
+@pytest.mark.slow
+def test_batch_rerun_says_incomplete_where_the_recorder_dropped_ticks(
+    overflow: Overflow, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: ``DIVERGED at 8.500 s``, blaming the code for the hole the recorder made."""
+    from leafgate.batch.results import read_table
+    from leafgate.cli import main
+
+    session = tmp_path / "in" / overflow.session.name
+    session.parent.mkdir()
+    session.write_bytes(overflow.session.read_bytes())
+    args = ["batch", "rerun", str(session.parent), "--workers", "1"]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 1
+    out = capsys.readouterr().out
+    dropped = overflow.diagnostics["session"]["overflowed_ticks"]
+    assert f"{session}: INCOMPLETE: {dropped} ticks missing (#" in out, out
+    assert "1 session, 1 not reproduced" in out, out
+    (row,) = read_table(tmp_path / "out" / "results.parquet")
+    assert row["identical"] is False and row["gap"].startswith(f"{dropped} ticks missing")
