@@ -388,3 +388,24 @@ def test_batch_rerun_says_incomplete_where_the_recorder_dropped_ticks(
     assert "1 session, 1 not reproduced" in out, out
     (row,) = read_table(tmp_path / "out" / "results.parquet")
     assert row["identical"] is False and row["gap"].startswith(f"{dropped} ticks missing")
+
+
+def test_rerun_verdicts_never_read_alike_over_unchecked_ticks() -> None:
+    """A session from before ticks were numbered cannot show a gap: its IDENTICAL says so. A gap
+    before the first tick re-runs nothing and says that."""
+    from leafgate.record.session import TickGap
+    from leafgate.replay.rerun import RerunReport
+
+    old = RerunReport("old.mcap", ticks=3, numbered=False)
+    assert old.identical
+    assert old.format()[-1].startswith("IDENTICAL: every recorded command reproduced bit for bit")
+    assert "not numbered" in old.format()[-1]
+    assert RerunReport("new.mcap", ticks=3).format()[-1] == (
+        "IDENTICAL: every command reproduced bit for bit"
+    )
+    start = RerunReport("start.mcap", gap=TickGap(2, 2, None, 0.5), not_rerun=9)
+    assert not start.identical
+    assert start.format()[-1].startswith(
+        "INCOMPLETE: 2 ticks missing (#0–#1) before the first tick, at 0.500 s: the recorder "
+        "lost them; no tick before it; the 9 ticks after it not re-run"
+    ), start.format()[-1]
