@@ -361,6 +361,10 @@ def test_a_tick_gap_without_a_lost_record_is_still_a_gap_and_old_sessions_say_un
     assert gap.text() == (
         "3 ticks missing (#2–#4) between the ticks at 1.010 s and 1.050 s: the recorder lost them"
     )
+    # a lost record logged late, after the tick that ends its gap, still accounts for it
+    continuity.take_lost({"what": "tick", "count": 3, "first": 1.02, "last": 1.04})
+    assert continuity.gaps[-1].dropped == 3
+    assert continuity.gaps[-1].text().endswith("the recorder dropped them (its queue overflowed)")
     late = TickContinuity()
     gap = late.take_tick({"seq": 2, "now": 0.5})
     assert gap is not None and gap.before is None and "before the first tick" in gap.text()

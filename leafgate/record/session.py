@@ -900,7 +900,18 @@ class TickContinuity:
         """A ``/leafgate/lost`` record's JSON."""
         lost = LostItems.from_record(data)
         self.lost.append(lost)
-        if lost.what == "tick":
+        if lost.what != "tick":
+            return lost
+        gap = self.gaps[-1] if self.gaps else None
+        if (
+            gap is not None
+            and gap.before is not None
+            and gap.before < lost.first <= lost.last < gap.after
+        ):
+            # logged late (the recorder orders its writes within a window): after the tick that
+            # ends the gap it accounts for
+            self.gaps[-1] = dataclasses.replace(gap, dropped=gap.dropped + lost.count)
+        else:
             self._dropped += lost.count
         return lost
 

@@ -90,9 +90,7 @@ def trace_from_session(
                 if lost.what != "tick" and notes is not None:
                     notes.append(f"{lost.text()}: the recorder dropped them")
                 continue
-            gap = continuity.take_tick(data)
-            if gap is not None and notes is not None:
-                notes.append(f"{gap.text()}; the plots' lines bridge the gap")
+            continuity.take_tick(data)
             pose = data["inputs"]["pose"]
             steer = data["inputs"]["steer_report"]
             if pose is None:
@@ -105,6 +103,8 @@ def trace_from_session(
             speed.append(float_from_json(p["speed"]))
             actual.append(math.nan if steer is None else float_from_json(steer["value"]["angle"]))
             target.append(float_from_json(data["commands"]["steer"]["angle"]))
+    if notes is not None:
+        notes += [f"{gap.text()}; the plots' lines bridge the gap" for gap in continuity.gaps]
     arrays = {
         k: np.asarray(v, dtype=np.float64)[_thin(len(t))]
         for k, v in {

@@ -362,6 +362,7 @@ def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) 
                 diff.add(now, a, b)
             report.ticks += 1
         report.truncated = reader.truncated
+        report.gap = continuity.gaps[0] if continuity.gaps else None  # with late lost records
         report.lost_inputs = continuity.lost_inputs
         report.numbered = continuity.numbered is not False
     if report.ticks == 0 and report.gap is None:
