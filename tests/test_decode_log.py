@@ -122,9 +122,42 @@ def test_a_candump_log_of_extended_ids_error_frames_and_oversized_frames(tmp_pat
     summary = [line for line in lines if line.startswith("#")]
     rows = {line.split()[1]: line.split()[2:] for line in summary[2:]}
     assert rows["12345678"] == ["?", "1", "0", "0", "0", "1", "0"]
-    assert rows["error"] == ["error", "frames", "1", "0", "0", "0", "1", "0"]
     assert rows["0A0"] == ["DBW_STEER_CMD", "2", "0", "0", "1", "0", "0"]
     assert not any(key.startswith(("8", "9")) for key in rows)
+
+
+def test_error_frames_are_counted_in_their_own_row_and_never_as_unknown_ids(
+    tmp_path: Path,
+) -> None:
+    """Old code counted an error frame as a frame of an unknown ID: ``unknown 1`` in its own
+    row and one more in the total's ``unknown``, beside the real unknown IDs."""
+    path = tmp_path / "car.log"
+    path.write_text(
+        "(1600000000.000000) can0 123#0102\n"
+        "(1600000000.010000) can0 20000080#0000000000000000\n"  # an error frame
+        "(1600000000.020000) can0 20000080#0000000000000000\n"
+        "(1600000000.030000) can0 12345678#01\n",
+        encoding="utf-8",
+    )
+    out = io.StringIO()
+    decode_log(path, out, profile="leafgate-dbw")
+    summary = [line for line in out.getvalue().splitlines() if line.startswith("#")]
+    assert summary[0].startswith("# car.log: 4 frames (2 error frames), profile leafgate-dbw")
+    rows = {line.split()[1]: line.split()[2:] for line in summary[2:]}
+    assert rows["error"] == ["error", "frames", "2", "0", "0", "0", "0", "0"]
+    assert rows["total"] == ["4", "0", "0", "0", "2", "0"]  # unknown: 0x123 and 12345678
+
+    from leafgate.replay.check import check_log
+
+    report = check_log(path, profile="leafgate-dbw")
+    assert (report.unknown_frames, report.error_frames) == (2, 2)
+    assert report.to_dict()["unknown_id_frames"] == 2 and report.to_dict()["error_frames"] == 2
+    assert report.format()[0].startswith(
+        f"{path}: 4 frames (2 of an unknown ID, 2 error frames), 0.030 s"
+    )
+    # the coverage finding counts no error frame among the profile's frames
+    (coverage,) = [f for f in report.findings if f.kind == "coverage"]
+    assert "a recording of another vehicle?" in coverage.detail
 
 
 def test_a_screen_dump_of_candump_is_refused_naming_the_log_format(tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from leafgate.can import e2e
-from leafgate.can.codec import CanCodec, Decoded
+from leafgate.can.codec import ERROR_FRAME_KEY, CanCodec, Decoded, FrameStats
 from leafgate.config import MAX_YAML_DEPTH
 from leafgate.config.transport import ZenohConfig
 from leafgate.control.reference import load_trajectory
@@ -101,9 +101,12 @@ def assert_consistent(codec: CanCodec, msg: can.Message, out: Decoded) -> None:
 def assert_counts_add_up(codec: CanCodec, fed: int, valid_per_id: dict[int, int]) -> None:
     """Every frame fed is counted once; per known ID, frames - errors = valid decodes."""
     stats = codec.stats
-    # unknown_id counts appear only under unknown (or extended, ID | EXTENDED_KEY) keys
+    # unknown_id counts appear only under unknown (or extended, ID | EXTENDED_KEY) keys; error
+    # frames have no ID: their own row, not unknown IDs
     in_known = sum(stats[i].frames - stats[i].unknown_id for i in KNOWN_IDS)
-    assert in_known + codec.unknown_id_count == fed
+    error_frames = stats.get(ERROR_FRAME_KEY, FrameStats())
+    assert error_frames.unknown_id == 0
+    assert in_known + codec.unknown_id_count + error_frames.frames == fed
     for frame_id in KNOWN_IDS:
         s = stats[frame_id]
         assert s.frames - s.errors == valid_per_id.get(frame_id, 0)

@@ -11,6 +11,7 @@ dropped does not depend on timing.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import threading
 from dataclasses import dataclass
@@ -23,8 +24,17 @@ import pytest
 from leafgate.gateway.core import GatewayInputs, StepResult
 from leafgate.record.logs import ChainedSource, drop_marker, is_recorder_marker
 from leafgate.record.recorder import CanLogRecorder, Recording, SessionRecorder
+from leafgate.record.session import (
+    TOPIC_LOST,
+    TOPIC_TICK,
+    LostItems,
+    SessionReader,
+    TickContinuity,
+)
 from leafgate.replay.check import check_log, main_check
 from leafgate.replay.decode import AFTER_RECORDER_LOSS, decode_log
+from leafgate.replay.plot import main_plot
+from leafgate.replay.rerun import main_rerun, rerun_session
 from leafgate.settings import LeafgateConfig
 from leafgate.sim.runner import run
 from leafgate.sim.scenarios import get_scenario
@@ -33,6 +43,7 @@ from tests.conftest import wait_for
 EPOCH = 1.8e9  # s: simulated time 0 in Unix time
 STALL_FROM, STALL_UNTIL = 8.0, 8.5  # s of simulated time the writers are stalled
 ROOM = 100  # items each queue takes during the stall
+INPUT_KEY = "/localization/kinematic_state"
 
 
 class _Stalled:
@@ -71,6 +82,8 @@ class _StalledRecording(Recording):
         self.phase = "before"
 
     def on_tick(self, now: float, inputs: GatewayInputs, result: StepResult, frames: Any) -> None:
+        # a Zenoh input per tick, as the daemon's localization sample would be
+        super().on_zenoh_input(INPUT_KEY, b'{"x": 0.0}', now)
         if self.phase == "before" and now >= STALL_FROM:
             assert wait_for(lambda: all(w.caught_up() for w in self.writers))
             for w in self.writers:
@@ -254,3 +267,149 @@ def test_a_drop_earlier_than_the_held_marker_gets_its_own_marker(tmp_path: Path)
     list(source)
     for t in (10.03, 10.05):
         assert any(d.start <= t <= d.end for d in source.drops), (t, source.drops)
+
+
+# --- ticks and Zenoh inputs: the session marks them, the re-run stops at the gap ------------
+
+
+def _session_records(path: Path, topic: str) -> list[dict[str, Any]]:
+    with SessionReader(path) as reader:
+        return [r.json() for r in reader.records(frozenset({topic}))]
+
+
+def test_the_session_marks_the_ticks_and_inputs_it_dropped_and_numbers_its_ticks(
+    overflow: Overflow,
+) -> None:
+    """Old code marked the frames only: the ticks and inputs dropped in the stall left a hole
+    that read as a continuous drive (ticks 10 ms apart, then 400 ms apart, and no word why)."""
+    diagnostics = overflow.diagnostics["session"]
+    dropped_ticks, dropped_inputs = (
+        diagnostics["overflowed_ticks"],
+        diagnostics["overflowed_inputs"],
+    )
+    assert dropped_ticks > 10 and dropped_inputs > 10, diagnostics
+    lost = [LostItems.from_record(d) for d in _session_records(overflow.session, TOPIC_LOST)]
+    ticks = [x for x in lost if x.what == "tick"]
+    inputs = [x for x in lost if x.what == "input"]
+    assert sum(x.count for x in ticks) == dropped_ticks
+    assert sum(x.count for x in inputs) == dropped_inputs
+    assert {k for x in inputs for k in x.topics} == {INPUT_KEY}
+    for x in lost:
+        assert STALL_FROM <= x.first <= x.last <= STALL_UNTIL + 0.03, x
+    # the ticks written are numbered as handed in: one jump, as long as the ticks dropped
+    seqs = [d["seq"] for d in _session_records(overflow.session, TOPIC_TICK)]
+    jumps = [(a, b) for a, b in itertools.pairwise(seqs) if b != a + 1]
+    assert seqs[0] == 0 and len(jumps) == 1, jumps
+    assert jumps[0][1] - jumps[0][0] - 1 == dropped_ticks
+
+
+def test_rerun_ends_at_the_ticks_the_recorder_dropped_and_says_where(overflow: Overflow) -> None:
+    """Old code fed the ticks on both sides of the hole to one gateway as if they followed each
+    other, and printed IDENTICAL (or a DIVERGED blamed on the code) over 400 ms it never saw."""
+    report = rerun_session(overflow.session)
+    assert report.gap is not None and not report.identical and not report.diverged
+    dropped = overflow.diagnostics["session"]["overflowed_ticks"]
+    assert report.gap.missing == report.gap.dropped == dropped
+    assert report.gap.before is not None and STALL_FROM <= report.gap.before < report.gap.after
+    assert report.ticks > 0 and report.not_rerun > 0
+    # every tick before the gap re-run, none after it
+    assert report.ticks == report.gap.seq - report.gap.missing
+    out = io.StringIO()
+    assert main_rerun(overflow.session, out=out) == 1
+    lines = out.getvalue().strip().splitlines()
+    assert lines[0].endswith(f"; not the {report.not_rerun} ticks after a gap"), lines[0]
+    verdict = lines[-1]
+    first, last = report.gap.seq - dropped, report.gap.seq - 1
+    assert verdict.startswith(
+        f"INCOMPLETE: {dropped} ticks missing (#{first}–#{last}) between the ticks at "
+        f"{report.gap.before:.3f} s and {report.gap.after:.3f} s: the recorder dropped them"
+    ), verdict
+    assert f"the {report.ticks} ticks before it reproduced bit for bit" in verdict
+    assert "IDENTICAL" not in out.getvalue()
+    (note,) = [line for line in lines if line.startswith("note: ")]
+    n = overflow.diagnostics["session"]["overflowed_inputs"]
+    assert note.startswith(f"note: {n} Zenoh inputs ({INPUT_KEY} {n}) lost between"), note
+    as_json = io.StringIO()
+    main_rerun(overflow.session, as_json=True, out=as_json)
+    data = json.loads(as_json.getvalue())
+    assert data["identical"] is False and data["gap"]["missing_ticks"] == dropped
+    assert data["ticks_not_rerun"] == report.not_rerun
+    assert sum(x["count"] for x in data["lost_inputs"]) == n
+
+
+def test_plot_of_the_session_names_the_ticks_it_bridges(overflow: Overflow, tmp_path: Path) -> None:
+    out = io.StringIO()
+    assert main_plot(overflow.session, out=tmp_path, stdout=out) == 0
+    notes = [line for line in out.getvalue().splitlines() if line.startswith("note: ")]
+    dropped = overflow.diagnostics["session"]["overflowed_ticks"]
+    assert any(
+        n.startswith(f"note: {dropped} ticks missing (#") and "the recorder dropped them" in n
+        for n in notes
+    ), notes
+    assert any("Zenoh inputs" in n for n in notes), notes
+
+
+def test_a_tick_gap_without_a_lost_record_is_still_a_gap_and_old_sessions_say_unchecked(
+    overflow: Overflow, tmp_path: Path
+) -> None:
+    """Ticks numbered 0, 1, 5: three missing, whoever lost them (no lost record says why)."""
+    continuity = TickContinuity()
+    assert continuity.take_tick({"seq": 0, "now": 1.0}) is None
+    assert continuity.take_tick({"seq": 1, "now": 1.01}) is None
+    gap = continuity.take_tick({"seq": 5, "now": 1.05})
+    assert gap is not None and gap.missing == 3 and gap.dropped == 0
+    assert gap.text() == (
+        "3 ticks missing (#2–#4) between the ticks at 1.010 s and 1.050 s: the recorder lost them"
+    )
+    # a lost record logged late, after the tick that ends its gap, still accounts for it
+    continuity.take_lost({"what": "tick", "count": 3, "first": 1.02, "last": 1.04})
+    assert continuity.gaps[-1].dropped == 3
+    assert continuity.gaps[-1].text().endswith("the recorder dropped them (its queue overflowed)")
+    late = TickContinuity()
+    gap = late.take_tick({"seq": 2, "now": 0.5})
+    assert gap is not None and gap.before is None and "before the first tick" in gap.text()
+    unnumbered = TickContinuity()
+    assert unnumbered.take_tick({"now": 1.0}) is None and unnumbered.numbered is False
+    assert unnumbered.take_tick({"now": 9.0}) is None  # a clock jump alone is not judged
+
+
+@pytest.mark.slow
+def test_batch_rerun_says_incomplete_where_the_recorder_dropped_ticks(
+    overflow: Overflow, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: ``DIVERGED at 8.500 s``, blaming the code for the hole the recorder made."""
+    from leafgate.batch.results import read_table
+    from leafgate.cli import main
+
+    session = tmp_path / "in" / overflow.session.name
+    session.parent.mkdir()
+    session.write_bytes(overflow.session.read_bytes())
+    args = ["batch", "rerun", str(session.parent), "--workers", "1"]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 1
+    out = capsys.readouterr().out
+    dropped = overflow.diagnostics["session"]["overflowed_ticks"]
+    assert f"{session}: INCOMPLETE: {dropped} ticks missing (#" in out, out
+    assert "1 session, 1 not reproduced" in out, out
+    (row,) = read_table(tmp_path / "out" / "results.parquet")
+    assert row["identical"] is False and row["gap"].startswith(f"{dropped} ticks missing")
+
+
+def test_rerun_verdicts_never_read_alike_over_unchecked_ticks() -> None:
+    """A session from before ticks were numbered cannot show a gap: its IDENTICAL says so. A gap
+    before the first tick re-runs nothing and says that."""
+    from leafgate.record.session import TickGap
+    from leafgate.replay.rerun import RerunReport
+
+    old = RerunReport("old.mcap", ticks=3, numbered=False)
+    assert old.identical
+    assert old.format()[-1].startswith("IDENTICAL: every recorded command reproduced bit for bit")
+    assert "not numbered" in old.format()[-1]
+    assert RerunReport("new.mcap", ticks=3).format()[-1] == (
+        "IDENTICAL: every command reproduced bit for bit"
+    )
+    start = RerunReport("start.mcap", gap=TickGap(2, 2, None, 0.5), not_rerun=9)
+    assert not start.identical
+    assert start.format()[-1].startswith(
+        "INCOMPLETE: 2 ticks missing (#0–#1) before the first tick, at 0.500 s: the recorder "
+        "lost them; no tick before it; the 9 ticks after it not re-run"
+    ), start.format()[-1]

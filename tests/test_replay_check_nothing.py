@@ -335,7 +335,7 @@ def test_counts_of_one_are_singular(tmp_path: Path, capsys: pytest.CaptureFixtur
     log.write_text("(1700000000.000000) vcan0 123#00\n")
     assert main_check(log, profile=PROFILE) == 1
     out = capsys.readouterr().out
-    assert f"{log}: 1 frame, " in out
+    assert f"{log}: 1 frame (1 of an unknown ID), " in out
     verdict = _verdict(out)
     assert "0 engaged command frames checked" in verdict and "1 coverage finding;" not in verdict
     # a foreign log has no end marker: that fails it too, and the verdict says so

@@ -354,10 +354,19 @@ def cmd_batch_rerun(args: argparse.Namespace) -> int:
                 )
             elif r["identical"]:
                 verdict = f"IDENTICAL: {plural(r['ticks'], 'tick')}, every command reproduced"
+                if r.get("ticks_numbered") is False:
+                    verdict += " (ticks not numbered: ticks the recorder lost not looked for)"
+            elif r["first_divergence_s"] is None:  # not diverged: ticks missing ended it
+                verdict = (
+                    f"INCOMPLETE: {r['gap']}; {plural(r['ticks'], 'tick')} before it reproduced, "
+                    f"{plural(r['ticks_not_rerun'], 'tick')} after it not re-run"
+                )
             else:
                 verdict = f"DIVERGED at {r['first_divergence_s']:.3f} s: {r['diverging_signals']}"
                 if r.get("truncated"):
                     verdict += " (truncated session)"
+                if r.get("gap"):
+                    verdict += f"; then {r['gap']} (not re-run after it)"
             differing += r["status"] == "failed" or (r["status"] == "ok" and not r["identical"])
             truncated += r["status"] == "ok" and bool(r.get("identical") and r.get("truncated"))
             print(f"{r['path']}: {verdict}")

@@ -116,4 +116,8 @@ def rerun_case(path: str, overrides: dict[str, Any]) -> dict[str, Any]:
             for s in diverged
         ),
         "truncated": report.truncated,
+        # ticks missing from the session: the re-run ended there (None: none missing)
+        "gap": None if report.gap is None else report.gap.text(),
+        "ticks_not_rerun": report.not_rerun,
+        "ticks_numbered": report.numbered,
     }

@@ -1413,15 +1413,20 @@ class CanCodec:
             counts[_DECODE_ERROR] += 1
             return Decoded(frame_id, entry.name, None, False, "decode_error")
 
-    def _count_unknown(self, frame_id: int) -> None:
-        self._unknown_total += 1
-        counts = self._counts.get(frame_id)
+    def _count_unknown(self, key: int) -> None:
+        """Count a frame of no known ID under its key (:func:`frame_key`). An error frame has
+        no ID at all: a frame of its own row, not an unknown ID's."""
+        error_frame = key == ERROR_FRAME_KEY
+        if not error_frame:
+            self._unknown_total += 1
+        counts = self._counts.get(key)
         if counts is None:
             if len(self._counts) - len(self._rx) >= _MAX_TRACKED_UNKNOWN_IDS:
                 return
-            counts = self._counts[frame_id] = [0] * _STATS_LEN
+            counts = self._counts[key] = [0] * _STATS_LEN
         counts[_FRAMES] += 1
-        counts[_UNKNOWN] += 1
+        if not error_frame:
+            counts[_UNKNOWN] += 1
 
     def second_senders(self) -> str:
         """``""``, or which received IDs' alive counters run as two interleaved sequences: a
@@ -1444,13 +1449,14 @@ class CanCodec:
     @property
     def stats(self) -> Mapping[int, FrameStats]:
         """Receive counters per CAN ID (a snapshot). Unknown IDs are listed too, up to 1024
-        distinct ones (29-bit IDs as ``ID | EXTENDED_KEY``, error frames as ``ERROR_FRAME_KEY``;
-        :func:`stats_label` shows a key); :attr:`unknown_id_count` counts all of them."""
+        distinct ones (29-bit IDs as ``ID | EXTENDED_KEY``; :func:`stats_label` shows a key);
+        :attr:`unknown_id_count` counts all of them. Error frames have the row
+        ``ERROR_FRAME_KEY``, with frames but no ``unknown_id``: they are not frames of an ID."""
         return {frame_id: FrameStats(*counts) for frame_id, counts in list(self._counts.items())}
 
     @property
     def unknown_id_count(self) -> int:
-        """Frames received with an ID no database describes, over all IDs."""
+        """Frames received with an ID no database describes, over all IDs (no error frame)."""
         return self._unknown_total
 
     def receive_ids(self, direction: Direction) -> frozenset[int]:

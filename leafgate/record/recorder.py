@@ -4,11 +4,14 @@ The hooks are called from the threads that see the data — the python-can Notif
 (received frames), Zenoh callback threads (inputs) and the control thread (ticks and sent
 frames). They only put an item on a bounded queue and return: a writer thread per file does
 the encoding and the disk I/O, so a slow disk never delays a control tick. When the queue is
-full, items are dropped and counted, and the frames among them are marked in the file where
-they were lost: a drop marker (:func:`~leafgate.record.logs.drop_marker`) at the first dropped
-frame's time, with how many and over how long, written in time order with the rest (drops
-close together, while the marker is still held back to be ordered, are one marker). So a
-check of the file tells the recorder's loss from a silent bus or a skipped counter.
+full, items are dropped and counted, and marked in the file where they were lost, written in
+time order with the rest (drops close together, while the mark is still held back to be
+ordered, are one mark): frames by a drop marker (:func:`~leafgate.record.logs.drop_marker`)
+at the first dropped frame's time, with how many and over how long; a session's ticks and
+Zenoh inputs by a ``/leafgate/lost`` record (:meth:`~leafgate.record.session.SessionWriter.lost`)
+saying how many of which, from when to when. A session's ticks are numbered too (``seq``), so
+a reader sees every tick missing from the file. So a check of the file tells the recorder's
+loss from a silent bus or a skipped counter, and a re-run knows where it cannot go on.
 
 Crash safety: the writer thread makes the file readable up to the last item every
 ``flush_period`` (≤ 1 s): the MCAP chunk in progress is closed, the BLF container in progress
@@ -96,30 +99,44 @@ def _item_bytes(item: Any) -> int:
     return _ITEM_OVERHEAD
 
 
+#: What a dropped item was: a CAN frame, a session's control tick, a session's Zenoh input.
+DropKind = Literal["can", "tick", "zenoh"]
+
+
 class _Drops:
-    """Frames dropped when the queue overflowed: how many, the first and last one's time (s).
-    One drop marker in the file; it holds at most what a marker can say."""
+    """Items of one kind dropped when the queue overflowed: how many, the first and last one's
+    time (s), and for Zenoh inputs how many of each key. One mark in the file (a frames' drop
+    marker holds at most what a marker can say; a lost record the same, to keep them alike)."""
 
-    __slots__ = ("first", "frames", "last", "written")
+    __slots__ = ("count", "first", "keys", "kind", "last", "written")
 
-    def __init__(self, t: float) -> None:
+    def __init__(self, kind: DropKind, t: float, key: str | None = None) -> None:
+        self.kind = kind
         self.first = self.last = t
-        self.frames = 1
-        self.written = False  # its marker is in the file: nothing more is added
+        self.count = 1
+        self.keys: dict[str, int] = {} if key is None else {key: 1}
+        self.written = False  # its mark is in the file: nothing more is added
 
     def absorb(self, other: _Drops) -> bool:
-        """Add ``other``'s frames when one marker can say both (False: it cannot)."""
+        """Add ``other``'s items when one mark can say both (False: it cannot)."""
         first, last = min(self.first, other.first), max(self.last, other.last)
-        if last - first > DROP_MAX_SPAN or self.frames + other.frames > DROP_MAX_FRAMES:
+        if (
+            other.kind != self.kind
+            or last - first > DROP_MAX_SPAN
+            or self.count + other.count > DROP_MAX_FRAMES
+        ):
             return False
         self.first, self.last = first, last
-        self.frames += other.frames
+        self.count += other.count
+        for key, n in other.keys.items():
+            self.keys[key] = self.keys.get(key, 0) + n
         return True
 
     def marker(self, t: float, channel: Any = None) -> can.Message:
-        """The drop marker, written at ``t`` (its first frame's time, unless it came late)."""
+        """The frames' drop marker, written at ``t`` (its first frame's time, unless it came
+        late)."""
         self.written = True
-        return drop_marker(t, max(self.last, t), self.frames, channel)
+        return drop_marker(t, max(self.last, t), self.count, channel)
 
 
 class Recorder(Protocol):
@@ -173,11 +190,13 @@ class _BackgroundWriter:
         it cannot. None: a failure is final
     :param abandon: closes the failed file without finishing it (on :meth:`close`)
     :param retry_period: s between attempts at :param:`reopen` while failing
-    :param drop_time: the time (s) of a queued item that is a CAN frame, None for others: a
-        frame dropped when the queue is full is marked in the file (the frames the recorder
-        lost are not a silent bus)
-    :param mark: called on the thread with the frames dropped since its last call, to write
-        their marker in time order; returns how many items it wrote (as ``write``)
+    :param dropped: what a queued item is and its time (s), with a Zenoh input's key (else
+        None); None for an item whose loss is not marked: an item dropped when the queue is
+        full is marked in the file (the frames the recorder lost are not a silent bus, the
+        ticks it lost not a drive that went on unseen)
+    :param mark: called on the thread with the items of one kind dropped since its last
+        call, to write their mark in time order; returns how many items it wrote (as
+        ``write``)
     """
 
     def __init__(
@@ -193,15 +212,18 @@ class _BackgroundWriter:
         reopen: Callable[[], None] | None = None,
         abandon: Callable[[], None] | None = None,
         retry_period: float = DEFAULT_RETRY_PERIOD,
-        drop_time: Callable[[Any], float | None] | None = None,
+        dropped: Callable[[Any], tuple[DropKind, float, str | None] | None] | None = None,
         mark: Callable[[_Drops], int] | None = None,
     ) -> None:
         self.name = name
-        self._drop_time = drop_time
+        self._dropped = dropped
         self._mark = mark
-        self._drops: list[_Drops] = []  # frames dropped since the thread last took them
-        self._held_drops: _Drops | None = None  # the last marked, maybe not written yet
-        self.overflowed = 0  # frames dropped as the queue overflowed (each in a drop marker)
+        self._drops: list[_Drops] = []  # items dropped since the thread last took them
+        # per kind, the last marked, maybe not written yet
+        self._held_drops: dict[DropKind, _Drops] = {}
+        # items dropped as the queue overflowed, by kind (each in a mark in the file):
+        # ``overflowed`` the frames, ``overflowed_ticks`` and ``overflowed_inputs`` a session's
+        self._overflowed: dict[DropKind, int] = {"can": 0, "tick": 0, "zenoh": 0}
         self._reopen = reopen
         self._abandon = abandon
         self.retry_period = retry_period
@@ -259,27 +281,34 @@ class _BackgroundWriter:
                 self.dropped += 1
                 self._overflow(item)
 
+    @property
+    def overflowed(self) -> int:
+        """Frames dropped as the queue overflowed (each in a drop marker)."""
+        return self._overflowed["can"]
+
     def _overflow(self, item: Any) -> None:
-        """Note a frame dropped as the queue overflowed, for its marker (lock held)."""
-        t = None if self._drop_time is None or self._mark is None else self._drop_time(item)
-        if t is None or not math.isfinite(t):
+        """Note an item dropped as the queue overflowed, for its mark (lock held)."""
+        what = None if self._dropped is None or self._mark is None else self._dropped(item)
+        if what is None or not math.isfinite(what[1]):
             return
-        self.overflowed += 1
-        drops = _Drops(t)
-        if not (self._drops and self._drops[-1].absorb(drops)):
+        kind, t, key = what
+        self._overflowed[kind] += 1
+        drops = _Drops(kind, t, key)
+        last = next((d for d in reversed(self._drops) if d.kind == kind), None)
+        if last is None or not last.absorb(drops):
             self._drops.append(drops)
 
     def _take_drops(self) -> int:
-        """Mark the frames dropped since the last call (writer thread): added to the marker
-        still held back to be ordered when it can say them too, else a new marker."""
+        """Mark the items dropped since the last call (writer thread): added to the mark of
+        their kind still held back to be ordered when it can say them too, else a new mark."""
         if not self._drops or self._mark is None:
             return 0
         with self._lock:
             taken, self._drops = self._drops, []
         written = 0
         for drops in taken:
-            held = self._held_drops
-            # held back at its first frame's time: it can take later frames, not earlier ones
+            held = self._held_drops.get(drops.kind)
+            # held back at its first item's time: it can take later items, not earlier ones
             if (
                 held is not None
                 and not held.written
@@ -287,7 +316,7 @@ class _BackgroundWriter:
                 and held.absorb(drops)
             ):
                 continue
-            self._held_drops = drops
+            self._held_drops[drops.kind] = drops
             written += self._mark(drops)
         return written
 
@@ -300,7 +329,7 @@ class _BackgroundWriter:
         if isinstance(exc, OSError):
             with self._lock:  # dropped before the outage: lost with it, between the files
                 self._drops.clear()
-            self._held_drops = None
+            self._held_drops.clear()
             now = time.monotonic()
             if not self._outage:  # a new outage (a new file failing before its first flush
                 self._outage = True  # goes on with the one that made it)
@@ -447,6 +476,8 @@ class _BackgroundWriter:
             "queued_bytes": self._bytes,
             "dropped_bytes": self.dropped_bytes,
             "overflowed": self.overflowed,
+            "overflowed_ticks": self._overflowed["tick"],
+            "overflowed_inputs": self._overflowed["zenoh"],
             "fault": self.fault,
             "recoveries": self.recoveries,
             "lost": self.lost,
@@ -684,7 +715,7 @@ class CanLogRecorder(_FileRecorder):
             reopen=self._reopen,
             abandon=self._abandon,
             retry_period=retry_period,
-            drop_time=lambda msg: msg.timestamp,
+            dropped=lambda msg: ("can", msg.timestamp, None),
             mark=self._mark_drops,
         )
         try:
@@ -847,6 +878,14 @@ class CanLogRecorder(_FileRecorder):
         return {"files": [str(f) for f in self.files], "late": self.late, **self._bg.counters()}
 
 
+def _session_item_dropped(item: tuple[Any, ...]) -> tuple[DropKind, float, str | None]:
+    """What a session's queued item is, its time, and a Zenoh input's key (for its mark)."""
+    kind = item[0]
+    if kind == "zenoh":
+        return "zenoh", item[1], item[2]
+    return ("tick" if kind == "tick" else "can"), item[1], None
+
+
 class SessionRecorder(_FileRecorder):
     """The whole session in one MCAP file (see :mod:`leafgate.record.session`).
 
@@ -902,7 +941,8 @@ class SessionRecorder(_FileRecorder):
         self.tap = tap
         self.record_diagnostics = diagnostics
         self.reorder_window = reorder_window
-        self.ticks = 0
+        self.ticks = 0  # ticks written
+        self._seq = 0  # ticks handed in (control thread): the next one's number in the file
         # items in log-time order; those that came after the window are logged at the last time
         self._order: _ReorderWindow[tuple[Any, ...]] = _ReorderWindow(reorder_window)
         self._file: IO[bytes] | None = None
@@ -922,7 +962,7 @@ class SessionRecorder(_FileRecorder):
             reopen=self._reopen,
             abandon=self._abandon,
             retry_period=retry_period,
-            drop_time=lambda item: item[1] if item[0] == "can" else None,
+            dropped=_session_item_dropped,
             mark=lambda drops: self._write(("drops", drops.first, drops)),
         )
         meta = {"clock": "gateway" if clock is not None else "frame timestamps"}
@@ -960,7 +1000,8 @@ class SessionRecorder(_FileRecorder):
             if output is not None and output.predicted_xy is not None:
                 # the controller may reuse its buffer next tick: copy before handing over
                 xy = np.array(output.predicted_xy, dtype=np.float64)
-        self._bg.put(("tick", now, inputs, result, xy))
+        seq, self._seq = self._seq, self._seq + 1  # numbered when handed in: a drop is a gap
+        self._bg.put(("tick", now, inputs, result, xy, seq))
         for frame in frames:
             self._bg.put(("can", now, frame, False))
 
@@ -1040,11 +1081,17 @@ class SessionRecorder(_FileRecorder):
             ):
                 msg = copy_frame(msg, channel=self.channel)  # one bus, one channel name
             writer.can_frame(t, msg, rx)
-        elif kind == "drops":  # frames dropped when the queue overflowed: their marker
-            writer.can_frame(t, item[2].marker(t), False)
+        elif kind == "drops":  # items dropped when the queue overflowed: their mark
+            drops: _Drops = item[2]
+            if drops.kind == "can":
+                writer.can_frame(t, drops.marker(t), False)
+            else:
+                drops.written = True
+                what = "tick" if drops.kind == "tick" else "input"
+                writer.lost(t, what, drops.count, drops.first, drops.last, drops.keys)
         elif kind == "tick":
-            _, now, inputs, result, xy = item
-            writer.tick(now, inputs, result, xy, self.record_diagnostics, log_time=t)
+            _, now, inputs, result, xy, seq = item
+            writer.tick(now, inputs, result, xy, self.record_diagnostics, log_time=t, seq=seq)
             self.ticks += 1
         else:
             _, received, key, payload, typename = item

@@ -13,10 +13,20 @@ topic                       encoding  content
                                       speed}``, written before the first tick that refers to it
 ``/leafgate/tick``          json      per control tick the ``GatewayInputs`` exactly as passed to
                                       ``Gateway.step`` (trajectory by ``ref``), the commands sent,
-                                      the state and the operator reply
+                                      the state, the operator reply, and ``seq``: the tick's number
+                                      (0, 1, 2 … as handed to the recorder; absent before it was
+                                      written)
 ``/leafgate/diagnostics``   json      per tick ``Diagnostics.to_dict()`` plus the controller's
                                       predicted path
+``/leafgate/lost``          json      ticks or Zenoh inputs the recorder dropped (its queue
+                                      overflowed): ``{what: tick|input, count, first, last,
+                                      topics}``, times on the gateway clock (s), ``topics`` the
+                                      inputs' count per key; logged at the first one's time
 =========================== ========= ==============================================================
+
+A tick's ``seq`` goes up by one from tick to tick: a jump is ticks missing from the file, which
+:class:`TickContinuity` reports with the times of the ticks on both sides (the CAN frames the
+recorder dropped are marked on ``/can``: :func:`~leafgate.record.logs.drop_marker`).
 
 Metadata ``leafgate.config`` holds the configuration as YAML (``{"yaml": …}``) and
 ``leafgate.session`` the clock, the format version and ``epoch_offset_ns``; both are written
@@ -89,12 +99,16 @@ __all__ = [
     "FORMAT_VERSION",
     "TOPIC_CAN",
     "TOPIC_DIAGNOSTICS",
+    "TOPIC_LOST",
     "TOPIC_TICK",
     "TOPIC_TRAJECTORY",
+    "LostItems",
     "SessionDamaged",
     "SessionReader",
     "SessionRecord",
     "SessionWriter",
+    "TickContinuity",
+    "TickGap",
     "TrajectoryRefs",
     "apply_overrides",
     "config_from_yaml",
@@ -116,6 +130,7 @@ TOPIC_CAN: Final = "/can"
 TOPIC_TICK: Final = "/leafgate/tick"
 TOPIC_TRAJECTORY: Final = "/leafgate/trajectory"
 TOPIC_DIAGNOSTICS: Final = "/leafgate/diagnostics"
+TOPIC_LOST: Final = "/leafgate/lost"
 META_CONFIG: Final = "leafgate.config"
 META_SESSION: Final = "leafgate.session"
 _CDR_HEADERS: Final = (b"\x00\x00", b"\x00\x01")  # CDR encapsulation: big / little endian
@@ -482,11 +497,22 @@ def _json_schemas() -> dict[str, tuple[str, dict[str, Any]]]:
         TOPIC_TICK: (
             "leafgate.Tick",
             _obj(
+                seq=integer,
                 now=_NUMBER,
                 inputs=inputs,
                 commands=commands,
                 state=string,
                 reply=_nullable(_obj(accepted=boolean, state=string, reason=string)),
+            ),
+        ),
+        TOPIC_LOST: (
+            "leafgate.Lost",
+            _obj(
+                what={"type": "string", "enum": ["tick", "input"]},
+                count=integer,
+                first=_NUMBER,
+                last=_NUMBER,
+                topics={"type": "object", "additionalProperties": integer},
             ),
         ),
         TOPIC_TRAJECTORY: (
@@ -636,6 +662,7 @@ class SessionWriter:
         predicted_xy: FloatArray | None = None,
         diagnostics: bool = True,
         log_time: float | None = None,
+        seq: int | None = None,
     ) -> None:
         """One control tick: inputs, commands, state, and (optionally) the diagnostics.
 
@@ -643,6 +670,7 @@ class SessionWriter:
             when a :class:`~leafgate.record.recorder.ControllerTap` caught them
         :param log_time: s, the MCAP log time when not ``now`` (``now`` in the record stays
             exact; see :meth:`zenoh_input`)
+        :param seq: the tick's number, one more than the tick before it (None: not written)
         """
         t = to_ns(now if log_time is None else log_time)
         ref: tuple[int, int] | None = None
@@ -655,7 +683,8 @@ class SessionWriter:
                     _dumps(encode_trajectory(r, inputs.trajectory.value)),
                 )
             ref = (r, obj)
-        record = {
+        record: dict[str, Any] = {} if seq is None else {"seq": seq}
+        record |= {
             "now": _float_out(now),
             "inputs": encode_inputs(inputs, ref),
             "commands": encode_commands(result.commands),
@@ -669,6 +698,30 @@ class SessionWriter:
                 xy = np.asarray(predicted_xy, dtype=np.float64).reshape(-1, 2)
                 diag["predicted_xy"] = [[_float_out(float(a)), _float_out(float(b))] for a, b in xy]
             self._add(self._channels[TOPIC_DIAGNOSTICS], t, _dumps(diag))
+
+    def lost(
+        self,
+        log_time: float,
+        what: str,
+        count: int,
+        first: float,
+        last: float,
+        topics: Mapping[str, int] | None = None,
+    ) -> None:
+        """``count`` ticks (``what`` ``"tick"``) or Zenoh inputs (``"input"``) the recorder
+        dropped, the first at ``first``, the last at ``last`` (s, gateway clock).
+
+        :param log_time: s, where the record is logged (the first one's time, or later)
+        :param topics: for inputs, how many of each key
+        """
+        record = {
+            "what": what,
+            "count": count,
+            "first": _float_out(first),
+            "last": _float_out(last),
+            "topics": dict(topics or {}),
+        }
+        self._add(self._channels[TOPIC_LOST], to_ns(log_time), _dumps(record))
 
     def flush(self) -> None:
         """Close the chunk in progress and push it to the stream (a crash keeps it)."""
@@ -752,6 +805,139 @@ class SessionRecord:
 
     def json(self) -> Any:
         return json.loads(self.data)
+
+
+@dataclass(frozen=True, slots=True)
+class LostItems:
+    """Ticks or Zenoh inputs the recorder dropped when its queue overflowed (a
+    ``/leafgate/lost`` record): ``count`` of them from ``first`` to ``last`` (s, gateway clock),
+    for inputs how many of each key in ``topics``."""
+
+    what: str  # "tick" or "input"
+    count: int
+    first: float
+    last: float
+    topics: Mapping[str, int] = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def from_record(cls, d: Mapping[str, Any]) -> LostItems:
+        """From a ``/leafgate/lost`` record's JSON.
+
+        :raises KeyError: a field is missing
+        """
+        topics = {str(k): int(v) for k, v in (d.get("topics") or {}).items()}
+        return cls(
+            str(d["what"]), int(d["count"]), _float_in(d["first"]), _float_in(d["last"]), topics
+        )
+
+    def text(self) -> str:
+        """``"3 Zenoh inputs (/a 2, /b 1) lost between 8.010 s and 8.090 s"``."""
+        what = "tick" if self.what == "tick" else "Zenoh input"
+        which = ", ".join(f"{k} {n}" for k, n in sorted(self.topics.items()))
+        return (
+            f"{self.count} {what}{'' if self.count == 1 else 's'}"
+            + (f" ({which})" if which else "")
+            + f" lost between {self.first:.3f} s and {self.last:.3f} s"
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class TickGap:
+    """Ticks missing from a session between two it holds (or before its first)."""
+
+    missing: int  # ticks (negative: the numbers go backwards)
+    seq: int | None  # the number of the tick after the gap (None: the ticks are not numbered)
+    before: float | None  # s, gateway clock: the tick before the gap (None: none, at the start)
+    after: float  # s: the tick after the gap
+    dropped: int = 0  # of them, the ticks the recorder's /leafgate/lost records say it dropped
+
+    def text(self) -> str:
+        """``"50 ticks missing (#812–#861) between the ticks at 8.110 s and 8.610 s: the
+        recorder dropped them (its queue overflowed)"``."""
+        if self.missing < 0 and self.seq is not None:
+            return (
+                f"tick #{self.seq} at {self.after:.3f} s comes after tick #{self.seq - self.missing - 1}"
+                ": the ticks' numbers go backwards"
+            )
+        numbers = ""
+        if self.seq is not None:
+            first = self.seq - self.missing
+            last = self.seq - 1
+            numbers = f" (#{first})" if first == last else f" (#{first}–#{last})"
+        where = (
+            f"before the first tick, at {self.after:.3f} s"
+            if self.before is None
+            else f"between the ticks at {self.before:.3f} s and {self.after:.3f} s"
+        )
+        why = (
+            "the recorder dropped them (its queue overflowed)"
+            if self.dropped >= self.missing
+            else "the recorder lost them"
+        )
+        s = "" if self.missing == 1 else "s"
+        return f"{self.missing} tick{s} missing{numbers} {where}: {why}"
+
+
+class TickContinuity:
+    """Follows a session's ticks and ``/leafgate/lost`` records in file order: which ticks the
+    file lacks. Ticks are numbered (``seq``) as the recorder was handed them, so a jump is ticks
+    missing whatever lost them; a session recorded before they were numbered tells only
+    through its lost records (:attr:`numbered` False: a jump of the clock is not judged).
+
+    :param first_seq: the number the first tick should have (0 for a session from its start;
+        None when not known: a session that resumes another after a recording failure)
+    """
+
+    def __init__(self, first_seq: int | None = 0) -> None:
+        self.numbered: bool | None = None  # whether the ticks carry numbers (None: no tick yet)
+        self.gaps: list[TickGap] = []
+        self.lost: list[LostItems] = []  # every lost record read, ticks and inputs
+        self._last_seq: int | None = None if first_seq is None else first_seq - 1
+        self._last_now: float | None = None
+        self._dropped = 0  # ticks the lost records since the last tick say were dropped
+
+    def take_lost(self, data: Mapping[str, Any]) -> LostItems:
+        """A ``/leafgate/lost`` record's JSON."""
+        lost = LostItems.from_record(data)
+        self.lost.append(lost)
+        if lost.what != "tick":
+            return lost
+        gap = self.gaps[-1] if self.gaps else None
+        if (
+            gap is not None
+            and gap.before is not None
+            and gap.before < lost.first <= lost.last < gap.after
+        ):
+            # logged late (the recorder orders its writes within a window): after the tick that
+            # ends the gap it accounts for
+            self.gaps[-1] = dataclasses.replace(gap, dropped=gap.dropped + lost.count)
+        else:
+            self._dropped += lost.count
+        return lost
+
+    def take_tick(self, data: Mapping[str, Any]) -> TickGap | None:
+        """A ``/leafgate/tick`` record's JSON: the gap before it, None when it follows on."""
+        now = _float_in(data["now"])
+        seq = data.get("seq")
+        self.numbered = seq is not None if self.numbered is None else self.numbered
+        gap = None
+        if self.numbered and seq is not None:
+            seq = int(seq)
+            if self._last_seq is not None and seq != self._last_seq + 1:
+                gap = TickGap(seq - self._last_seq - 1, seq, self._last_now, now, self._dropped)
+            self._last_seq = seq
+        elif self._dropped:  # ticks not numbered: the lost records say it
+            gap = TickGap(self._dropped, None, self._last_now, now, self._dropped)
+        self._last_now = now
+        self._dropped = 0
+        if gap is not None:
+            self.gaps.append(gap)
+        return gap
+
+    @property
+    def lost_inputs(self) -> list[LostItems]:
+        """The lost records of Zenoh inputs."""
+        return [lost for lost in self.lost if lost.what != "tick"]
 
 
 class SessionReader:

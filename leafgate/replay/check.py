@@ -85,6 +85,7 @@ import can
 import numpy as np
 
 from leafgate.can.codec import (
+    ERROR_FRAME_KEY,
     CanCodec,
     FrameStats,
     frame_key,
@@ -233,6 +234,8 @@ class CheckReport:
     truncated: bool = False  # a session file that ended before its footer (a part of one)
     truncation: str = ""  # which parts were cut short, in words (ChainedSource.truncation)
     recorder_dropped: int = 0  # frames the recorder marked as dropped (its queue overflowed)
+    unknown_frames: int = 0  # frames of an ID the profile does not describe
+    error_frames: int = 0  # error frames (a controller's report of a bus error: no ID)
     elapsed: float = 0.0  # s of wall time spent checking
     authentication: str = ""  # what was checked of the MACs ("" for a profile without any)
 
@@ -264,6 +267,8 @@ class CheckReport:
             "truncated": self.truncated,
             "truncation": self.truncation or None,
             "recorder_dropped_frames": self.recorder_dropped,
+            "unknown_id_frames": self.unknown_frames,
+            "error_frames": self.error_frames,
             "authentication": self.authentication or None,
             "ids": [s.to_dict() for s in self.ids],
             "findings": [f.to_dict() for f in self.findings],
@@ -272,8 +277,18 @@ class CheckReport:
 
     def format(self) -> list[str]:
         """The summary table, the findings, and one verdict line."""
+        apart = [
+            text
+            for n, text in (
+                (self.unknown_frames, f"{self.unknown_frames} of an unknown ID"),
+                (self.error_frames, plural(self.error_frames, "error frame")),
+            )
+            if n
+        ]
         span = (
-            f"{plural(self.frames, 'frame')}, {self.end - self.start:.3f} s"
+            f"{plural(self.frames, 'frame')}"
+            + (f" ({', '.join(apart)})" if apart else "")
+            + f", {self.end - self.start:.3f} s"
             if self.frames
             else "no frames"
         )
@@ -657,6 +672,8 @@ def check_frames(
         findings=findings,
         elapsed=time.perf_counter() - t_start,
         authentication=authentication_summary(template, merged),
+        unknown_frames=sum(s.unknown_id for s in merged.values()),
+        error_frames=merged.get(ERROR_FRAME_KEY, FrameStats()).frames,
     )
 
 
@@ -792,7 +809,8 @@ def _coverage_findings(scan: _Scan, stats: dict[int, FrameStats]) -> list[Findin
             f"{command_frames} frames on the command IDs of profile {profile}, none could "
             f"be checked ({why}: no long report with a known gear before them)"
         )
-    known = sum(s.frames - s.unknown_id for s in stats.values())
+    # the profile's frames: neither of an unknown ID nor an error frame (the codec's key rule)
+    known = sum(s.frames - s.unknown_id for k, s in stats.items() if k != ERROR_FRAME_KEY)
     if command_frames == 0:
         ids = ", ".join(f"{i:03X}" for i in sorted(command_ids))
         detail = (

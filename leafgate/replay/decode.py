@@ -20,8 +20,10 @@ A line reads::
 i.e. timestamp (s), channel, ID, length, then the signals in the style of ``cantools decode
 --single-line`` (value-table names for enums), then ``ok`` or the error. An error frame (a
 controller's report of a bus error) has ``error`` for its ID and ``error_frame`` for its
-status; the summary counts error frames in a row of their own, and 29-bit IDs apart from the
-11-bit ID of the same number (:func:`~leafgate.can.codec.frame_key`).
+status; the summary counts error frames in a row of their own (frames, never ``unknown``: they
+are not frames of an unknown ID, and the total's ``unknown`` leaves them out; the first line
+says how many), and 29-bit IDs apart from the 11-bit ID of the same number
+(:func:`~leafgate.can.codec.frame_key`).
 
 Authenticated frames (profile ``leafgate-dbw-auth``) are verified only with the key
 (``--key-file``, or the ``--config``'s ``can.auth_key_file``): a bad MAC or a stale freshness
@@ -48,6 +50,7 @@ from typing import TextIO
 import can
 
 from leafgate.can.codec import (
+    ERROR_FRAME_KEY,
     CanCodec,
     Decoded,
     FrameStats,
@@ -301,9 +304,12 @@ def _decode_parts(
             merged[frame_id] = replace(
                 merged[frame_id], bad_counter=merged[frame_id].bad_counter - n
             )
+        # error frames have no ID: counted in their own row (the codec's key), not as unknown
+        error_frames = merged.get(ERROR_FRAME_KEY, FrameStats()).frames
         out.write(
-            f"# {path.name}: {plural(sum(s.frames for s in merged.values()), 'frame')}, "
-            f"profile {template.profile.name}{note}\n"
+            f"# {path.name}: {plural(sum(s.frames for s in merged.values()), 'frame')}"
+            + (f" ({plural(error_frames, 'error frame')})" if error_frames else "")
+            + f", profile {template.profile.name}{note}\n"
         )
         for line in format_summary(merged, names):
             out.write("# " + line + "\n")

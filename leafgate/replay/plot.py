@@ -4,7 +4,10 @@ The same three PNGs as the simulator (:func:`leafgate.sim.plots.plot_drive`):
 
 - from a **session**: the localization's path against the recorded trajectory, the steering
   command against the measured road-wheel angle (DBW_STEER_RPT), and the measured speed
-  against the trajectory's speed at the nearest point;
+  against the trajectory's speed at the nearest point; each stretch of ticks missing from the
+  session (the recorder dropped or lost them, :class:`~leafgate.record.session.TickContinuity`),
+  which the plots' lines bridge, is printed as a note (``note: 50 ticks missing (#812–#861)
+  between the ticks at 8.110 s and 8.610 s …``), and so are Zenoh inputs the recorder dropped;
 - from a **CAN log**: one sample per DBW_STEER_CMD frame, with the latest reports before it.
   A CAN log holds no localization, so the path is dead-reckoned from the reported speed and
   road-wheel angle with the kinematic bicycle (``θ̇ = v tan δ / L``) and starts at the origin;
@@ -34,7 +37,15 @@ from leafgate.messages import (
     Trajectory,
 )
 from leafgate.record.logs import FrameSource, is_session, recording_context
-from leafgate.record.session import TOPIC_TICK, TOPIC_TRAJECTORY, SessionReader, decode_trajectory
+from leafgate.record.session import (
+    META_SESSION,
+    TOPIC_LOST,
+    TOPIC_TICK,
+    TOPIC_TRAJECTORY,
+    SessionReader,
+    TickContinuity,
+    decode_trajectory,
+)
 from leafgate.sim.plots import Trace, plot_drive
 
 __all__ = ["main_plot", "plot_recording", "trace_from_log", "trace_from_session"]
@@ -46,9 +57,13 @@ def _thin(n: int) -> slice:
     return slice(None, None, max(1, math.ceil(n / MAX_POINTS)))
 
 
-def trace_from_session(path: str | Path) -> tuple[Trace, Trajectory | None]:
+def trace_from_session(
+    path: str | Path, notes: list[str] | None = None
+) -> tuple[Trace, Trajectory | None]:
     """The drive of a session and the last trajectory it followed.
 
+    :param notes: gets a line for each stretch of ticks missing from the session and each
+        record of Zenoh inputs the recorder dropped
     :raises ReplayError: the file is not a readable session
     """
     from leafgate.sim.metrics import path_errors
@@ -62,11 +77,20 @@ def trace_from_session(path: str | Path) -> tuple[Trace, Trajectory | None]:
     target: list[float] = []
     trajectory: Trajectory | None = None
     with SessionReader(path) as reader:
-        for record in reader.records(frozenset({TOPIC_TICK, TOPIC_TRAJECTORY})):
+        # a session resuming another after a recording failure starts at an unknown number
+        resumed = reader.read_metadata().get(META_SESSION, {}).get("resumes")
+        continuity = TickContinuity(first_seq=None if resumed else 0)
+        for record in reader.records(frozenset({TOPIC_TICK, TOPIC_TRAJECTORY, TOPIC_LOST})):
             data = record.json()
             if record.topic == TOPIC_TRAJECTORY:
                 trajectory = decode_trajectory(data)
                 continue
+            if record.topic == TOPIC_LOST:
+                lost = continuity.take_lost(data)
+                if lost.what != "tick" and notes is not None:
+                    notes.append(f"{lost.text()}: the recorder dropped them")
+                continue
+            continuity.take_tick(data)
             pose = data["inputs"]["pose"]
             steer = data["inputs"]["steer_report"]
             if pose is None:
@@ -79,6 +103,8 @@ def trace_from_session(path: str | Path) -> tuple[Trace, Trajectory | None]:
             speed.append(float_from_json(p["speed"]))
             actual.append(math.nan if steer is None else float_from_json(steer["value"]["angle"]))
             target.append(float_from_json(data["commands"]["steer"]["angle"]))
+    if notes is not None:
+        notes += [f"{gap.text()}; the plots' lines bridge the gap" for gap in continuity.gaps]
     arrays = {
         k: np.asarray(v, dtype=np.float64)[_thin(len(t))]
         for k, v in {
@@ -180,15 +206,19 @@ def _dead_reckon(
 
 
 def plot_recording(
-    path: str | Path, out_dir: str | Path, profile: Profile | str | None = None
+    path: str | Path,
+    out_dir: str | Path,
+    profile: Profile | str | None = None,
+    notes: list[str] | None = None,
 ) -> Mapping[str, Path]:
     """Write path.png, steering.png and speed.png of a log or session into ``out_dir``.
 
     :param profile: the vehicle profile of a CAN log (a session's is read from it)
+    :param notes: gets what a session lacks (:func:`trace_from_session`)
     :raises ReplayError: nothing to plot: no steering command in the recording
     """
     if is_session(path):
-        trace, trajectory = trace_from_session(path)
+        trace, trajectory = trace_from_session(path, notes)
         title = f"({Path(path).name})"
     else:
         if profile is None:
@@ -223,6 +253,9 @@ def main_plot(
     chosen = None
     if not is_session(log):
         chosen = recording_context(log, config=config, profile=profile).profile
-    for name, file in plot_recording(log, out, chosen).items():
+    notes: list[str] = []
+    for name, file in plot_recording(log, out, chosen, notes).items():
         stdout.write(f"{name}: {file}\n")
+    for note in notes:
+        stdout.write(f"note: {note}\n")
     return 0

@@ -23,9 +23,20 @@ divergence of the recording, not of the code. It is refused (an error naming the
 resumes), never reported as IDENTICAL or DIVERGED; the session it resumes re-runs up to its
 cut.
 
-Exit status: 0 when every command is identical, 1 when any signal diverges or the session
-cannot be re-run, 2 for an override a re-run cannot honour (or a configuration that does not
-load).
+Ticks missing from the session — the recorder dropped them when its queue overflowed (its
+``/leafgate/lost`` records say so), or lost them otherwise: the ticks' numbers (``seq``) jump —
+end the re-run there. The gateway's state after the gap (the controller's memory, the rate
+limits' last commands, the watchdogs' clocks) is not in the recording, so no fresh gateway can
+take up the drive after it: the ticks before the gap are compared, those after are counted and
+not re-run, and the verdict is INCOMPLETE (exit 1) with where the gap is (the ticks' numbers and
+times), never IDENTICAL over a span it did not check; DIVERGED before the gap stays DIVERGED,
+with the gap named. Zenoh inputs the recorder dropped do not stop a re-run (the ticks hold the
+inputs the gateway used); they are named. A session recorded before ticks were numbered is
+re-run whole, and its IDENTICAL says that its continuity was not checked.
+
+Exit status: 0 when every command is identical, 1 when any signal diverges, ticks are missing
+or the session cannot be re-run, 2 for an override a re-run cannot honour (or a configuration
+that does not load).
 """
 
 from __future__ import annotations
@@ -44,9 +55,13 @@ from leafgate.gateway.core import Gateway
 from leafgate.messages import Commands, GatewayState, Trajectory
 from leafgate.record.session import (
     META_SESSION,
+    TOPIC_LOST,
     TOPIC_TICK,
     TOPIC_TRAJECTORY,
+    LostItems,
     SessionReader,
+    TickContinuity,
+    TickGap,
     decode_commands,
     decode_inputs,
     decode_trajectory,
@@ -175,10 +190,20 @@ class RerunReport:
     ticks: int = 0
     signals: list[SignalDiff] = field(default_factory=lambda: [SignalDiff(n) for n in SIGNALS])
     truncated: bool = False  # the session ended before its footer (a crash): re-run up to there
+    gap: TickGap | None = None  # the first ticks missing: the re-run ended there
+    not_rerun: int = 0  # ticks after the gap, not re-run
+    lost_inputs: list[LostItems] = field(default_factory=list)  # Zenoh inputs the recorder lost
+    numbered: bool = True  # the session's ticks are numbered: their continuity was checked
+
+    @property
+    def diverged(self) -> bool:
+        """A command of the ticks re-run differs."""
+        return any(s.differing for s in self.signals)
 
     @property
     def identical(self) -> bool:
-        return all(s.differing == 0 for s in self.signals)
+        """Every command reproduced bit for bit, and no tick of the session left out."""
+        return not self.diverged and self.gap is None
 
     @property
     def first_divergence(self) -> float | None:
@@ -193,6 +218,27 @@ class RerunReport:
             "identical": self.identical,
             "first_divergence_s": self.first_divergence,
             "truncated": self.truncated,
+            "ticks_numbered": self.numbered,
+            "gap": None
+            if self.gap is None
+            else {
+                "missing_ticks": self.gap.missing,
+                "seq": self.gap.seq,
+                "before_s": self.gap.before,
+                "after_s": self.gap.after,
+                "dropped_by_recorder": self.gap.dropped,
+                "text": self.gap.text(),
+            },
+            "ticks_not_rerun": self.not_rerun,
+            "lost_inputs": [
+                {
+                    "count": lost.count,
+                    "first_s": lost.first,
+                    "last_s": lost.last,
+                    "topics": dict(lost.topics),
+                }
+                for lost in self.lost_inputs
+            ],
             "signals": [s.to_dict() for s in self.signals],
         }
 
@@ -204,7 +250,8 @@ class RerunReport:
                 if self.overrides
                 else ""
             )
-            + (" (truncated session)" if self.truncated else ""),
+            + (" (truncated session)" if self.truncated else "")
+            + (f"; not the {plural(self.not_rerun, 'tick')} after a gap" if self.gap else ""),
             f"{'signal':<22} {'max |diff|':>12} {'RMS diff':>12} {'ticks':>7} {'first [s]':>11}",
         ]
         for s in self.signals:
@@ -212,15 +259,42 @@ class RerunReport:
             lines.append(
                 f"{s.name:<22} {s.max_abs:>12.6g} {s.rms:>12.6g} {s.differing:>7} {first:>11}"
             )
-        if self.identical and self.truncated:
+        for lost in self.lost_inputs:
+            lines.append(
+                f"note: {lost.text()} (the recorder's queue overflowed): missing from the "
+                "session's input topics; the ticks hold the inputs the gateway used"
+            )
+        after = (
+            ""
+            if self.gap is None
+            else f"; the {plural(self.not_rerun, 'tick')} after it not re-run (the gateway's "
+            "state after a gap is not in the recording)"
+        )
+        if self.diverged:
+            lines.append(
+                f"DIVERGED: first at {self.first_divergence:.3f} s"
+                + ("" if self.gap is None else f"; then {self.gap.text()}{after}")
+            )
+        elif self.gap is not None:
+            before = (
+                f"the {plural(self.ticks, 'tick')} before it reproduced bit for bit"
+                if self.ticks
+                else "no tick before it"
+            )
+            lines.append(f"INCOMPLETE: {self.gap.text()}; {before}{after}")
+        elif self.truncated:
             lines.append(
                 f"IDENTICAL up to the cut: the {plural(self.ticks, 'tick')} the truncated session holds "
                 "reproduced bit for bit; the drive after the cut was not recorded, not re-run"
             )
-        elif self.identical:
+        elif self.numbered:
             lines.append("IDENTICAL: every command reproduced bit for bit")
         else:
-            lines.append(f"DIVERGED: first at {self.first_divergence:.3f} s")
+            lines.append(
+                "IDENTICAL: every recorded command reproduced bit for bit; the session's ticks "
+                "are not numbered (recorded before leafgate numbered them), so ticks the "
+                "recorder may have lost were not looked for"
+            )
         return lines
 
 
@@ -260,10 +334,21 @@ def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) 
                     ) from None
             return current[1]
 
-        for record in reader.records(frozenset({TOPIC_TICK, TOPIC_TRAJECTORY})):
+        continuity = TickContinuity(first_seq=0)
+        for record in reader.records(frozenset({TOPIC_TICK, TOPIC_TRAJECTORY, TOPIC_LOST})):
             data = record.json()
             if record.topic == TOPIC_TRAJECTORY:
                 contents[int(data["ref"])] = data
+                continue
+            if record.topic == TOPIC_LOST:
+                continuity.take_lost(data)
+                continue
+            if report.gap is not None:  # past a gap: no gateway state to go on from
+                report.not_rerun += 1
+                continue
+            report.gap = continuity.take_tick(data)
+            if report.gap is not None:
+                report.not_rerun += 1
                 continue
             now = float(data["now"])
             inputs = decode_inputs(data["inputs"], trajectory)
@@ -277,7 +362,10 @@ def rerun_session(path: str | Path, overrides: Mapping[str, Any] | None = None) 
                 diff.add(now, a, b)
             report.ticks += 1
         report.truncated = reader.truncated
-    if report.ticks == 0:
+        report.gap = continuity.gaps[0] if continuity.gaps else None  # with late lost records
+        report.lost_inputs = continuity.lost_inputs
+        report.numbered = continuity.numbered is not False
+    if report.ticks == 0 and report.gap is None:
         raise ReplayError(f"{path}: the session holds no control ticks")
     return report
 
@@ -291,7 +379,8 @@ def main_rerun(
 ) -> int:
     """``leafgate replay rerun SESSION.mcap [--set KEY=VALUE …] [--json]``.
 
-    :return: 0 when every command is reproduced exactly, 1 when any diverges
+    :return: 0 when every command is reproduced exactly, 1 when any diverges or ticks are
+        missing (the re-run ends at the first gap)
     :raises LeafgateError: unreadable session or configuration, or an override a re-run does
         not use (a :class:`ConfigError`; the CLI prints it, exit 2)
     """
