@@ -584,7 +584,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         )
     cfg = load_config(args.file)
     codec = CanCodec.for_config(cfg)  # the profile and its DBCs load
-    for line in codec.layout_warnings():  # overlaps in frames leafgate does not use
+    for line in codec.dbc_warnings():  # frames not to be trusted (overlaps, hidden)
         print(f"leafgate: warning: {line}", file=sys.stderr)
     for why in codec.unsendable_reports():  # the gateway runs with them; sim and sim-ecu not
         print(

@@ -167,13 +167,13 @@ def test_overlap_in_a_frame_leafgate_does_not_use_loads_and_is_reported(tmp_path
     assert (problem.name, problem.frame_id, problem.key) == ("TORQUE_CONTROL", 0x180, 0x180)
     assert problem.signals == ("TORQUE_A", "TORQUE_C")  # TORQUE_B is sound
     assert problem.where == str(dbc)
-    (line,) = codec.layout_warnings()
+    (line,) = codec.dbc_warnings()
     assert line.startswith(f"{dbc}: TORQUE_CONTROL (0x180): signals TORQUE_A and TORQUE_C overlap")
     assert "leafgate-dbw does not use this frame" in line and "TORQUE_A, TORQUE_C" in line
     # the frames leafgate uses work as with the packaged DBC
     packaged = CanCodec(profile="leafgate-dbw")
     assert codec.receive_ids("car") == packaged.receive_ids("car")
-    assert packaged.layout_problems == () and packaged.layout_warnings() == []
+    assert packaged.layout_problems == () and packaged.dbc_warnings() == []
 
 
 def test_multiplexed_signals_on_different_values_are_no_overlap(tmp_path: Path) -> None:
@@ -270,3 +270,64 @@ def test_check_config_refuses_an_overlap_in_a_used_frame_in_one_line(
     assert "ok offline" not in out
     assert err.count("\n") == 1 and err.startswith(f"leafgate: error: {dbc}: ")
     assert "WHEEL_SPEEDS_FRONT (0x284): signals WHEEL_SPEED_FR and WHEEL_SPEED_FL overlap" in err
+
+
+# --- frames a used frame hides: by its ID, by its name ----------------------------------------
+# Old code: a second DBC's frame on the ID of a frame the profile reads was loaded and never
+# mentioned (a received frame of that ID is decoded as the profile's), and a second definition
+# of a used frame's name was dropped in silence (the first DBC's wins).
+
+ON_WHEEL_ID = 'BO_ 644 BODY_STATUS: 8 BCM\n SG_ DOOR_OPEN : 0|1@1+ (1,0) [0|1] "" GATEWAY\n\n'
+
+
+def dbw_dbc_with(tmp_path: Path, frame: str) -> Path:
+    dbw = (ROOT / "dbc" / "leafgate_dbw.dbc").read_text()
+    path = tmp_path / "dbw_foreign.dbc"
+    path.write_text(dbw.replace("BO_ 160 DBW_STEER_CMD", frame + "BO_ 160 DBW_STEER_CMD", 1))
+    return path
+
+
+def test_a_frame_on_the_id_of_a_used_frame_is_a_warning_naming_both(tmp_path: Path) -> None:
+    dbw = dbw_dbc_with(tmp_path, ON_WHEEL_ID)
+    codec = CanCodec(dbw_dbc=dbw, profile="leafgate-dbw")
+    (line,) = codec.dbc_warnings()
+    assert line.startswith(f"{dbw}: BODY_STATUS (0x284) has the ID of WHEEL_SPEEDS_FRONT, ")
+    assert "which profile leafgate-dbw reads" in line and "BODY_STATUS is not decoded" in line
+    # the frame of that ID is still the profile's
+    assert codec.name_of(0x284) == "WHEEL_SPEEDS_FRONT"
+
+
+def wheel_frame() -> str:
+    car = CAR_DBC.read_text()
+    start = car.index("BO_ 644 WHEEL_SPEEDS_FRONT")
+    return car[start : car.index("\n\n", start) + 2]
+
+
+def test_another_definition_of_a_used_frame_is_a_warning(tmp_path: Path) -> None:
+    """The DBW DBC comes first in the profile: its WHEEL_SPEEDS_FRONT is the one used."""
+    dbw = dbw_dbc_with(tmp_path, wheel_frame())
+    car = car_dbc_with(tmp_path, "BO_ 644 WHEEL_SPEEDS_FRONT", "BO_ 1445 WHEEL_SPEEDS_FRONT")
+    (line,) = CanCodec(dbw_dbc=dbw, car_dbc=car, profile="leafgate-dbw").dbc_warnings()
+    assert line == (
+        f"{car}: WHEEL_SPEEDS_FRONT (0x5A5) is also in {dbw} (0x284), laid out otherwise: "
+        "profile leafgate-dbw reads that one, and this one is not used"
+    )
+
+
+def test_the_same_definition_in_two_dbcs_is_no_warning(tmp_path: Path) -> None:
+    dbw = dbw_dbc_with(tmp_path, wheel_frame())
+    assert CanCodec(dbw_dbc=dbw, profile="leafgate-dbw").dbc_warnings() == []
+
+
+def test_check_config_warns_about_a_hidden_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from leafgate import cli
+
+    dbw = dbw_dbc_with(tmp_path, ON_WHEEL_ID)
+    config = tmp_path / "dbw.yaml"
+    config.write_text(f"can: {{dbw_dbc: {dbw.name}}}\n")
+    assert cli.main(["check-config", str(config)]) == 0
+    err = capsys.readouterr().err
+    (warning,) = [line for line in err.splitlines() if "BODY_STATUS" in line]
+    assert warning.startswith(f"leafgate: warning: {dbw}: BODY_STATUS (0x284) has the ID of ")

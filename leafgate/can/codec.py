@@ -790,6 +790,60 @@ def _layout_problem(message: DbcMessage, where: str) -> LayoutProblem | None:
     )
 
 
+def _layout(message: DbcMessage) -> tuple[Any, ...]:
+    """What decodes a frame: its ID, length and every signal's place and scaling."""
+    return (
+        message.frame_id,
+        message.is_extended_frame,
+        message.length,
+        sorted(
+            (s.name, s.start, s.length, s.byte_order, s.is_signed, s.scale, s.offset)
+            for s in message.signals
+        ),
+    )
+
+
+def _hidden_frames(
+    profile: Profile,
+    loaded: list[tuple[Database, str]],
+    used: Mapping[str, tuple[DbcMessage, str]],
+) -> tuple[str, ...]:
+    """The frames of the profile's DBCs that a frame it uses hides, one line each: a frame of
+    another name on a used frame's ID (a received frame of that ID is decoded as the used one;
+    a sent one goes out on an ID that DBC gives another frame), or another definition of a
+    used frame's name (the first DBC's is used)."""
+    roles = {
+        spec.name: "sends" if spec.direction == "command" else "reads" for spec in profile.frames
+    }
+    by_id = {
+        message.frame_id: name
+        for name, (message, _) in used.items()
+        if not message.is_extended_frame
+    }
+    lines: list[str] = []
+    for db, where in loaded:
+        for message in db.messages:
+            name = message.name
+            if name in used and used[name][0] is message:
+                continue
+            hex_id = f"0x{message.frame_id:{'08X' if message.is_extended_frame else '03X'}}"
+            owner = None if message.is_extended_frame else by_id.get(message.frame_id)
+            if owner is not None and owner != name:
+                lines.append(
+                    f"{where}: {name} ({hex_id}) has the ID of {owner}, which profile "
+                    f"{profile.name} {roles[owner]} ({used[owner][1]}): frames of {hex_id} are "
+                    f"{owner} to leafgate, and {name} is not decoded"
+                )
+            elif name in used and _layout(message) != _layout(used[name][0]):
+                first, first_where = used[name]
+                lines.append(
+                    f"{where}: {name} ({hex_id}) is also in {first_where} "
+                    f"(0x{first.frame_id:03X}), laid out otherwise: profile {profile.name} "
+                    f"{roles[name]} that one, and this one is not used"
+                )
+    return tuple(lines)
+
+
 def _check_e2e(message: DbcMessage, spec: FrameSpec, where: str) -> None:
     """A protected frame's DBC must place the counter and checksum where the scheme puts them."""
     fixed = _FIXED_SIGNALS.get(spec.e2e)
@@ -895,6 +949,7 @@ class _Tables:
     by_type: Mapping[type, tuple[str, str]]  # message type → (frame, source) it alone fills
     shared: Mapping[str, frozenset[str]]  # direction → sources folded from several frames
     layout_problems: tuple[LayoutProblem, ...]  # of frames the profile does not use
+    hidden: tuple[str, ...]  # frames a used frame hides (its ID or name), one line each
 
 
 _TABLES: dict[tuple[int, tuple[_SourceKey, ...]], tuple[Profile, _Tables]] = {}
@@ -1000,6 +1055,7 @@ def _compile_tables(profile: Profile, keys: tuple[_SourceKey, ...]) -> _Tables:
         profile=profile,
         databases=tuple(db for db, _ in loaded),
         layout_problems=layout_problems,
+        hidden=_hidden_frames(profile, loaded, {name: found[name] for name in messages}),
         messages=MappingProxyType(messages),
         encoders=MappingProxyType(encoders),
         rx=MappingProxyType(rx),
@@ -1196,14 +1252,18 @@ class CanCodec:
         are not to be trusted: ``leafgate check-config`` and the daemon warn about each."""
         return self._tables.layout_problems
 
-    def layout_warnings(self) -> list[str]:
-        """One line per :attr:`layout_problems` frame, naming the DBC, the frame and its signals,
-        for ``check-config`` and the daemon's start-up to warn with."""
+    def dbc_warnings(self) -> list[str]:
+        """What of the profile's DBCs is loaded but not to be trusted, one line each, for
+        ``check-config`` and the daemon's start-up to warn with: each :attr:`layout_problems`
+        frame, naming the DBC, the frame and its signals; and each frame that a frame the
+        profile uses hides, by its ID (a received frame of that ID is decoded as the used one,
+        a sent one takes an ID that DBC gives another frame) or by its name (the first DBC's
+        definition is used)."""
         return [
             f"{p}: loaded, as profile {self.profile.name} does not use this frame; "
             f"{', '.join(p.signals) or 'its signals'} not to be trusted"
             for p in self._tables.layout_problems
-        ]
+        ] + list(self._tables.hidden)
 
     def encode_commands(self, commands: Any, timestamp: float = 0.0) -> list[can.Message]:
         """The profile's command frames for one tick's :class:`~leafgate.messages.Commands`.

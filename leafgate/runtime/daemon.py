@@ -365,7 +365,7 @@ def _run_daemon(
     """The body of :func:`run_daemon`, under its signal handlers."""
     clock = time.perf_counter
     codec = CanCodec.for_config(cfg)  # CanCodecError: a DBC missing/invalid
-    for line in codec.layout_warnings():  # overlaps in frames the profile does not use
+    for line in codec.dbc_warnings():  # frames not to be trusted (overlaps, hidden)
         log.warning("%s", line)
     # what `leafgate check-config` checks offline, checked the same way before anything opens
     from leafgate.runtime.checks import offline_checks
