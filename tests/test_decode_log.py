@@ -250,3 +250,7 @@ def test_replay_check_keeps_29_bit_ids_and_error_frames_apart_from_11_bit_ids(
     table = report.format()
     assert any(line.split()[:3] == ["error", "error", "frames"] for line in table)
     assert any(line.split()[:2] == ["000000A0", "?"] for line in table)
+    # the ID column is as wide as the 29-bit ID: every row's name starts under the header's
+    header = next(line for line in table if line.split()[:2] == ["ID", "name"])
+    starts = {line.index(line.split()[1], len(line.split()[0])) for line in table[2:5]}
+    assert starts == {header.index("name")}, table

@@ -292,10 +292,12 @@ class CheckReport:
             if self.frames
             else "no frames"
         )
+        # the ID column as wide as its widest label: a 29-bit ID has 8 digits
+        w = max([5, *(len(stats_label(s.frame_id)) for s in self.ids)])
         lines = [
             f"{self.path}: {span}, profile {self.profile}"
             + (f" ({self.truncation})" if self.truncation else ""),
-            f"{'ID':>5}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
+            f"{'ID':>{w}}  {'name':<20} {'frames':>8} {'period':>8} {'median':>8} {'max':>8} "
             f"{'gaps':>5} {'crc':>5} {'cnt':>5} {'len':>5}",
         ]
         if self.backwards:
@@ -306,7 +308,7 @@ class CheckReport:
             )
         for s in self.ids:
             lines.append(
-                f"{stats_label(s.frame_id):>5}  {(s.name or '?'):<20} {s.frames:>8} {_ms(s.nominal_period):>8} "
+                f"{stats_label(s.frame_id):>{w}}  {(s.name or '?'):<20} {s.frames:>8} {_ms(s.nominal_period):>8} "
                 f"{_ms(s.median_period):>8} {_ms(s.max_period):>8} {s.gaps:>5} "
                 f"{s.e2e.bad_crc:>5} {s.e2e.bad_counter:>5} {s.e2e.wrong_length:>5}"
             )
