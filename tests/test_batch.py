@@ -736,3 +736,47 @@ def test_refused_inputs_leave_no_empty_output_folder(
         assert main(["batch", job, str(tmp_path / "empty"), "--out", str(out)]) == 1
         assert "files in it" in capsys.readouterr().err
         assert not out.exists()
+
+
+@pytest.mark.slow
+def test_relative_paths_reach_workers_started_in_another_folder(
+    recordings: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``batch check drives/`` and ``batch rerun drives/`` on a cluster whose workers were
+    started in another folder (as a cluster's are). Before, the tasks got the relative paths
+    and each worker looked for them in its own folder: every log failed, 'no such file' (or a
+    file of the same name there was checked instead)."""
+    from distributed import LocalCluster
+
+    elsewhere = tmp_path / "workers-start-here"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # the workers' working folder
+    with LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as cluster:
+        monkeypatch.chdir(recordings.parent)  # the batch's, where `drives/` is
+        relative = recordings.name
+        args = ["--scheduler", cluster.scheduler_address]
+        rerun = main(["batch", "rerun", relative, *args, "--out", str(tmp_path / "r")])
+        only_sessions = ["--profile", "leafgate-dbw", "--glob", "*.mcap"]
+        check = main(
+            ["batch", "check", relative, *args, *only_sessions, "--out", str(tmp_path / "c")]
+        )
+    out = capsys.readouterr().out
+    assert "no such file" not in out
+    assert rerun == 0, out
+    rows = read_table(tmp_path / "r" / "results.parquet")
+    assert len(rows) == 2 and all(r["identical"] for r in rows)
+    assert {r["path"] for r in rows} == {
+        str(p.relative_to(recordings.parent)) for p in recordings.rglob("*.mcap")
+    }
+    assert check == 0, out
+    rows = read_table(tmp_path / "c" / "results.parquet")
+    assert len(rows) == 2 and all(r["ok"] for r in rows)
