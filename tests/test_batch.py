@@ -663,6 +663,7 @@ def _sim_row(error_m: float, attempts: int = 1) -> dict[str, Any]:
     return {
         "status": "ok",
         "error": None,
+        "exit_status": 0,
         "lateral_error_max_m": error_m,
         "finished": True,
         "attempts": attempts,
@@ -780,3 +781,28 @@ def test_relative_paths_reach_workers_started_in_another_folder(
     assert check == 0, out
     rows = read_table(tmp_path / "c" / "results.parquet")
     assert len(rows) == 2 and all(r["ok"] for r in rows)
+
+
+@pytest.mark.slow
+def test_a_case_whose_drive_fails_alone_does_not_pass_a_sweep_without_thresholds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`leafgate sim` exits 1 when the drive did not finish (tight-hairpin, R = 3 m): its case
+    ran, but it is no pass. Before, a sweep without thresholds printed 'PASSED: every case ran
+    and stayed within the thresholds' and exited 0 for it."""
+    sweep = write(tmp_path, "routes: [tight-hairpin, straight]\ncontrollers: [stanley]\n")
+    assert main(["batch", "sim", str(sweep), "--workers", "1", "--out", str(tmp_path / "o")]) == 1
+    out = capsys.readouterr().out
+    assert "PASSED" not in out
+    assert "case 0000: leafgate sim exited 1 (the drive did not finish" in out
+    assert "case 0001" not in out
+    assert "FAILED: 1 threshold crossing or failed case" in out
+    rows = read_table(tmp_path / "o" / "results.parquet")
+    assert [(r["status"], r["exit_status"], r["finished"]) for r in rows] == [
+        ("ok", 1, False),
+        ("ok", 0, True),
+    ]
+    assert load_sweep(sweep).thresholds == {"exit_status": 0.0}
+    # a sweep that means to keep such cases says so
+    accepting = write(tmp_path, "routes: [straight]\nthresholds:\n  exit_status: 1\n", "b.yaml")
+    assert load_sweep(accepting).thresholds == {"exit_status": 1.0}
