@@ -663,6 +663,7 @@ def _sim_row(error_m: float, attempts: int = 1) -> dict[str, Any]:
     return {
         "status": "ok",
         "error": None,
+        "exit_status": 0,
         "lateral_error_max_m": error_m,
         "finished": True,
         "attempts": attempts,
@@ -736,3 +737,72 @@ def test_refused_inputs_leave_no_empty_output_folder(
         assert main(["batch", job, str(tmp_path / "empty"), "--out", str(out)]) == 1
         assert "files in it" in capsys.readouterr().err
         assert not out.exists()
+
+
+@pytest.mark.slow
+def test_relative_paths_reach_workers_started_in_another_folder(
+    recordings: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``batch check drives/`` and ``batch rerun drives/`` on a cluster whose workers were
+    started in another folder (as a cluster's are). Before, the tasks got the relative paths
+    and each worker looked for them in its own folder: every log failed, 'no such file' (or a
+    file of the same name there was checked instead)."""
+    from distributed import LocalCluster
+
+    elsewhere = tmp_path / "workers-start-here"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # the workers' working folder
+    with LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    ) as cluster:
+        monkeypatch.chdir(recordings.parent)  # the batch's, where `drives/` is
+        relative = recordings.name
+        args = ["--scheduler", cluster.scheduler_address]
+        rerun = main(["batch", "rerun", relative, *args, "--out", str(tmp_path / "r")])
+        only_sessions = ["--profile", "leafgate-dbw", "--glob", "*.mcap"]
+        check = main(
+            ["batch", "check", relative, *args, *only_sessions, "--out", str(tmp_path / "c")]
+        )
+    out = capsys.readouterr().out
+    assert "no such file" not in out
+    assert rerun == 0, out
+    rows = read_table(tmp_path / "r" / "results.parquet")
+    assert len(rows) == 2 and all(r["identical"] for r in rows)
+    assert {r["path"] for r in rows} == {
+        str(p.relative_to(recordings.parent)) for p in recordings.rglob("*.mcap")
+    }
+    assert check == 0, out
+    rows = read_table(tmp_path / "c" / "results.parquet")
+    assert len(rows) == 2 and all(r["ok"] for r in rows)
+
+
+@pytest.mark.slow
+def test_a_case_whose_drive_fails_alone_does_not_pass_a_sweep_without_thresholds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`leafgate sim` exits 1 when the drive did not finish (tight-hairpin, R = 3 m): its case
+    ran, but it is no pass. Before, a sweep without thresholds printed 'PASSED: every case ran
+    and stayed within the thresholds' and exited 0 for it."""
+    sweep = write(tmp_path, "routes: [tight-hairpin, straight]\ncontrollers: [stanley]\n")
+    assert main(["batch", "sim", str(sweep), "--workers", "1", "--out", str(tmp_path / "o")]) == 1
+    out = capsys.readouterr().out
+    assert "PASSED" not in out
+    assert "case 0000: leafgate sim exited 1 (the drive did not finish" in out
+    assert "case 0001" not in out
+    assert "FAILED: 1 threshold crossing or failed case" in out
+    rows = read_table(tmp_path / "o" / "results.parquet")
+    assert [(r["status"], r["exit_status"], r["finished"]) for r in rows] == [
+        ("ok", 1, False),
+        ("ok", 0, True),
+    ]
+    assert load_sweep(sweep).thresholds == {"exit_status": 0.0}
+    # a sweep that means to keep such cases says so
+    accepting = write(tmp_path, "routes: [straight]\nthresholds:\n  exit_status: 1\n", "b.yaml")
+    assert load_sweep(accepting).thresholds == {"exit_status": 1.0}

@@ -10,6 +10,7 @@ import shlex
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -361,3 +362,99 @@ def test_a_result_lost_in_transit_is_the_lost_scheduler_in_one_line(
         if r["status"] == "not run"
     )
     assert "4 not run (lost the scheduler" in captured.out
+
+
+@contextlib.contextmanager
+def _frozen_after_two_cases(address: str, scheduler_pid: int) -> Iterator[threading.Event]:
+    """A thread that stops the scheduler (SIGSTOP: it keeps its connections and never answers,
+    as a frozen host or a network that drops its packets does) once it holds two finished
+    cases; the event is set then. The scheduler is continued after, so that it can be stopped."""
+    frozen = threading.Event()
+    done = threading.Event()
+
+    def freeze() -> None:
+        deadline = time.monotonic() + 120
+        while not done.is_set() and time.monotonic() < deadline:
+            if _finished_tasks(address) >= 2:
+                os.killpg(scheduler_pid, signal.SIGSTOP)
+                frozen.set()
+                return
+            time.sleep(0.2)
+
+    thread = threading.Thread(target=freeze, daemon=True)
+    thread.start()
+    try:
+        yield frozen
+    finally:
+        done.set()
+        thread.join(timeout=150)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(scheduler_pid, signal.SIGCONT)
+
+
+def test_a_scheduler_that_stops_answering_is_lost_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scheduler that keeps its connection open and never answers (stopped, or cut off by a
+    network that drops packets): the batch waited forever, and Ctrl-C did not end it either.
+    Now it counts the scheduler lost after ANSWER_S without an answer (here 3 s)."""
+    from leafgate.batch import engine
+
+    monkeypatch.setattr(engine, "ANSWER_S", 3.0)
+    monkeypatch.setattr(engine, "PROBE_S", 0.5)
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP.replace("samples: 2", "samples: 30"), encoding="utf-8")
+    pids: list[int] = []
+    with dask_cluster(tmp_path, pids) as address:
+        with _frozen_after_two_cases(address, pids[0]) as frozen:
+            status = main(
+                ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "o")]
+            )
+        assert frozen.is_set()
+    captured = capsys.readouterr()
+    assert status == 1
+    assert "Traceback" not in captured.err + captured.out
+    err = captured.err.strip().splitlines()
+    assert err[-1].startswith(
+        f"leafgate: error: lost the scheduler {address} (no answer in 3 s): "
+    ), captured.err
+    rows = read_table(tmp_path / "o" / "results.parquet")
+    assert len(rows) == 60
+    statuses = [r["status"] for r in rows]
+    assert "not run" in statuses and set(statuses) <= {"ok", "not run"}
+
+
+def test_ctrl_c_ends_a_batch_whose_scheduler_stopped_answering(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C while the scheduler is silent: the questions after it (attempts, workers) are
+    bounded, so the batch writes what it received and exits 130. Before, it asked the silent
+    scheduler for the attempts and waited forever."""
+    from leafgate.batch import engine
+
+    monkeypatch.setattr(engine, "ANSWER_S", 3600.0)  # not lost by silence: Ctrl-C ends it
+    monkeypatch.setattr(engine, "ANSWER_AFTER_CTRL_C_S", 2.0)
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP.replace("samples: 2", "samples: 30"), encoding="utf-8")
+    pids: list[int] = []
+
+    def ctrl_c_once_frozen(frozen: threading.Event) -> None:
+        if frozen.wait(timeout=150):
+            os.kill(os.getpid(), signal.SIGINT)  # the batch's handler takes it
+
+    with dask_cluster(tmp_path, pids) as address:
+        with _frozen_after_two_cases(address, pids[0]) as frozen:
+            sender = threading.Thread(target=ctrl_c_once_frozen, args=(frozen,), daemon=True)
+            sender.start()
+            status = main(
+                ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "o")]
+            )
+            sender.join(timeout=10)
+        assert frozen.is_set()
+    captured = capsys.readouterr()
+    assert status == 130, captured.err
+    assert "Traceback" not in captured.err + captured.out
+    rows = read_table(tmp_path / "o" / "results.parquet")
+    assert len(rows) == 60
+    statuses = [r["status"] for r in rows]
+    assert "not run" in statuses and set(statuses) <= {"ok", "not run"}

@@ -257,10 +257,11 @@ def _per_file(
     extra: tuple[Any, ...],
     what: str,
 ) -> tuple[EngineRun, list[dict[str, Any]]]:
-    """``fn(path, *extra)`` for every file, one task each; rows in file order."""
+    """``fn(path, *extra)`` for every file, one task each; rows in file order (each with the
+    path as given: the task gets it absolute, see :func:`_on_worker`)."""
     run = run_tasks(
         fn,
-        {str(f): (str(f), *extra) for f in files},
+        {str(f): (_on_worker(f), *extra) for f in files},
         scheduler=args.scheduler,
         workers=args.workers,
         timeout=args.timeout,
@@ -268,6 +269,13 @@ def _per_file(
         wait_workers=args.wait_workers,
     )
     return run, [{"path": str(f), **run.rows[str(f)]} for f in files]
+
+
+def _on_worker(path: str | Path) -> str:
+    """``path`` as a worker must be given it: absolute. A worker resolves a relative path in
+    its own working directory, not the batch's (a cluster's workers are started elsewhere):
+    every file would be missing there, or another file of the same name checked instead."""
+    return str(Path(path).absolute())
 
 
 def _not_run_line(row: dict[str, Any]) -> str:
@@ -291,7 +299,10 @@ def cmd_batch_check(args: argparse.Namespace) -> int:
     with _output(args.out_dir) as out:
         run = run_tasks(
             check_case,
-            {name: (paths, config, args.gap_periods, args.profile) for name, paths in logs.items()},
+            {
+                name: ([_on_worker(p) for p in paths], config, args.gap_periods, args.profile)
+                for name, paths in logs.items()
+            },
             scheduler=args.scheduler,
             workers=args.workers,
             timeout=args.timeout,

@@ -12,13 +12,19 @@ deterministic: the same numbers on any worker) but never silent: each row says i
 how often it was started, from the scheduler's count of the workers that died holding it.
 
 A batch that stops early (Ctrl-C, the scheduler lost) keeps what finished: the rows received,
-and a ``not run`` row for every other task, with ``EngineRun.stopped`` saying why.
+and a ``not run`` row for every other task, with ``EngineRun.stopped`` saying why. A scheduler
+is lost when its connection closes, and also when it stops answering (frozen, or behind a
+network that drops its packets without closing the connection): every question the batch asks
+it is bounded by :data:`ANSWER_S`.
 
 The local cluster runs worker *processes* with one thread each: the controllers hold the GIL.
 """
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
+import contextlib
 import logging
 import os
 import signal
@@ -39,6 +45,15 @@ __all__ = ["NOT_RUN", "BatchError", "EngineRun", "run_plain", "run_tasks"]
 POLL_S = 0.5  # s between looks at the futures (progress, timeouts)
 CONNECT_TIMEOUT_S = 10.0  # s to reach an existing scheduler
 WORKERS_WAIT_S = 60.0  # s an existing scheduler may take to get its first worker
+#: s a running scheduler may take to answer the batch (a look at it every PROBE_S while tasks
+#: run, the questions after them) before it counts as lost. Twice Dask's own comm timeout
+#: (distributed.comm.timeouts.tcp, 30 s): a scheduler taking in a large graph stays silent for
+#: seconds, one that is stopped or cut off never answers, and a connection that is cut without
+#: being closed never tells the client.
+ANSWER_S = 60.0
+PROBE_S = 5.0  # s between looks at whether the scheduler still answers
+#: s the questions after a Ctrl-C may take (the attempts, the workers): the user wants out
+ANSWER_AFTER_CTRL_C_S = 5.0
 #: ``status`` of a task the batch never got a result for: it stopped first (Ctrl-C, scheduler lost)
 NOT_RUN = "not run"
 INTERRUPTED = "interrupted (Ctrl-C)"
@@ -297,7 +312,7 @@ def _wait_for_workers(
     Waits in short steps so that Ctrl-C is acted on, and says once on ``progress`` (stderr)
     that it waits, so a batch that is waiting does not look hung.
     """
-    if client.scheduler_info().get("workers"):
+    if _ask(client, client.scheduler.identity, ANSWER_S).get("workers"):
         return
     stream = progress if progress is not None else sys.stderr
     stream.write(f"{scheduler}: no workers yet; waiting up to {wait_s:g} s for one to join\n")
@@ -313,6 +328,44 @@ def _wait_for_workers(
             return
         except TimeoutError:
             continue
+
+
+class _Liveness:
+    """Whether the scheduler still answers, asked every :data:`PROBE_S` without blocking the
+    wait: a question is sent to the client's event loop and looked at on the next polls."""
+
+    def __init__(self, client: Any) -> None:
+        self.client = client
+        self.asked: concurrent.futures.Future[Any] | None = None
+        self.since = 0.0  # when the question now open was asked
+        self.next = time.monotonic() + PROBE_S
+
+    def silent(self, now: float) -> bool:
+        """True once a question has gone :data:`ANSWER_S` without an answer."""
+        if self.asked is None:
+            if now >= self.next:
+                loop = self.client.loop.asyncio_loop
+                self.asked = asyncio.run_coroutine_threadsafe(self._ask(), loop)
+                self.since = now
+            return False
+        if self.asked.done():  # answered, or refused: a closed connection is seen elsewhere
+            self.asked, self.next = None, now + PROBE_S
+            return False
+        return now - self.since > ANSWER_S
+
+    async def _ask(self) -> None:
+        with contextlib.suppress(Exception):
+            await self.client.scheduler.identity()
+
+    def close(self) -> None:
+        if self.asked is not None:
+            self.asked.cancel()
+
+
+def _ask(client: Any, method: Callable[..., Any], wait_s: float, **kwargs: Any) -> Any:
+    """``method(**kwargs)`` (a coroutine of the client's) run on the client's loop, or
+    TimeoutError after ``wait_s``: the batch never waits without bound on a scheduler."""
+    return client.sync(method, callback_timeout=wait_s, **kwargs)
 
 
 def _submit_and_wait(
@@ -347,9 +400,13 @@ def _submit_and_wait(
     started: dict[str, float] = {}  # dask key → when first seen on a worker
     done = as_completed(futures)
     next_look = time.monotonic() + POLL_S
+    alive = _Liveness(client)
     try:
         while pending and run.stopped is None:
             interrupt.check()
+            if alive.silent(time.monotonic()):
+                run.stopped = _lost(client, f"no answer in {ANSWER_S:g} s")
+                break
             batch = done.next_batch(block=False) if done.has_ready() else []
             for future in batch:
                 key = pending.pop(future, None)
@@ -384,18 +441,21 @@ def _submit_and_wait(
         run.stopped = INTERRUPTED
         interrupt.clear()  # the caller writes what finished, then reports the interrupt
     finally:
+        alive.close()
         bar.close()
     for key in pending.values():
         run.rows[key] = not_run(run.stopped or "the batch stopped")
     if run.stopped is not None and run.stopped != INTERRUPTED:
         return  # the scheduler is gone: nothing more to ask it
-    _count_attempts(client, futures, names, run)
+    # every task has its row: a scheduler gone or silent now only leaves these unknown
+    wait_s = ANSWER_AFTER_CTRL_C_S if run.interrupted else ANSWER_S
+    _count_attempts(client, futures, names, run, wait_s)
     if count_workers:
-        run.workers = _workers_that_ran(client, futures, run.workers)
+        run.workers = _workers_that_ran(client, futures, run.workers, wait_s)
 
 
-def _lost(client: Any) -> str:
-    return f"lost the scheduler {client.scheduler.address}"
+def _lost(client: Any, why: str | None = None) -> str:
+    return f"lost the scheduler {client.scheduler.address}" + (f" ({why})" if why else "")
 
 
 def _row(future: Any) -> dict[str, Any]:
@@ -434,14 +494,16 @@ def _suspicious_on_scheduler() -> Callable[..., dict[str, int]]:
     return suspicious
 
 
-def _count_attempts(client: Any, futures: list[Any], names: list[str], run: EngineRun) -> None:
+def _count_attempts(
+    client: Any, futures: list[Any], names: list[str], run: EngineRun, wait_s: float
+) -> None:
     """Set each row's ``attempts``: 1, plus one per worker that died while it held the task,
     running or queued (the scheduler then gave it to another). Read before the futures are
     released, while the scheduler still knows the tasks; None if it cannot be asked."""
     keys = [f.key for f in futures]
     try:
-        counts = client.run_on_scheduler(_suspicious_on_scheduler(), keys)
-    except Exception:  # a scheduler that refuses to run code: the rows say nothing of it
+        counts = client.run_on_scheduler(_suspicious_on_scheduler(), keys, callback_timeout=wait_s)
+    except Exception:  # refused to run code, gone or silent: the rows say nothing of it
         counts = None
     for key, name in zip(keys, names, strict=True):
         row = run.rows.get(name)
@@ -450,15 +512,19 @@ def _count_attempts(client: Any, futures: list[Any], names: list[str], run: Engi
         row["attempts"] = None if counts is None else 1 + int(counts.get(key, 0))
 
 
-def _workers_that_ran(client: Any, futures: list[Any], default: int) -> int:
+def _workers_that_ran(client: Any, futures: list[Any], default: int, wait_s: float) -> int:
     """How many workers hold a finished task's result: those that ran the tasks (a result
     stays on the worker that computed it). Read at the end: a cluster's workers may join after
     the batch starts, and a count read at the start missed them. ``default`` when none is
     held (every task failed or timed out): then the scheduler's count at the end."""
     finished = [f for f in futures if f.status == "finished"]
-    if not finished:
-        return len(client.scheduler_info().get("workers", {})) or default
-    holders = client.who_has(finished)
+    try:
+        if not finished:
+            identity = _ask(client, client.scheduler.identity, wait_s)
+            return len(identity.get("workers", {})) or default
+        holders = _ask(client, client.scheduler.who_has, wait_s, keys=[f.key for f in finished])
+    except (OSError, TimeoutError):  # gone or silent after the last task: not known
+        return default
     ran = {address for addresses in holders.values() for address in addresses}
     return len(ran) or default
 
@@ -474,7 +540,7 @@ def _time_out(
     """Record tasks running longer than ``timeout`` as failed; free their workers."""
     now = time.monotonic()
     where: dict[str, str] = {}
-    for worker, keys in client.processing().items():
+    for worker, keys in _ask(client, client.scheduler.processing, ANSWER_S, workers=None).items():
         for k in keys:
             started.setdefault(k, now)
             where[k] = worker

@@ -161,7 +161,13 @@ def crossings(
                 if value is not bound:
                     lines.append(f"case {case}: {name} is {value}, required {bound}")
             elif not isinstance(value, (int, float)) or not value <= bound:
-                lines.append(f"case {case}: {name} = {value} above {bound:g}")
+                if name == "exit_status":  # the sweep's default bound, 0: say what it means
+                    lines.append(
+                        f"case {case}: leafgate sim exited {value} (the drive did not finish or "
+                        f"the car hit something; thresholds.exit_status: {bound:g})"
+                    )
+                else:
+                    lines.append(f"case {case}: {name} = {value} above {bound:g}")
     return lines
 
 

@@ -18,6 +18,8 @@ A sweep file is YAML (``config/sweep.yaml`` is the example)::
     thresholds:              # metric: upper bound, or the required true/false
       lateral_error_max_m: 0.5
       finished: true
+      exit_status: 0         # the default: `leafgate sim` exits 1 when the drive did not
+                             # finish or hit something (1 accepts such cases)
     timeout_s: 300           # a case running longer is recorded as failed
     max_cases: 100000        # the most cases the sweep may expand to (default 100,000)
 
@@ -70,6 +72,8 @@ _ENVELOPE = {
     "sim.start_lateral_offset": ("max_distance", "m"),
     "sim.start_heading_offset": ("max_heading_error", "rad"),
 }
+#: The bound on a case's ``exit_status`` when the sweep gives none: 0, as the case run alone.
+DEFAULT_EXIT_STATUS = 0.0
 _DRAW_STREAM = 1  # the draws' random stream, apart from the noise's (same seed, other stream)
 
 
@@ -230,6 +234,10 @@ def load_sweep(path: str | Path) -> Sweep:
     error = threshold_error(thresholds, where)  # a typo is refused before any case runs
     if error is not None:
         raise ConfigError(error)
+    # a case's own command line is a verdict: `leafgate sim` exits 1 when the drive did not
+    # finish or hit something, and the batch does not call that case within its thresholds
+    # unless the file says so (`exit_status: 1`)
+    thresholds.setdefault("exit_status", DEFAULT_EXIT_STATUS)
     timeout = data.get("timeout_s")
     if timeout is not None and not _number(where, "timeout_s", timeout) > 0:
         raise ConfigError(f"{where}: timeout_s: expected a positive number of seconds")
