@@ -340,3 +340,15 @@ def test_counts_of_one_are_singular(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "0 engaged command frames checked" in verdict and "1 coverage finding;" not in verdict
     # a foreign log has no end marker: that fails it too, and the verdict says so
     assert verdict.endswith(", 1 coverage finding, 1 incomplete finding"), verdict
+
+
+@pytest.mark.parametrize("name", ["gone.mcap", "gone.log", "gone.blf"])
+def test_a_missing_recording_is_no_such_file_not_a_missing_profile(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], name: str
+) -> None:
+    """Old code: "the recording names no vehicle profile; give --profile …" for a file that is
+    not there (found by an outside look at `leafgate batch check`)."""
+    path = tmp_path / name
+    assert cli.main(["replay", "check", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err == f"leafgate: error: {path}: no such file\n"

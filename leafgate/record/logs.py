@@ -717,6 +717,8 @@ def recording_context(
             raise ConfigError(f"--profile: {exc}") from None
         cfg = with_profile(cfg or LeafgateConfig(), profile)
     if cfg is None:
+        if not Path(path).exists():  # not a recording without a profile: no recording at all
+            raise ReplayError(f"{path}: no such file")
         raise ReplayError(
             f"{path}: the recording names no vehicle profile; give --profile NAME|FILE "
             f"({', '.join(PROFILE_NAMES)}) or --config FILE{_profiles_beside(Path(path))}"
