@@ -167,6 +167,22 @@ def test_output_folder_that_cannot_be_created_is_one_line(
     assert "cannot create the output folder" in err and str(blocker / "out") in err
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
+def test_an_output_folder_nothing_can_be_written_in_is_refused_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: every case ran, then "cannot write the results" (found by an outside look with
+    a read-only mount; /proc/self is a folder no one can create a file in, root included)."""
+    sweep = write(tmp_path, "routes: [straight]\n")
+    assert main(["batch", "sim", str(sweep), "--out", "/proc/self"]) == 1
+    out, err = capsys.readouterr()
+    assert err.strip() == (
+        "leafgate: error: --out /proc/self: cannot write in the output folder: "
+        "No such file or directory"
+    )
+    assert "case" not in out  # nothing ran
+
+
 def test_cases_are_seeded_and_reproducible(tmp_path: Path) -> None:
     sweep = load_sweep(write(tmp_path, SMALL_SWEEP))
     cases = expand(sweep)

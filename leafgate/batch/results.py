@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -65,13 +66,21 @@ SIM_METRICS = (
 
 
 def make_out_dir(path: str | Path) -> Path:
-    """Create the output folder, or one line saying why it cannot be."""
+    """Create the output folder and make sure a file can be written in it (a read-only one
+    found before the run, not after every case has run), or one line saying why not."""
     out = Path(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise BatchError(
             f"--out {out}: cannot create the output folder: {exc.strerror or exc}"
+        ) from None
+    try:
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".leafgate-write-check-"):
+            pass
+    except OSError as exc:
+        raise BatchError(
+            f"--out {out}: cannot write in the output folder: {exc.strerror or exc}"
         ) from None
     return out
 
