@@ -755,6 +755,17 @@ def test_refused_inputs_leave_no_empty_output_folder(
         assert not out.exists()
 
 
+def test_a_glob_that_matches_no_log_says_so_not_that_nothing_matched(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: "no *.txt files in it" for a folder holding notes.txt."""
+    (tmp_path / "misc").mkdir()
+    (tmp_path / "misc" / "notes.txt").write_text("not a log\n")
+    assert main(["batch", "check", str(tmp_path / "misc"), "--glob", "*.txt"]) == 1
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'misc'}: no *.txt file in it is a log (.log, " in err
+
+
 @pytest.mark.slow
 def test_relative_paths_reach_workers_started_in_another_folder(
     recordings: Path,

@@ -117,7 +117,12 @@ def _files(directory: str, suffixes: tuple[str, ...], pattern: str | None = None
         p for p in root.rglob(pattern or "*") if p.is_file() and p.suffix.lower() in suffixes
     )
     if not files:
-        raise BatchError(f"{root}: no {pattern or ', '.join(suffixes)} files in it")
+        kinds = ", ".join(suffixes)
+        raise BatchError(
+            f"{root}: no {pattern} file in it is a log ({kinds})"
+            if pattern
+            else f"{root}: no {kinds} files in it"
+        )
     return files
 
 
