@@ -239,6 +239,7 @@ BEFORE_THE_HOLD = {
     "leafgate.runtime.hold",
     "leafgate.__main__",
     "__future__",
+    "atexit",  # built into the interpreter (sys.builtin_module_names): nothing to load
 }
 
 
