@@ -153,3 +153,18 @@ def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> bool:
             return False
         time.sleep(0.02)
     return True
+
+
+def process_cluster() -> Any:
+    """A local Dask cluster of one worker process with one thread, on loopback with its HTTP
+    server on a free port: as the batch engine starts its own (``leafgate.batch.engine``), for
+    the tests that give the batch a ``--scheduler`` of their own."""
+    from distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=1,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+    )

@@ -19,6 +19,7 @@ from leafgate.batch.sweep import expand, load_sweep
 from leafgate.cli import main
 from leafgate.errors import ConfigError
 from leafgate.sim.runner import WALL_CLOCK_METRICS
+from tests.conftest import process_cluster
 
 #: A small sweep on the shortest route: 2 controllers × 2 seeded samples, with noise.
 SMALL_SWEEP = """\
@@ -777,18 +778,10 @@ def test_relative_paths_reach_workers_started_in_another_folder(
     started in another folder (as a cluster's are). Before, the tasks got the relative paths
     and each worker looked for them in its own folder: every log failed, 'no such file' (or a
     file of the same name there was checked instead)."""
-    from distributed import LocalCluster
-
     elsewhere = tmp_path / "workers-start-here"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)  # the workers' working folder
-    with LocalCluster(
-        n_workers=1,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address="127.0.0.1:0",
-    ) as cluster:
+    with process_cluster() as cluster:
         monkeypatch.chdir(recordings.parent)  # the batch's, where `drives/` is
         relative = recordings.name
         args = ["--scheduler", cluster.scheduler_address]

@@ -21,7 +21,7 @@ import pytest
 from leafgate.batch.results import read_table
 from leafgate.cli import main
 from leafgate.sim.runner import WALL_CLOCK_METRICS
-from tests.conftest import free_port
+from tests.conftest import free_port, process_cluster
 
 pytestmark = pytest.mark.slow
 
@@ -312,7 +312,6 @@ def test_a_result_lost_in_transit_is_the_lost_scheduler_in_one_line(
 
     The test above reaches this path only when its kill happens to fall during a gather; here
     the third gather fails, whatever the timing."""
-    from distributed import LocalCluster
     from distributed.client import Future
     from distributed.comm.core import CommClosedError
 
@@ -329,13 +328,7 @@ def test_a_result_lost_in_transit_is_the_lost_scheduler_in_one_line(
     sweep = tmp_path / "sweep.yaml"
     sweep.write_text(SWEEP.replace("samples: 2", "samples: 3"), encoding="utf-8")
     # a worker process: a case in a thread of this one would redirect this process's stderr
-    with LocalCluster(
-        n_workers=1,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address="127.0.0.1:0",
-    ) as cluster:
+    with process_cluster() as cluster:
         address = cluster.scheduler_address
         monkeypatch.setattr(Future, "result", result_lost_on_the_third)
         status = main(
