@@ -164,6 +164,24 @@ def test_unreachable_scheduler_is_one_line(
     assert f"--scheduler {address}: cannot connect" in err
 
 
+def test_a_scheduler_port_out_of_range_is_one_line_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Old code: "cannot connect: Timed out … after 10 s" for a port no address can have."""
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text(SWEEP, encoding="utf-8")
+    address = "tcp://127.0.0.1:99999"
+    status = main(
+        ["batch", "sim", str(sweep), "--scheduler", address, "--out", str(tmp_path / "o")]
+    )
+    assert status == 1
+    assert (
+        capsys.readouterr().err
+        == f"leafgate: error: --scheduler {address}: port 99999 is not 1–65535\n"
+    )
+    assert not (tmp_path / "o").exists()
+
+
 def test_scheduler_without_workers_fails_in_one_line_after_the_stated_wait(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -27,6 +27,7 @@ import concurrent.futures
 import contextlib
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -273,6 +274,9 @@ def run_tasks(
                 run.workers, run.scheduler = n, f"local cluster ({processes})"
                 _submit_and_wait(client, fn, tasks, timeout, progress, what, run, interrupt)
         else:
+            port = re.search(r":(\d+)$", scheduler)
+            if port is not None and not 0 < int(port[1]) < 65536:  # no connection can say it
+                raise BatchError(f"--scheduler {scheduler}: port {port[1]} is not 1–65535")
             try:
                 client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
             except (OSError, TimeoutError, ValueError) as exc:
